@@ -1,0 +1,31 @@
+"""morphgs: optimisation-free, 3D-consistent corrupted/clean training pairs from 3DGS scenes.
+
+Load a clean Gaussian-splat scene, perturb the Gaussians themselves (the paper's 3D morphological
+perturbations and their spatial and radiometric siblings) and render the clean and the perturbed
+scene along the same camera path.
+"""
+
+from __future__ import annotations
+
+from morphgs._core import (
+    GaussianScene,
+    MorphgsError,
+    MorphgsWarning,
+    SceneFormatError,
+    __version__,
+    load,
+    save_ply,
+)
+from morphgs.camera import Camera, Cameras
+
+__all__ = [
+    "Camera",
+    "Cameras",
+    "GaussianScene",
+    "MorphgsError",
+    "MorphgsWarning",
+    "SceneFormatError",
+    "__version__",
+    "load",
+    "save_ply",
+]

@@ -1,0 +1,71 @@
+# Hand-written stubs for the native module; checked with `python -m mypy.stubtest morphgs._core`.
+from collections.abc import Mapping
+from os import PathLike
+from typing import Any, Literal, final
+
+import numpy as np
+import numpy.typing as npt
+from typing_extensions import disjoint_base
+
+__version__: str
+
+_F32 = npt.NDArray[np.float32]
+_Path = str | PathLike[str]
+
+# ---- errors ----
+class MorphgsError(ValueError): ...
+
+class SceneFormatError(MorphgsError):
+    path: str
+    element: str | None
+    property: str | None
+
+class MorphgsWarning(UserWarning): ...
+
+# ---- scene ----
+@final
+@disjoint_base
+class GaussianScene:
+    @staticmethod
+    def from_arrays(
+        *,
+        means: npt.ArrayLike,
+        quats: npt.ArrayLike,
+        log_scales: npt.ArrayLike,
+        opacity_logits: npt.ArrayLike,
+        sh0: npt.ArrayLike,
+        sh_rest: npt.ArrayLike | None = None,
+        extras: Mapping[str, npt.ArrayLike] | None = None,
+    ) -> GaussianScene: ...
+    @property
+    def means(self) -> _F32: ...
+    @property
+    def quats(self) -> _F32: ...
+    @property
+    def log_scales(self) -> _F32: ...
+    @property
+    def opacity_logits(self) -> _F32: ...
+    @property
+    def sh0(self) -> _F32: ...
+    @property
+    def sh_rest(self) -> _F32: ...
+    @property
+    def sh_degree(self) -> int: ...
+    @property
+    def extras(self) -> dict[str, _F32]: ...
+    @property
+    def scales(self) -> _F32: ...
+    @property
+    def opacities(self) -> _F32: ...
+    @property
+    def colors(self) -> _F32: ...
+    def bounds(self) -> tuple[_F32, _F32]: ...
+    def subset(self, indices_or_mask: npt.ArrayLike) -> GaussianScene: ...
+    def __len__(self) -> int: ...
+    def __reduce__(self) -> tuple[Any, tuple[dict[str, Any]]]: ...
+
+def _scene_from_state(state: dict[str, Any]) -> GaussianScene: ...
+
+# ---- io ----
+def load(path: _Path, *, on_invalid: Literal["error", "drop"] | str = "error") -> GaussianScene: ...
+def save_ply(scene: GaussianScene, path: _Path) -> None: ...

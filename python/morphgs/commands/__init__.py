@@ -1,0 +1,1 @@
+"""Subcommands of the `morphgs` CLI (see morphgs.cli)."""
