@@ -5,7 +5,6 @@ from typing import Any, Literal, final
 
 import numpy as np
 import numpy.typing as npt
-from typing_extensions import disjoint_base
 
 __version__: str
 
@@ -24,7 +23,6 @@ class MorphgsWarning(UserWarning): ...
 
 # ---- scene ----
 @final
-@disjoint_base
 class GaussianScene:
     @staticmethod
     def from_arrays(
