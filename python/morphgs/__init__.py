@@ -14,6 +14,7 @@ from morphgs._core import (
     SceneFormatError,
     __version__,
     load,
+    num_threads,
     save_ply,
 )
 from morphgs.camera import Camera, Cameras
@@ -27,5 +28,6 @@ __all__ = [
     "SceneFormatError",
     "__version__",
     "load",
+    "num_threads",
     "save_ply",
 ]

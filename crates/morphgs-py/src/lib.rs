@@ -4,6 +4,7 @@ use pyo3::prelude::*;
 
 mod errors;
 mod io;
+mod pool;
 mod scene;
 
 #[pymodule]
@@ -12,5 +13,13 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     errors::register(m)?;
     scene::register(m)?;
     io::register(m)?;
+    m.add_function(wrap_pyfunction!(num_threads, m)?)?;
     Ok(())
+}
+
+/// Number of worker threads morphgs uses in this process (RAYON_NUM_THREADS or
+/// MORPHGS_NUM_THREADS, else the CPU count).
+#[pyfunction]
+fn num_threads(py: Python<'_>) -> usize {
+    py.detach(pool::num_threads)
 }

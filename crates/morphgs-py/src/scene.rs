@@ -407,7 +407,7 @@ impl PyGaussianScene {
             )));
         };
         let core = self.to_core(py)?;
-        Self::from_core(py, py.detach(|| core.gather(&idx)))
+        Self::from_core(py, py.detach(|| crate::pool::install(|| core.gather(&idx))))
     }
 
     fn __len__(&self, py: Python<'_>) -> usize {
