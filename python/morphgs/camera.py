@@ -246,6 +246,62 @@ class Cameras(Sequence[Camera]):
                    K=np.stack([c.K for c in cams]), width=w, height=h,
                    near=cams[0].near, far=cams[0].far)
 
+    @classmethod
+    def from_c2w(
+        cls,
+        c2w: npt.ArrayLike,
+        *,
+        K: npt.ArrayLike,
+        width: int,
+        height: int,
+        convention: Literal["opencv", "opengl"] = "opencv",
+        near: float = 0.01,
+        far: float = 1e10,
+    ) -> Cameras:
+        """From camera-to-world matrices ((F,4,4) or (F,3,4)) and intrinsics ((3,3) or (F,3,3)).
+
+        "opengl" converts nerfstudio/Blender axes (x right, y up, z backward) to OpenCV.
+        """
+        m = np.asarray(c2w, dtype=np.float64)
+        if m.ndim != 3 or m.shape[1:] not in ((4, 4), (3, 4)):
+            raise ValueError(f"c2w must have shape (F,4,4) or (F,3,4), got {m.shape}")
+        if m.shape[1] == 3:
+            bottom = np.broadcast_to([0.0, 0.0, 0.0, 1.0], (m.shape[0], 1, 4))
+            m = np.concatenate([m, bottom], axis=1)
+        if not np.all(np.isfinite(m)):
+            raise ValueError("c2w holds NaN or Inf values")
+        if convention == "opengl":
+            m = m @ _GL_TO_CV
+        elif convention != "opencv":
+            raise ValueError(f"convention must be 'opencv' or 'opengl', got {convention!r}")
+        k = np.asarray(K, dtype=np.float64)
+        if k.shape == (3, 3):
+            k = np.broadcast_to(k, (m.shape[0], 3, 3))
+        w2c = np.stack([_invert_rigid(x) for x in m]) if len(m) else np.zeros((0, 4, 4))
+        return cls(world_to_camera=w2c, K=k, width=width, height=height, near=near, far=far)
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-ready dict: size, near/far, and per camera K (3x3) and world_to_camera (4x4)."""
+        return {
+            "convention": "opencv",
+            "width": self.width,
+            "height": self.height,
+            "near": self.near,
+            "far": self.far,
+            "K": self.K.tolist(),
+            "world_to_camera": self.world_to_camera.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, object]) -> Cameras:
+        """Inverse of `to_dict`."""
+        try:
+            return cls(world_to_camera=d["world_to_camera"], K=d["K"],  # type: ignore[arg-type]
+                       width=d["width"], height=d["height"],  # type: ignore[arg-type]
+                       near=d.get("near", 0.01), far=d.get("far", 1e10))  # type: ignore[arg-type]
+        except KeyError as e:
+            raise ValueError(f"cameras dict lacks the field {e.args[0]!r}") from None
+
     def __len__(self) -> int:
         return int(self.world_to_camera.shape[0])
 

@@ -1,0 +1,27 @@
+"""Camera trajectories in the morphgs convention (OpenCV axes, SPEC §3).
+
+Readers bring recorded cameras in (`from_transforms_json`, `from_colmap`, `from_camera_path`);
+generators make paths (`smooth_path` through keyframes, `orbit`/`ellipse`, `spiral`, and
+`for_scene` for scenes with no cameras); `clips` splits a path into fixed-length clips.
+"""
+
+from __future__ import annotations
+
+from morphgs.trajectory.colmap import find_colmap_model, from_colmap
+from morphgs.trajectory.generators import ellipse, for_scene, orbit, robust_bounds, spiral
+from morphgs.trajectory.nerfstudio import from_camera_path, from_transforms_json
+from morphgs.trajectory.smooth import clips, smooth_path
+
+__all__ = [
+    "clips",
+    "ellipse",
+    "find_colmap_model",
+    "for_scene",
+    "from_camera_path",
+    "from_colmap",
+    "from_transforms_json",
+    "orbit",
+    "robust_bounds",
+    "smooth_path",
+    "spiral",
+]

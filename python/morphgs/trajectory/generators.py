@@ -1,0 +1,230 @@
+"""Camera paths made from scratch: ellipse/orbit, forward-facing spiral, and a path framing a
+scene that has no cameras."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from morphgs.camera import Camera, Cameras, look_at_c2w
+from morphgs.trajectory._common import DEFAULT_RESOLUTION, check_resolution
+
+__all__ = ["ellipse", "for_scene", "orbit", "robust_bounds", "spiral"]
+
+
+def _focal(fov_y_degrees: float, height: int) -> float:
+    if not 0.0 < fov_y_degrees < 180.0:
+        raise ValueError(f"fov_y_degrees must be in (0, 180), got {fov_y_degrees}")
+    return 0.5 * height / math.tan(math.radians(fov_y_degrees) / 2)
+
+
+def _check_frames(n_frames: int) -> int:
+    n = int(n_frames)
+    if n != n_frames or n < 1:
+        raise ValueError(f"n_frames must be a positive integer, got {n_frames!r}")
+    return n
+
+
+def _unit(v: npt.ArrayLike, name: str) -> np.ndarray:
+    a = np.asarray(v, dtype=np.float64).reshape(3)
+    n = np.linalg.norm(a)
+    if not np.isfinite(n) or n == 0:
+        raise ValueError(f"{name} must be a finite non-zero 3-vector")
+    return a / n
+
+
+def _basis(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors spanning the plane orthogonal to `up` (right-handed with it)."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(up, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    return e1, e2
+
+
+def ellipse(
+    center: npt.ArrayLike,
+    radii: float | Sequence[float],
+    height: float,
+    n_frames: int,
+    *,
+    target: npt.ArrayLike | None = None,
+    up: npt.ArrayLike = (0.0, 0.0, 1.0),
+    start_degrees: float = 0.0,
+    arc_degrees: float = 360.0,
+    fov_y_degrees: float = 50.0,
+    resolution: Sequence[int] = DEFAULT_RESOLUTION,
+) -> Cameras:
+    """Cameras on an ellipse around `center`, `height` above it along `up`, looking at `target`.
+
+    Positions: center + up*height + a cos(th) e1 + b sin(th) e2 for th running from start over
+    `arc_degrees` (a full turn does not repeat its first frame). Each camera looks at `target`
+    (default `center`) with `up` as the world's up.
+
+    Args:
+        center: (3,) centre of the ellipse.
+        radii: one radius (a circle) or the two semi-axes (a, b).
+        height: offset of the ellipse's plane along `up`.
+        n_frames: number of cameras.
+        target: look-at point.
+        up: world up direction (z-up by default).
+        start_degrees, arc_degrees: where the path starts and how far it goes.
+        fov_y_degrees: vertical field of view.
+        resolution: (W, H).
+
+    Returns:
+        Cameras.
+    """
+    n = _check_frames(n_frames)
+    res = check_resolution(resolution)
+    assert res is not None
+    w, h = res
+    c = np.asarray(center, dtype=np.float64).reshape(3)
+    r = np.broadcast_to(np.asarray(radii, dtype=np.float64).reshape(-1), (2,))
+    if np.any(~np.isfinite(r)) or np.any(r <= 0) or not np.all(np.isfinite(c)):
+        raise ValueError(f"ellipse: need a finite centre and positive radii, got {center}, {radii}")
+    u = _unit(up, "up")
+    tgt = c if target is None else np.asarray(target, dtype=np.float64).reshape(3)
+    e1, e2 = _basis(u)
+    full = abs(arc_degrees) >= 360.0 - 1e-9
+    steps = n if full else max(n - 1, 1)
+    th = np.radians(start_degrees + arc_degrees * np.arange(n) / steps)
+    f = _focal(fov_y_degrees, h)
+    k = np.array([[f, 0.0, w / 2], [0.0, f, h / 2], [0.0, 0.0, 1.0]])
+    c2w = []
+    for t in th:
+        eye = c + u * height + r[0] * math.cos(t) * e1 + r[1] * math.sin(t) * e2
+        c2w.append(look_at_c2w(eye, tgt, u))
+    return Cameras.from_c2w(np.stack(c2w), K=k, width=w, height=h)
+
+
+def orbit(
+    center: npt.ArrayLike,
+    radius: float,
+    height: float,
+    n_frames: int,
+    **kwargs: Any,
+) -> Cameras:
+    """A circular orbit: `ellipse(center, radius, height, n_frames, **kwargs)`."""
+    return ellipse(center, float(radius), height, n_frames, **kwargs)
+
+
+def spiral(
+    base: Camera,
+    n_frames: int,
+    *,
+    focus_distance: float,
+    radius: float | Sequence[float] = 0.1,
+    rotations: float = 2.0,
+) -> Cameras:
+    """A forward-facing spiral (LLFF style) around a base camera.
+
+    Position k: base centre + R_base @ (rx cos th, ry sin th, rz sin(th/2)) in the base camera's
+    axes, th = 2 pi rotations k / n; every camera looks at the point `focus_distance` in front of
+    the base camera, with the base camera's up (-y) as up. Intrinsics and size are the base's.
+
+    Args:
+        base: the central camera.
+        n_frames: number of cameras.
+        focus_distance: distance of the look-at point along the base camera's view axis.
+        radius: amplitude (one value, or (rx, ry, rz)) in world units.
+        rotations: number of turns over the path.
+    """
+    n = _check_frames(n_frames)
+    if not focus_distance > 0:
+        raise ValueError(f"focus_distance must be > 0, got {focus_distance}")
+    r = np.broadcast_to(np.asarray(radius, dtype=np.float64).reshape(-1), (3,))
+    c2w0 = base.camera_to_world
+    rot, centre = c2w0[:3, :3], c2w0[:3, 3]
+    focus = centre + rot[:, 2] * focus_distance
+    up = -rot[:, 1]
+    th = 2 * math.pi * rotations * np.arange(n) / n
+    offs = np.stack([r[0] * np.cos(th), r[1] * np.sin(th), r[2] * np.sin(th / 2)], 1)
+    c2w = np.stack([look_at_c2w(centre + rot @ o, focus, up) for o in offs])
+    return Cameras.from_c2w(c2w, K=base.K, width=base.width, height=base.height)
+
+
+def robust_bounds(
+    points: npt.ArrayLike,
+    *,
+    percentiles: tuple[float, float] = (2.0, 98.0),
+    weights: npt.ArrayLike | None = None,
+    weight_threshold: float = 0.1,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis percentile bounds of (N,3) points, so a few floaters do not count.
+
+    Points whose weight (e.g. opacity) is below `weight_threshold` are left out when enough
+    others remain.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    keep = np.all(np.isfinite(p), axis=1)
+    if weights is not None:
+        wgt = np.asarray(weights, dtype=np.float64).reshape(-1)
+        if wgt.shape[0] != p.shape[0]:
+            raise ValueError(f"robust_bounds: {wgt.shape[0]} weights for {p.shape[0]} points")
+        heavy = keep & (wgt >= weight_threshold)
+        if heavy.sum() >= 16:
+            keep = heavy
+    p = p[keep]
+    if len(p) == 0:
+        raise ValueError("robust_bounds: no finite points")
+    lo, hi = percentiles
+    if not 0.0 <= lo < hi <= 100.0:
+        raise ValueError(f"percentiles must satisfy 0 <= lo < hi <= 100, got {percentiles}")
+    return np.percentile(p, lo, axis=0), np.percentile(p, hi, axis=0)
+
+
+def for_scene(
+    scene: Any,
+    n_frames: int,
+    *,
+    resolution: Sequence[int] = DEFAULT_RESOLUTION,
+    fov_y_degrees: float = 50.0,
+    up: npt.ArrayLike = (0.0, 0.0, 1.0),
+    elevation_degrees: float = 25.0,
+    start_degrees: float = 0.0,
+    arc_degrees: float = 360.0,
+    percentiles: tuple[float, float] = (2.0, 98.0),
+    margin: float = 1.1,
+) -> Cameras:
+    """An orbit framing a scene that has no cameras of its own.
+
+    The framed box is the per-axis `percentiles` of the Gaussian centres (Gaussians with opacity
+    below 0.1 left out), so a few far floaters neither move the centre nor push the camera away.
+    The camera circles the box centre at `elevation_degrees` above the plane orthogonal to `up`,
+    at the distance where the box's bounding sphere fits the narrower field of view, times
+    `margin`.
+
+    Args:
+        scene: a GaussianScene (or an (N,3) array of centres).
+        n_frames: number of cameras.
+        resolution: (W, H).
+        fov_y_degrees: vertical field of view.
+        up: world up (the synthetic scenes are z-up).
+        elevation_degrees: camera elevation above the box centre.
+        start_degrees, arc_degrees: the part of the circle the path covers.
+        percentiles: robust bound percentiles.
+        margin: >= 1 leaves room around the content.
+
+    Returns:
+        Cameras.
+    """
+    res = check_resolution(resolution)
+    assert res is not None
+    means = getattr(scene, "means", scene)
+    weights = getattr(scene, "opacities", None)
+    lo, hi = robust_bounds(means, percentiles=percentiles, weights=weights)
+    centre = (lo + hi) / 2
+    sphere = max(float(np.linalg.norm(hi - lo)) / 2, 1e-3)
+    w, h = res
+    half_y = math.radians(fov_y_degrees) / 2
+    half_x = math.atan(math.tan(half_y) * w / h)
+    dist = margin * sphere / math.sin(min(half_x, half_y))
+    el = math.radians(elevation_degrees)
+    return ellipse(centre, dist * math.cos(el), dist * math.sin(el), n_frames, target=centre, up=up,
+                   start_degrees=start_degrees, arc_degrees=arc_degrees, fov_y_degrees=fov_y_degrees,
+                   resolution=res)
