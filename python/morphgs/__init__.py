@@ -13,11 +13,16 @@ from morphgs._core import (
     MorphgsWarning,
     SceneFormatError,
     __version__,
+    gaussian_blur,
     load,
     num_threads,
     save_ply,
 )
 from morphgs.camera import Camera, Cameras
+from morphgs.pair import Pair, render_pair
+from morphgs import trajectory
+# `morphgs.curate(...)` is the function; its package stays importable as `from morphgs.curate import ...`.
+from morphgs.curate import curate
 
 __all__ = [
     "Camera",
@@ -25,9 +30,14 @@ __all__ = [
     "GaussianScene",
     "MorphgsError",
     "MorphgsWarning",
+    "Pair",
     "SceneFormatError",
     "__version__",
+    "curate",
+    "gaussian_blur",
     "load",
     "num_threads",
+    "render_pair",
     "save_ply",
+    "trajectory",
 ]

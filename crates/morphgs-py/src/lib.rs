@@ -2,6 +2,7 @@
 //! Each domain registers its names from its own file.
 use pyo3::prelude::*;
 
+mod blur;
 mod errors;
 mod io;
 mod pool;
@@ -13,6 +14,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     errors::register(m)?;
     scene::register(m)?;
     io::register(m)?;
+    blur::register(m)?;
     m.add_function(wrap_pyfunction!(num_threads, m)?)?;
     Ok(())
 }

@@ -9,3 +9,4 @@ pub mod scene;
 
 pub use error::{Error, Result};
 pub use scene::{Scene, SceneView};
+pub mod blur;

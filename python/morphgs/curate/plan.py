@@ -1,0 +1,220 @@
+"""The curation plan: configs, seeds, splits, sharding and the camera path of each pair.
+
+Seeds and splits are pure functions of names and numbers (SHA-256 of a fixed text), so they do
+not depend on the order of the inputs, the number of workers or shards, or the machine:
+
+    pair_seed = uint64_le(sha256("morphgs/pair-seed/v1\\0{run_seed}\\0{scene_id}\\0{pair_index}")[:8]) >> 1
+    split     = "test" if uint64_le(sha256("morphgs/split/v1\\0{split_seed}\\0{scene_id}")[:8]) / 2^64
+                < test_fraction else "train"
+
+(the pair seed keeps 63 bits so it fits every signed or unsigned 64-bit consumer). Every config
+of a run uses the same pair seed, so an ablation compares configs on identical paths and noise
+streams.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from morphgs.camera import Cameras
+from morphgs.curate.sources import SceneSource
+
+__all__ = ["ConfigSpec", "PairJob", "TrajectoryOptions", "job_cameras", "make_plan", "pair_seed",
+           "parse_config", "scene_split"]
+
+PRESETS = ("spatial", "radiometric", "morphological", "naive")
+
+
+def _u64(text: str) -> int:
+    return int.from_bytes(hashlib.sha256(text.encode("utf-8")).digest()[:8], "little")
+
+
+def pair_seed(run_seed: int, scene_id: str, pair_index: int) -> int:
+    """The perturbation seed of pair `pair_index` of `scene_id` in a run seeded `run_seed`."""
+    return _u64(f"morphgs/pair-seed/v1\0{int(run_seed)}\0{scene_id}\0{int(pair_index)}") >> 1
+
+
+def scene_split(scene_id: str, *, test_fraction: float, split_seed: int = 0) -> str:
+    """"train" or "test" for a scene: deterministic in (split_seed, scene_id)."""
+    if not 0.0 <= test_fraction <= 1.0:
+        raise ValueError(f"test_fraction must be in [0, 1], got {test_fraction}")
+    u = _u64(f"morphgs/split/v1\0{int(split_seed)}\0{scene_id}") / 2.0**64
+    return "test" if u < test_fraction else "train"
+
+
+@dataclass(frozen=True)
+class ConfigSpec:
+    """One corruption of a run: a label (used in paths) and its parameters as a dict.
+
+    kind "perturb" carries `PerturbConfig.to_dict()` in `params`; kind "blur2d" carries
+    {"sigma": pixels}.
+    """
+
+    label: str
+    kind: str
+    params: dict[str, Any]
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"name": self.label, "kind": self.kind, **self.params}
+
+    def perturb_config(self) -> Any:
+        import morphgs
+
+        return morphgs.PerturbConfig.from_dict(self.params)
+
+
+def parse_config(spec: str, *, blur_sigma: float = 2.0) -> ConfigSpec:
+    """Parse a --config value.
+
+    Forms: a preset name (spatial, radiometric, morphological, naive); `NAME@S`, the preset with
+    every intensity scaled by S (`PerturbConfig.scaled`); `blur2d` or `blur2d@SIGMA` (the 2D
+    baseline, sigma in pixels, default `blur_sigma`); or a path to a JSON file holding a
+    `PerturbConfig.to_dict()` (or {"kind": "blur2d", "sigma": s}), labelled by the file stem.
+    """
+    s = spec.strip()
+    if s.lower().endswith(".json"):
+        p = Path(s)
+        try:
+            d = json.loads(p.read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValueError(f"--config {spec}: cannot read JSON ({e})") from None
+        if not isinstance(d, dict):
+            raise ValueError(f"--config {spec}: expected a JSON object")
+        if d.get("kind") == "blur2d":
+            return ConfigSpec(p.stem, "blur2d", {"sigma": float(d.get("sigma", blur_sigma))})
+        import morphgs
+
+        d = {k: v for k, v in d.items() if k not in ("kind", "name")}
+        return ConfigSpec(p.stem, "perturb", dict(morphgs.PerturbConfig.from_dict(d).to_dict()))
+    name, _, factor = s.partition("@")
+    name = name.lower()
+    if name == "blur2d":
+        sigma = float(factor) if factor else float(blur_sigma)
+        if not math.isfinite(sigma) or not 0 <= sigma <= 256:
+            raise ValueError(f"--config {spec}: blur sigma must be in [0, 256] pixels")
+        return ConfigSpec("blur2d" if not factor else f"blur2d-s{factor}", "blur2d", {"sigma": sigma})
+    if name not in PRESETS:
+        raise ValueError(f"--config {spec!r}: expected one of {', '.join(PRESETS)}, blur2d, NAME@SCALE "
+                         "or a .json file")
+    import morphgs
+
+    cfg = morphgs.PerturbConfig.preset(name)
+    label = name
+    if factor:
+        try:
+            f = float(factor)
+        except ValueError:
+            raise ValueError(f"--config {spec!r}: the scale after '@' must be a number") from None
+        cfg = cfg.scaled(f)
+        label = f"{name}-x{factor}"
+    return ConfigSpec(label, "perturb", dict(cfg.to_dict()))
+
+
+@dataclass(frozen=True)
+class TrajectoryOptions:
+    """How pair cameras are made. `kind`: "auto" (recorded cameras when the scene has them, else
+    an orbit), "cameras" or "orbit"."""
+
+    kind: str = "auto"
+    stride: int | None = None
+    orbit_arc_degrees: float = 60.0
+    fov_y_degrees: float = 50.0
+
+
+@dataclass(frozen=True)
+class PairJob:
+    """One pair to make: a scene, a config and a pair index, with everything derived from them."""
+
+    source: SceneSource
+    config: ConfigSpec
+    index: int
+    pairs_per_scene: int
+    seed: int
+    split: str
+    frames: int
+    width: int
+    height: int
+
+    @property
+    def pair_id(self) -> str:
+        return f"{self.source.id}/{self.config.label}/{self.index:04d}"
+
+    @property
+    def rel_dir(self) -> str:
+        return f"pairs/{self.pair_id}"
+
+
+def make_plan(
+    sources: Sequence[SceneSource],
+    configs: Sequence[ConfigSpec],
+    *,
+    pairs_per_scene: int,
+    run_seed: int,
+    frames: int,
+    resolution: tuple[int, int],
+    test_fraction: float,
+    split_seed: int = 0,
+    shard_index: int = 0,
+    num_shards: int = 1,
+) -> list[PairJob]:
+    """All jobs of this shard, ordered scene by scene (so a worker loads each scene once).
+
+    Sharding: jobs are numbered in (scene, pair index, config) order over all scenes, and job j
+    belongs to shard j mod num_shards: shards get equal shares whatever the scene sizes, and every
+    shard must be given the same scenes and settings.
+    """
+    if pairs_per_scene < 1:
+        raise ValueError(f"pairs_per_scene must be >= 1, got {pairs_per_scene}")
+    if frames < 1:
+        raise ValueError(f"frames must be >= 1, got {frames}")
+    if num_shards < 1 or not 0 <= shard_index < num_shards:
+        raise ValueError(f"need 0 <= shard_index < num_shards, got {shard_index} of {num_shards}")
+    labels = [c.label for c in configs]
+    if len(set(labels)) != len(labels):
+        raise ValueError(f"configs must have distinct labels, got {labels}")
+    jobs = []
+    j = 0
+    for src in sources:
+        split = scene_split(src.id, test_fraction=test_fraction, split_seed=split_seed)
+        for k in range(pairs_per_scene):
+            seed = pair_seed(run_seed, src.id, k)
+            for cfg in configs:
+                if j % num_shards == shard_index:
+                    jobs.append(PairJob(src, cfg, k, pairs_per_scene, seed, split, frames, *resolution))
+                j += 1
+    return jobs
+
+
+def job_cameras(job: PairJob, scene: Any, recorded: Cameras | None, opts: TrajectoryOptions) -> Cameras:
+    """The camera path of a pair.
+
+    - Recorded cameras (kind "auto"/"cameras" and the scene has them): a smooth constant-speed
+      path through the recorded cameras in capture order with as many frames as recorded (at
+      least `frames`), cut into clips of `frames` every `stride` frames (default: `frames`);
+      pair k takes clip k mod (number of clips).
+    - Otherwise an orbit framing the scene's robust bounds (`trajectory.for_scene`): pair k
+      starts at 360 k / K degrees and sweeps `orbit_arc_degrees`; its elevation, in [10, 40]
+      degrees, comes from the pair seed.
+    """
+    from morphgs import trajectory
+
+    if opts.kind not in ("auto", "cameras", "orbit"):
+        raise ValueError(f"trajectory must be auto, cameras or orbit, got {opts.kind!r}")
+    if opts.kind == "cameras" and recorded is None:
+        raise ValueError(f"scene {job.source.id} has no cameras (trajectory 'cameras' was asked)")
+    if recorded is not None and opts.kind != "orbit":
+        path = trajectory.smooth_path(recorded, max(len(recorded), job.frames))
+        cl = trajectory.clips(path, job.frames, stride=opts.stride)
+        return cl[job.index % len(cl)]
+    elevation = 10.0 + 30.0 * ((job.seed % 1_000_003) / 1_000_003)
+    return trajectory.for_scene(
+        scene, job.frames, resolution=(job.width, job.height), fov_y_degrees=opts.fov_y_degrees,
+        elevation_degrees=elevation, start_degrees=360.0 * job.index / job.pairs_per_scene,
+        arc_degrees=opts.orbit_arc_degrees)
+

@@ -1,0 +1,186 @@
+"""Scene discovery: what `morphgs curate SCENE...` accepts.
+
+A SCENE is a scene file (.ply, .splat, .spz, ...), or a folder holding one plus optional
+cameras: `transforms.json` (nerfstudio / DL3DV), a COLMAP model (`sparse/0`, `sparse` or the
+folder itself), an INRIA-3DGS `cameras.json`, or a nerfstudio `camera_path.json`. INRIA training
+outputs (`point_cloud/iteration_N/point_cloud.ply`, highest N wins) are recognised. With no SCENE
+the built-in synthetic sample scenes are used.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from morphgs._core import MorphgsError
+from morphgs.camera import Camera, Cameras
+
+__all__ = ["SCENE_EXTENSIONS", "SceneSource", "builtin_sources", "discover"]
+
+SCENE_EXTENSIONS = (".ply", ".splat", ".spz", ".ksplat", ".sog")
+_PREFERRED = ("point_cloud.ply", "splat.ply", "scene.ply", "splat.splat", "scene.splat")
+BUILTIN_GAUSSIANS = 100_000
+
+
+@dataclass(frozen=True)
+class SceneSource:
+    """One scene to curate: where its Gaussians and (optionally) its cameras come from."""
+
+    id: str
+    path: str | None = None
+    cameras: str | None = None
+    cameras_kind: str | None = None  # "transforms" | "colmap" | "inria" | "camera_path"
+    builtin: dict[str, Any] | None = field(default=None)
+
+    def describe(self) -> str:
+        src = f"built-in synthetic {self.builtin}" if self.builtin is not None else str(self.path)
+        cams = f"{self.cameras_kind} cameras {self.cameras}" if self.cameras else "no cameras (orbit)"
+        return f"{src}; {cams}"
+
+    def load(self) -> Any:
+        """Load the GaussianScene."""
+        if self.builtin is not None:
+            import morphgs.synthetic as synthetic
+
+            return synthetic.scene(**self.builtin)
+        import morphgs
+
+        assert self.path is not None
+        return morphgs.load(self.path)
+
+    def load_cameras(self, resolution: tuple[int, int]) -> Cameras | None:
+        """The recorded cameras resized to `resolution`, or None when the scene has none."""
+        if self.cameras is None:
+            return None
+        from morphgs import trajectory
+
+        if self.cameras_kind == "transforms":
+            return trajectory.from_transforms_json(self.cameras, resolution=resolution)
+        if self.cameras_kind == "colmap":
+            return trajectory.from_colmap(self.cameras, resolution=resolution)
+        if self.cameras_kind == "camera_path":
+            return trajectory.from_camera_path(self.cameras, resolution=resolution)
+        if self.cameras_kind == "inria":
+            return read_inria_cameras(self.cameras, resolution=resolution)
+        raise ValueError(f"unknown cameras kind {self.cameras_kind!r}")
+
+
+def read_inria_cameras(path: str | os.PathLike[str], *, resolution: tuple[int, int] | None) -> Cameras:
+    """INRIA 3DGS `cameras.json`: a list of {img_name, width, height, position, rotation, fx, fy}
+    where [rotation | position] is the camera-to-world (OpenCV axes). Sorted by img_name."""
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as e:
+        raise MorphgsError(f"{p}: not valid JSON ({e})") from None
+    if not isinstance(data, list) or not data:
+        raise MorphgsError(f"{p}: expected a non-empty list of cameras")
+    cams = []
+    for i, c in enumerate(sorted(data, key=lambda c: str(c.get("img_name", "")) if isinstance(c, dict) else "")):
+        try:
+            c2w = np.eye(4)
+            c2w[:3, :3] = np.asarray(c["rotation"], dtype=np.float64)
+            c2w[:3, 3] = np.asarray(c["position"], dtype=np.float64)
+            cam = Camera.from_c2w(c2w, fx=float(c["fx"]), fy=float(c["fy"]),
+                                  width=int(c["width"]), height=int(c["height"]))
+        except (KeyError, TypeError, ValueError) as e:
+            raise MorphgsError(f"{p}: camera {i}: {e!r}") from None
+        cams.append(cam.resized(*resolution) if resolution else cam)
+    return Cameras.from_list(cams)
+
+
+def _slug(name: str) -> str:
+    s = re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-.")
+    return s or "scene"
+
+
+def _scene_file_in(folder: Path) -> Path:
+    its = []
+    for d in (folder / "point_cloud").glob("iteration_*"):
+        m = re.fullmatch(r"iteration_(\d+)", d.name)
+        if m and (d / "point_cloud.ply").is_file():
+            its.append((int(m.group(1)), d / "point_cloud.ply"))
+    if its:
+        return max(its)[1]
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in SCENE_EXTENSIONS)
+    if len(files) == 1:
+        return files[0]
+    for name in _PREFERRED:
+        if (folder / name).is_file():
+            return folder / name
+    if not files:
+        raise MorphgsError(f"{folder}: no scene file ({', '.join(SCENE_EXTENSIONS)}) in this folder")
+    raise MorphgsError(f"{folder}: several scene files ({', '.join(p.name for p in files)}); "
+                       "pass the one to use")
+
+
+def _cameras_in(folder: Path) -> tuple[str | None, str | None]:
+    from morphgs.trajectory import find_colmap_model
+
+    if (folder / "transforms.json").is_file():
+        return str(folder / "transforms.json"), "transforms"
+    model = find_colmap_model(folder)
+    if model is not None:
+        return str(model), "colmap"
+    if (folder / "cameras.json").is_file():
+        return str(folder / "cameras.json"), "inria"
+    if (folder / "camera_path.json").is_file():
+        return str(folder / "camera_path.json"), "camera_path"
+    return None, None
+
+
+def discover(inputs: Sequence[str | os.PathLike[str]]) -> tuple[list[SceneSource], list[tuple[str, str]]]:
+    """Turn command-line SCENE arguments into sources.
+
+    Returns:
+        (sources, problems): problems are (input, message) for inputs that are not usable scenes;
+        the caller reports them and goes on with the rest. Scene ids are the file stem (or folder
+        name), made filesystem-safe; when two inputs share one, each gets a suffix from a hash of
+        its resolved path, so ids do not depend on the order of the inputs.
+    """
+    found: list[tuple[str, SceneSource]] = []
+    problems: list[tuple[str, str]] = []
+    for raw in inputs:
+        p = Path(raw)
+        try:
+            if p.is_dir():
+                scene_file = _scene_file_in(p)
+                cams, kind = _cameras_in(p)
+                name = p.resolve().name
+            elif p.is_file():
+                scene_file, cams, kind, name = p, None, None, p.stem
+            else:
+                raise FileNotFoundError(f"{p}: no such file or folder")
+        except (OSError, MorphgsError) as e:
+            problems.append((str(raw), str(e)))
+            continue
+        found.append((str(p.resolve()), SceneSource(id=_slug(name), path=str(scene_file), cameras=cams,
+                                                    cameras_kind=kind)))
+    counts: dict[str, int] = {}
+    for _, s in found:
+        counts[s.id] = counts.get(s.id, 0) + 1
+    out: list[SceneSource] = []
+    seen: set[str] = set()
+    for resolved, s in found:
+        if counts[s.id] > 1:
+            suffix = hashlib.sha256(resolved.encode()).hexdigest()[:8]
+            s = SceneSource(id=f"{s.id}-{suffix}", path=s.path, cameras=s.cameras, cameras_kind=s.cameras_kind)
+        if s.id in seen:  # the same input given twice
+            continue
+        seen.add(s.id)
+        out.append(s)
+    return out, problems
+
+
+def builtin_sources(count: int = 2, *, n_gaussians: int = BUILTIN_GAUSSIANS) -> list[SceneSource]:
+    """The built-in synthetic sample scenes `sample-0`, `sample-1`, ... (seeded, so reproducible)."""
+    return [SceneSource(id=f"sample-{i}", builtin={"n_gaussians": n_gaussians, "sh_degree": 3, "seed": i})
+            for i in range(count)]

@@ -1,0 +1,179 @@
+"""Making one pair on disk: render in chunks while a writer thread encodes the previous chunk,
+write everything into a temporary folder, then rename it into place (atomic on one filesystem).
+
+The manifest line is appended by the coordinating process after the rename (see runner.py), so a
+killed run leaves either no folder, a stray temporary, or a complete folder without a manifest
+line (redone on the next run) -- never a half-written pair that looks complete.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import time
+import uuid
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from morphgs.camera import Cameras
+from morphgs.curate.plan import PairJob, TrajectoryOptions, job_cameras
+from morphgs.pair import Corruption, iter_pair_chunks
+
+__all__ = ["OutputOptions", "PairWriter", "make_pair", "tmp_root"]
+
+
+@dataclass(frozen=True)
+class OutputOptions:
+    """What to write per pair and how to render it."""
+
+    depth: bool = False
+    video: bool = False
+    fps: int = 16
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    chunk: int = 8
+    trajectory: TrajectoryOptions = TrajectoryOptions()
+
+
+def tmp_root(out_dir: Path) -> Path:
+    return out_dir / ".tmp"
+
+
+def _to_u8(rgb: np.ndarray) -> np.ndarray:
+    """round(clip(v, 0, 1) * 255), NaN -> 0 (the renderer's to_uint8 rule)."""
+    from morphgs import _core
+
+    return _core.to_uint8(rgb)  # type: ignore[no-any-return]
+
+
+class PairWriter:
+    """Writes frame chunks of one pair (PNG, or MP4 through imageio-ffmpeg) and depth EXRs."""
+
+    def __init__(self, folder: Path, opts: OutputOptions, n_frames: int) -> None:
+        self.folder, self.opts, self.n = folder, opts, n_frames
+        self.videos: dict[str, Any] = {}
+        for side in ("clean", "corrupted"):
+            if not opts.video or opts.depth:
+                (folder / side).mkdir(parents=True, exist_ok=True)
+        if opts.video:
+            import imageio.v2 as iio
+
+            for side in ("clean", "corrupted"):
+                self.videos[side] = iio.get_writer(
+                    str(folder / f"{side}.mp4"), format="FFMPEG", mode="I", fps=opts.fps, codec="libx264",
+                    quality=8, macro_block_size=1, ffmpeg_log_level="error",
+                    output_params=["-threads", "1"])
+
+    def write(self, start: int, side: str, rgb: np.ndarray, depth: np.ndarray) -> None:
+        from morphgs import _core
+
+        u8 = _to_u8(rgb)
+        idx = range(start, start + len(rgb))
+        if self.opts.video:
+            for frame in u8:
+                self.videos[side].append_data(frame)
+        else:
+            _core._write_png_batch([self.folder / side / f"{i:05d}.png" for i in idx], u8)
+        if self.opts.depth:
+            _core._write_exr_batch([self.folder / side / f"{i:05d}.depth.exr" for i in idx],
+                                   np.ascontiguousarray(depth, dtype=np.float32))
+
+    def close(self) -> None:
+        for v in self.videos.values():
+            v.close()
+        self.videos.clear()
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    path.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+
+
+def make_pair(
+    job: PairJob,
+    scene: Any,
+    recorded: Cameras | None,
+    out_dir: Path,
+    opts: OutputOptions,
+    *,
+    load_seconds: float = 0.0,
+) -> dict[str, Any]:
+    """Render and write one pair; returns its manifest record (not yet appended)."""
+    import morphgs
+
+    t_start = time.perf_counter()
+    cams = job_cameras(job, scene, recorded, opts.trajectory)
+    corruption = Corruption.make(job.config)
+    t0 = time.perf_counter()
+    corrupted_scene = corruption.corrupt_scene(scene, job.seed)
+    t_perturb = time.perf_counter() - t0
+
+    tmp = tmp_root(out_dir) / f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:12]}"
+    tmp.mkdir(parents=True)
+    writer = PairWriter(tmp, opts, len(cams))
+    t_render = 0.0
+    t_wait = 0.0
+    pending: Future[None] | None = None
+    try:
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="morphgs-writer") as pool:
+            for start, c_rgb, c_depth, x_rgb, x_depth, secs in iter_pair_chunks(
+                    scene, corrupted_scene, corruption, cams, chunk=opts.chunk, background=opts.background):
+                t_render += secs
+                if pending is not None:
+                    t0 = time.perf_counter()
+                    pending.result()
+                    t_wait += time.perf_counter() - t0
+
+                def _write(s: int = start, a: np.ndarray = c_rgb, b: np.ndarray = c_depth,
+                           c: np.ndarray = x_rgb, d: np.ndarray = x_depth) -> None:
+                    writer.write(s, "clean", a, b)
+                    writer.write(s, "corrupted", c, d)
+
+                pending = pool.submit(_write)
+            if pending is not None:
+                t0 = time.perf_counter()
+                pending.result()
+                t_wait += time.perf_counter() - t0
+        writer.close()
+        _write_json(tmp / "cameras.json", cams.to_dict())
+        final = out_dir / job.rel_dir
+        final.parent.mkdir(parents=True, exist_ok=True)
+        if final.exists():  # left by a run killed after its rename, before its manifest line
+            shutil.rmtree(final)
+        os.rename(tmp, final)
+    except BaseException:
+        writer.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    rel = job.rel_dir
+    video = opts.video
+    paths = {"dir": rel, "cameras": f"{rel}/cameras.json",
+             "clean": f"{rel}/clean.mp4" if video else f"{rel}/clean",
+             "corrupted": f"{rel}/corrupted.mp4" if video else f"{rel}/corrupted"}
+    if opts.depth:
+        paths.update({"clean_depth": f"{rel}/clean", "corrupted_depth": f"{rel}/corrupted"})
+    total = time.perf_counter() - t_start + load_seconds
+    return {
+        "schema": 1,
+        "pair_id": job.pair_id,
+        "scene": job.source.id,
+        "scene_source": job.source.describe(),
+        "split": job.split,
+        "pair_index": job.index,
+        "config_name": job.config.label,
+        "config": job.config.as_dict(),
+        "seed": job.seed,
+        "frames": len(cams),
+        "resolution": [job.width, job.height],
+        "depth": opts.depth,
+        "video": video,
+        "background": list(opts.background),
+        "paths": paths,
+        "timings": {"load": round(load_seconds, 4), "perturb": round(t_perturb, 4),
+                    "render": round(t_render, 4), "write_wait": round(t_wait, 4), "total": round(total, 4)},
+        "morphgs_version": morphgs.__version__,
+    }
