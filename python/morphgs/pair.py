@@ -74,25 +74,6 @@ class Corruption:
         return morphgs.perturb(scene, self.perturb_config, seed=seed)
 
 
-def render_arrays(
-    scenes: Sequence[Any],
-    cameras: Cameras,
-    *,
-    background: Sequence[float] = (0.0, 0.0, 0.0),
-    max_alpha: float = 0.99,
-    sh_degree: int | None = None,
-    antialiased: bool = False,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """S scenes x F cameras in one parallel pass: rgb (S,F,H,W,3), depth and alpha (S,F,H,W)."""
-    from morphgs import _core
-
-    rgb, depth, alpha, _stats = _core._render(
-        list(scenes), cameras.world_to_camera, cameras.K, cameras.width, cameras.height,
-        near=cameras.near, far=cameras.far, background=[float(v) for v in background],
-        max_alpha=max_alpha, sh_degree=sh_degree, antialiased=antialiased)
-    return rgb, depth, alpha
-
-
 def iter_pair_chunks(
     scene: Any,
     corrupted_scene: Any,
@@ -101,25 +82,29 @@ def iter_pair_chunks(
     *,
     chunk: int,
     **render_options: Any,
-) -> Iterator[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]]:
-    """Render a pair `chunk` frames at a time.
+) -> Iterator[tuple[int, Any, Any, float]]:
+    """Render a pair `chunk` frames at a time (both scenes in one parallel pass per chunk).
 
-    Yields (start, clean_rgb, clean_depth, corrupted_rgb, corrupted_depth, seconds) per chunk;
-    arrays are (f,H,W,3) / (f,H,W) float32.
+    Yields (start, clean Render, corrupted Render, seconds) per chunk.
     """
-    from morphgs import _core
-
     for start in range(0, len(cameras), chunk):
-        cams = cameras[start:start + chunk]
         t0 = time.perf_counter()
-        if corruption.kind == "blur2d":
-            rgb, depth, _ = render_arrays([scene], cams, **render_options)
-            blurred = _core.gaussian_blur(np.ascontiguousarray(rgb[0]), corruption.blur_sigma)
-            out = (start, rgb[0], depth[0], blurred, depth[0])
-        else:
-            rgb, depth, _ = render_arrays([scene, corrupted_scene], cams, **render_options)
-            out = (start, rgb[0], depth[0], rgb[1], depth[1])
-        yield (*out, time.perf_counter() - t0)
+        clean, corrupted = _render_both(scene, corrupted_scene, corruption, cameras[start:start + chunk],
+                                        **render_options)
+        yield start, clean, corrupted, time.perf_counter() - t0
+
+
+def _render_both(scene: Any, corrupted_scene: Any, corruption: Corruption, cameras: Cameras,
+                 **render_options: Any) -> tuple[Any, Any]:
+    from morphgs._core import gaussian_blur
+    from morphgs.render import Render, render_many
+
+    if corruption.kind == "blur2d":
+        (clean,) = render_many([scene], cameras, **render_options)
+        blurred = gaussian_blur(np.ascontiguousarray(clean.rgb), corruption.blur_sigma)
+        return clean, Render(blurred, clean.depth, clean.alpha, clean.stats)
+    clean, corrupted = render_many([scene, corrupted_scene], cameras, **render_options)
+    return clean, corrupted
 
 
 @dataclass(frozen=True)
@@ -196,10 +181,6 @@ def render_pair(
     timings["perturb"] = time.perf_counter() - t0
     opts = dict(background=background, max_alpha=max_alpha, sh_degree=sh_degree, antialiased=antialiased)
     t0 = time.perf_counter()
-    if corruption.kind == "blur2d":
-        (clean,) = morphgs.render_scenes([scene], cams, **opts)
-        corrupted = clean.blurred(corruption.blur_sigma)
-    else:
-        clean, corrupted = morphgs.render_scenes([scene, corrupted_scene], cams, **opts)
+    clean, corrupted = _render_both(scene, corrupted_scene, corruption, cams, **opts)
     timings["render"] = time.perf_counter() - t0
     return Pair(clean, corrupted, corruption.config, int(seed), cams, timings)

@@ -201,6 +201,8 @@ def job_cameras(job: PairJob, scene: Any, recorded: Cameras | None, opts: Trajec
     - Otherwise an orbit framing the scene's robust bounds (`trajectory.for_scene`): pair k
       starts at 360 k / K degrees and sweeps `orbit_arc_degrees`; its elevation, in [10, 40]
       degrees, comes from the pair seed.
+    - The built-in synthetic scenes use their own orbit (`synthetic.suggested_orbit`, inside the
+      room): pair k's arc starts at 90 + (180 - arc) k / (K - 1) degrees, facing the walls.
     """
     from morphgs import trajectory
 
@@ -212,6 +214,16 @@ def job_cameras(job: PairJob, scene: Any, recorded: Cameras | None, opts: Trajec
         path = trajectory.smooth_path(recorded, max(len(recorded), job.frames))
         cl = trajectory.clips(path, job.frames, stride=opts.stride)
         return cl[job.index % len(cl)]
+    if job.source.builtin is not None:
+        # The synthetic room: its own orbit (inside the room), on the side facing the walls.
+        from morphgs import synthetic
+
+        o = synthetic.suggested_orbit()
+        frac = job.index / max(job.pairs_per_scene - 1, 1)
+        start = 90.0 + (180.0 - opts.orbit_arc_degrees) * frac
+        return trajectory.orbit(o.center, o.radius, o.height - o.center[2], job.frames, start_degrees=start,
+                                arc_degrees=opts.orbit_arc_degrees, fov_y_degrees=opts.fov_y_degrees,
+                                resolution=(job.width, job.height))
     elevation = 10.0 + 30.0 * ((job.seed % 1_000_003) / 1_000_003)
     return trajectory.for_scene(
         scene, job.frames, resolution=(job.width, job.height), fov_y_degrees=opts.fov_y_degrees,

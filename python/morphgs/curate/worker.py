@@ -44,13 +44,6 @@ def tmp_root(out_dir: Path) -> Path:
     return out_dir / ".tmp"
 
 
-def _to_u8(rgb: np.ndarray) -> np.ndarray:
-    """round(clip(v, 0, 1) * 255), NaN -> 0 (the renderer's to_uint8 rule)."""
-    from morphgs import _core
-
-    return _core.to_uint8(rgb)  # type: ignore[no-any-return]
-
-
 class PairWriter:
     """Writes frame chunks of one pair (PNG, or MP4 through imageio-ffmpeg) and depth EXRs."""
 
@@ -69,11 +62,12 @@ class PairWriter:
                     quality=8, macro_block_size=1, ffmpeg_log_level="error",
                     output_params=["-threads", "1"])
 
-    def write(self, start: int, side: str, rgb: np.ndarray, depth: np.ndarray) -> None:
+    def write(self, start: int, side: str, frames: Any) -> None:
+        """Write a chunk (a batched Render) whose first frame is number `start`."""
         from morphgs import _core
 
-        u8 = _to_u8(rgb)
-        idx = range(start, start + len(rgb))
+        u8 = np.ascontiguousarray(frames.to_uint8())
+        idx = range(start, start + len(u8))
         if self.opts.video:
             for frame in u8:
                 self.videos[side].append_data(frame)
@@ -81,7 +75,7 @@ class PairWriter:
             _core._write_png_batch([self.folder / side / f"{i:05d}.png" for i in idx], u8)
         if self.opts.depth:
             _core._write_exr_batch([self.folder / side / f"{i:05d}.depth.exr" for i in idx],
-                                   np.ascontiguousarray(depth, dtype=np.float32))
+                                   np.ascontiguousarray(frames.depth, dtype=np.float32))
 
     def close(self) -> None:
         for v in self.videos.values():
@@ -120,7 +114,7 @@ def make_pair(
     pending: Future[None] | None = None
     try:
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="morphgs-writer") as pool:
-            for start, c_rgb, c_depth, x_rgb, x_depth, secs in iter_pair_chunks(
+            for start, clean, corrupted, secs in iter_pair_chunks(
                     scene, corrupted_scene, corruption, cams, chunk=opts.chunk, background=opts.background):
                 t_render += secs
                 if pending is not None:
@@ -128,10 +122,9 @@ def make_pair(
                     pending.result()
                     t_wait += time.perf_counter() - t0
 
-                def _write(s: int = start, a: np.ndarray = c_rgb, b: np.ndarray = c_depth,
-                           c: np.ndarray = x_rgb, d: np.ndarray = x_depth) -> None:
-                    writer.write(s, "clean", a, b)
-                    writer.write(s, "corrupted", c, d)
+                def _write(s: int = start, a: Any = clean, b: Any = corrupted) -> None:
+                    writer.write(s, "clean", a)
+                    writer.write(s, "corrupted", b)
 
                 pending = pool.submit(_write)
             if pending is not None:
