@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from morphgs.cli import main
@@ -143,3 +145,41 @@ def test_cli_dry_run_shows_the_plan_without_writing(tmp_path: Path, capsys: pyte
 def test_cli_rejects_a_bad_config_name(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["curate", "--out", str(tmp_path), "--config", "nonsense", "--dry-run"]) == 2
     assert "expected one of" in capsys.readouterr().err
+
+
+def test_inria_cameras_json_is_read_as_camera_to_world(tmp_path: Path) -> None:
+    from morphgs.curate.sources import read_inria_cameras
+
+    # camera at (0,-5,0) looking along +y, z up: c2w rotation columns right (1,0,0), down (0,0,-1), fwd (0,1,0)
+    cam = {"id": 0, "img_name": "b", "width": 80, "height": 60, "position": [0, -5, 0],
+           "rotation": [[1, 0, 0], [0, 0, 1], [0, -1, 0]], "fx": 100, "fy": 120}
+    p = tmp_path / "cameras.json"
+    p.write_text(json.dumps([cam, {**cam, "img_name": "a", "position": [1, -5, 0]}]))
+    cams = read_inria_cameras(p, resolution=None)
+    np.testing.assert_allclose(cams[0].center, [1, -5, 0])  # sorted by img_name
+    np.testing.assert_allclose(cams[1].project([1.0, 0.0, 0.5]), [[40 + 100 / 5, 30 - 120 * 0.5 / 5]], atol=1e-9)
+
+
+def test_stale_temporaries_of_dead_processes_are_removed(tmp_path: Path) -> None:
+    import socket
+    import subprocess
+    import sys
+
+    from morphgs.curate.runner import _clean_stale_tmp
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True, check=True)
+    pid = int(dead.stdout)
+    root = tmp_path / ".tmp"
+    host = socket.gethostname()
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        (root / f"{host}-{pid}-abc").mkdir(parents=True)  # a dead run
+        (root / f"{host}-{os.getpid()}-def").mkdir()  # an earlier process with our pid (reused)
+        (root / f"{host}-{live.pid}-def").mkdir()  # a concurrent run on this host
+        (root / f"otherhost-{pid}-ghi").mkdir()  # another host's run (shared filesystem)
+        _clean_stale_tmp(tmp_path)
+    finally:
+        live.kill()
+        live.wait()
+    assert sorted(p.name for p in root.iterdir()) == sorted([f"{host}-{live.pid}-def", f"otherhost-{pid}-ghi"])

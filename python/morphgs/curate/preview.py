@@ -23,7 +23,7 @@ def _frames(root: Path, rec: dict[str, Any], side: str) -> list[np.ndarray]:
         import imageio.v2 as iio
 
         with iio.get_reader(str(p), format="FFMPEG") as rd:
-            return [np.asarray(f)[..., :3] for f in rd]
+            return [np.asarray(f)[..., :3] for f in rd]  # type: ignore[attr-defined]
     out = []
     for i in range(int(rec["frames"])):
         with Image.open(p / f"{i:05d}.png") as im:
@@ -135,5 +135,5 @@ def preview(
         with iio.get_writer(str(anim_path), format="FFMPEG", mode="I", fps=fps, codec="libx264",
                             macro_block_size=1, ffmpeg_log_level="error") as w:
             for f in frames:
-                w.append_data(f)
+                w.append_data(f)  # type: ignore[attr-defined]
     return sheet_path, anim_path

@@ -311,26 +311,35 @@ def _run_ray(todo: list[PairJob], out_dir: Path, opts: OutputOptions, workers: i
         import ray
     except ImportError:
         raise ImportError("--backend ray needs Ray: pip install 'morphgs[ray]'") from None
-    if not ray.is_initialized():
+    started = not ray.is_initialized()
+    if started:
         if address:
             ray.init(address=address, log_to_driver=False)
         else:
             ray.init(num_cpus=os.cpu_count(), log_to_driver=False, include_dashboard=False)
-    threads = _threads_per_worker(workers) if address is None else 1
-    remote = ray.remote(num_cpus=threads, max_retries=0)(_ray_job)
-    refs = {remote.remote(job, str(out_dir), opts, threads): job for job in todo}
-    pending = list(refs)
-    while pending:
-        done, pending = ray.wait(pending, num_returns=1)
-        for ref in done:
-            job = refs[ref]
-            try:
-                rec = ray.get(ref)
-            except Exception as e:  # noqa: BLE001
-                cause = getattr(e, "cause", None) or e
-                finished(job, None, cause)
-            else:
-                finished(job, rec, None)
+    try:
+        cpus = int(ray.available_resources().get("CPU", 1))
+        threads = max(1, min(_threads_per_worker(workers), cpus))
+        remote = ray.remote(num_cpus=threads, max_retries=0)(_ray_job)
+        refs = {remote.remote(job, str(out_dir), opts, threads): job for job in todo}
+        pending = list(refs)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            for ref in done:
+                job = refs[ref]
+                try:
+                    rec = ray.get(ref)
+                except Exception as e:  # noqa: BLE001 - reported per scene
+                    finished(job, None, getattr(e, "cause", None) or e)
+                else:
+                    finished(job, rec, None)
+                    continue
+                if job.source.id in failed:  # do not spend time on the rest of a failed scene
+                    for r in [r for r in pending if refs[r].source.id == job.source.id]:
+                        ray.cancel(r)
+    finally:
+        if started:
+            ray.shutdown()
 
 
 def _ray_job(job: PairJob, out_dir: str, opts: OutputOptions, threads: int) -> dict[str, Any]:

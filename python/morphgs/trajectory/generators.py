@@ -86,7 +86,7 @@ def ellipse(
     c = np.asarray(center, dtype=np.float64).reshape(3)
     r = np.broadcast_to(np.asarray(radii, dtype=np.float64).reshape(-1), (2,))
     if np.any(~np.isfinite(r)) or np.any(r <= 0) or not np.all(np.isfinite(c)):
-        raise ValueError(f"ellipse: need a finite centre and positive radii, got {center}, {radii}")
+        raise ValueError(f"ellipse: need a finite centre and positive radii, got {center!r}, {radii!r}")
     u = _unit(up, "up")
     tgt = c if target is None else np.asarray(target, dtype=np.float64).reshape(3)
     e1, e2 = _basis(u)
