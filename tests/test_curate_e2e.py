@@ -42,6 +42,11 @@ def scenes(tmp_path_factory: pytest.TempPathFactory, fixtures_dir: Path) -> list
     return [str(d / "room.ply"), str(f)]
 
 
+def _image(path: Path | str) -> np.ndarray:
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"))
+
+
 def _files(root: Path) -> dict[str, bytes]:
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted((root / "pairs").rglob("*")) if p.is_file()}
 
@@ -74,7 +79,7 @@ def test_curate_writes_pairs_manifest_depth_and_cameras_then_resumes(tmp_path: P
         for side in ("clean", "corrupted"):
             pngs = sorted((d / side).glob("*.png"))
             assert [p.name for p in pngs] == ["00000.png", "00001.png", "00002.png"]
-            assert Image.open(pngs[0]).size == (48, 32)
+            assert _image(pngs[0]).shape == (32, 48, 3)
             assert len(list((d / side).glob("*.depth.exr"))) == 3
         cams = morphgs.Cameras.from_dict(json.loads((d / "cameras.json").read_text()))
         assert len(cams) == 3 and (cams.width, cams.height) == (48, 32)
@@ -84,7 +89,7 @@ def test_curate_writes_pairs_manifest_depth_and_cameras_then_resumes(tmp_path: P
     # the clean side is the render of the scene from the recorded cameras
     clean = morphgs.render(morphgs.load(Path(scenes[0])), morphgs.Cameras.from_dict(
         json.loads((out / "pairs/room/morphological/0000/cameras.json").read_text())))
-    png = np.asarray(Image.open(out / "pairs/room/morphological/0000/clean/00001.png"))
+    png = _image(out / "pairs/room/morphological/0000/clean/00001.png")
     np.testing.assert_array_equal(png, clean.to_uint8()[1])
     # rerun: everything is skipped, nothing rewritten
     before = {p: p.stat().st_mtime_ns for p in (out / "pairs").rglob("*.png")}
@@ -172,7 +177,7 @@ def test_builtin_sample_scenes_when_no_scene_is_given(tmp_path: Path) -> None:
                "--config", "morphological", *SMALL])
     assert rc == 0
     assert set(load_manifest(tmp_path / "demo")) == {"sample-0/morphological/0000", "sample-1/morphological/0000"}
-    png = np.asarray(Image.open(tmp_path / "demo/pairs/sample-0/morphological/0000/clean/00000.png"))
+    png = _image(tmp_path / "demo/pairs/sample-0/morphological/0000/clean/00000.png")
     assert png.mean() > 10  # the orbit sees the room
 
 
@@ -194,8 +199,8 @@ def test_difix_export_has_what_difix3d_paired_dataset_reads(tmp_path: Path, scen
         for img_id in list(data.keys()):
             sample = data[img_id]
             assert sample["prompt"] == "remove degradation"
-            imgs = [Image.open(sample[k]).convert("RGB") for k in ("image", "target_image", "ref_image")]
-            assert all(im.size == (48, 32) for im in imgs)
+            imgs = [_image(sample[k]) for k in ("image", "target_image", "ref_image")]
+            assert all(im.shape == (32, 48, 3) for im in imgs)
             assert "/corrupted/" in sample["image"] and "/clean/" in sample["target_image"]
             assert sample["ref_image"] != sample["target_image"]
     rel = tmp_path / "rel.json"
@@ -210,20 +215,22 @@ def test_preview_writes_a_contact_sheet_and_animation(tmp_path: Path, scenes: li
     morphgs.curate(scenes[:1], out, configs=["blur2d", "morphological"], pairs_per_scene=1, frames=3,
                    resolution=(48, 32), progress=False)
     assert main(["preview", str(out), "--pairs", "2", "--columns", "3", "--width", "48"]) == 0
-    sheet = Image.open(out / "preview" / "contact_sheet.png")
-    assert sheet.size == (3 * 50 + 2, 2 * (2 * 34 + 14) + 2)
-    gif = Image.open(out / "preview" / "preview.gif")
-    assert gif.n_frames == 3 and gif.size == (2 * 48 + 6, 2 * 34 + 2)
+    assert _image(out / "preview" / "contact_sheet.png").shape == (2 * (2 * 34 + 14) + 2, 3 * 50 + 2, 3)
+    with Image.open(out / "preview" / "preview.gif") as gif:
+        assert gif.n_frames == 3 and gif.size == (2 * 48 + 6, 2 * 34 + 2)
 
 
 def test_video_output_writes_playable_mp4s(tmp_path: Path, scenes: list[str]) -> None:
-    import imageio.v2 as iio
+    from morphgs.curate.preview import _frames
 
     out = tmp_path / "ds"
     s = morphgs.curate(scenes[:1], out, configs=["blur2d"], pairs_per_scene=1, frames=4, resolution=(48, 32),
                        video=True, progress=False)
     assert s.ok
     rec = load_manifest(out)["room/blur2d/0000"]
-    with iio.get_reader(str(out / rec["paths"]["clean"]), format="FFMPEG") as rd:
-        frames = [f for f in rd]
+    assert rec["paths"]["clean"].endswith("clean.mp4")
+    frames = _frames(out, rec, "clean")
     assert len(frames) == 4 and frames[0].shape == (32, 48, 3)
+    png = morphgs.render(morphgs.load(scenes[0]), morphgs.Cameras.from_dict(
+        json.loads((out / rec["paths"]["cameras"]).read_text()))).to_uint8()
+    assert np.abs(frames[2].astype(int) - png[2]).mean() < 8  # lossy, but the same pictures

@@ -20,10 +20,14 @@ def _frames(root: Path, rec: dict[str, Any], side: str) -> list[np.ndarray]:
 
     p = root / rec["paths"][side]
     if rec.get("video"):
-        import imageio.v2 as iio
+        import subprocess
 
-        with iio.get_reader(str(p), format="FFMPEG") as rd:
-            return [np.asarray(f)[..., :3] for f in rd]  # type: ignore[attr-defined]
+        import imageio_ffmpeg
+
+        w, h = rec["resolution"]
+        raw = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-v", "error", "-i", str(p), "-f", "rawvideo",
+                              "-pix_fmt", "rgb24", "-"], capture_output=True, check=True).stdout
+        return list(np.frombuffer(raw, np.uint8).reshape(-1, h, w, 3))
     out = []
     for i in range(int(rec["frames"])):
         with Image.open(p / f"{i:05d}.png") as im:
