@@ -118,9 +118,32 @@ def _matches(rec: dict[str, Any], job: PairJob, opts: OutputOptions) -> bool:
     return all(rec.get(k) == want[k] for k in _IDENTITY)
 
 
-def _progress(total: int, enabled: bool) -> Any:
-    from tqdm import tqdm
+class _PlainProgress:
+    """A stand-in for tqdm (not installed): one stderr line per finished pair with rate and ETA."""
 
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.total, self.n, self.enabled, self.t0 = total, 0, enabled, time.perf_counter()
+
+    def update(self, k: int = 1) -> None:
+        self.n += k
+        if self.enabled:
+            dt = time.perf_counter() - self.t0
+            rate = self.n / dt if dt > 0 else 0.0
+            eta = (self.total - self.n) / rate if rate > 0 else float("nan")
+            print(f"curate: {self.n}/{self.total} pairs, {rate:.2f} pairs/s, ETA {eta:.0f} s", file=sys.stderr)
+
+    def write(self, msg: str, file: Any = None) -> None:
+        print(msg, file=file or sys.stderr)
+
+    def close(self) -> None:
+        pass
+
+
+def _progress(total: int, enabled: bool) -> Any:
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return _PlainProgress(total, enabled)
     return tqdm(total=total, unit="pair", desc="curate", file=sys.stderr, disable=not enabled,
                 dynamic_ncols=True, smoothing=0.1)
 
