@@ -18,6 +18,7 @@ from morphgs._core import (
     save_ply,
 )
 from morphgs.camera import Camera, Cameras
+from morphgs import synthetic
 
 __all__ = [
     "Camera",
@@ -30,4 +31,5 @@ __all__ = [
     "load",
     "num_threads",
     "save_ply",
+    "synthetic",
 ]

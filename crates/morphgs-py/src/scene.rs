@@ -269,6 +269,13 @@ impl PyGaussianScene {
             extras: Vec::new(),
         };
         if let Some(extras) = extras {
+            let names: Vec<String> = extras
+                .keys()
+                .iter()
+                .map(|k| k.extract::<String>())
+                .collect::<PyResult<_>>()?;
+            splat_core::ply::check_extra_names(names.iter().map(String::as_str))
+                .map_err(CoreError)?;
             for (k, v) in extras.iter() {
                 let name: String = k.extract()?;
                 let a = to_f32_array(py, &format!("extras['{name}']"), &v)?;
