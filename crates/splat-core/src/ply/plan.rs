@@ -199,7 +199,10 @@ pub fn plan_vertex(element: &Element, path: &Path) -> Result<Plan> {
 impl Plan {
     /// Zeroed output arrays for `n` Gaussians, one per field.
     pub fn alloc(&self, n: usize) -> Vec<Vec<f32>> {
-        self.fields.iter().map(|f| vec![0.0; n * f.width]).collect()
+        self.fields
+            .iter()
+            .map(|f| crate::mem::zeroed_f32(n * f.width))
+            .collect()
     }
 
     /// Assemble the scene from the arrays `alloc` made.
