@@ -4,11 +4,13 @@ It states SPEC §1 in numpy so tests can compare morphgs with it value for value
 by name, every type cast to float32, f_rest reshaped (N,3,K) and transposed to (N,K,3), and
 quaternions normalised by one float32 division by sqrt(((w*w + x*x) + y*y) + z*z) unless their
 squared norm is already within 8 float32 epsilons of 1 (kept bit for bit, so load -> save -> load
-is exact); a zero quaternion becomes the identity.
+is exact); a zero quaternion becomes the identity; one whose float32 squared norm overflows or is
+subnormal is normalised in float64.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -20,14 +22,22 @@ STANDARD = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opac
 QUAT_NORM2_TOL = np.float32(8 * np.finfo(np.float32).eps)
 
 
+def _is_rest(name: str) -> bool:
+    return re.fullmatch(r"f_rest_[0-9]+", name) is not None
+
+
 def normalise_quats(q: np.ndarray) -> np.ndarray:
     q = np.array(q, dtype=np.float32)
     w, x, y, z = q.T
     n2 = ((w * w + x * x) + y * y) + z * z
     fix = np.abs(n2 - np.float32(1)) > QUAT_NORM2_TOL
     zero = n2 == 0
-    div = fix & ~zero & np.isfinite(n2)
+    normal = np.isfinite(n2) & (n2 >= np.finfo(np.float32).tiny)
+    div = fix & ~zero & normal
     q[div] = q[div] / np.sqrt(n2[div])[:, None]
+    wide = fix & ~zero & ~normal & np.isfinite(q).all(axis=1)
+    q64 = q[wide].astype(np.float64)
+    q[wide] = (q64 / np.sqrt((q64 * q64).sum(axis=1))[:, None]).astype(np.float32)
     q[zero] = (1, 0, 0, 0)
     return q
 
@@ -42,7 +52,7 @@ def reference_arrays(path: str | Path) -> dict[str, Any]:
             return np.zeros((len(v), 0), dtype=np.float32)
         return np.stack([np.asarray(v[k]).astype(np.float32) for k in keys], axis=1)
 
-    n_rest = sum(1 for k in names if k.startswith("f_rest_"))
+    n_rest = sum(1 for k in names if _is_rest(k))
     k = n_rest // 3
     rest = cols([f"f_rest_{i}" for i in range(n_rest)]).reshape(len(v), 3, k)
     return {
@@ -54,7 +64,7 @@ def reference_arrays(path: str | Path) -> dict[str, Any]:
         "sh_rest": np.ascontiguousarray(rest.transpose(0, 2, 1)),
         "sh_degree": {0: 0, 3: 1, 8: 2, 15: 3, 24: 4}[k],
         "extras": {n: np.asarray(v[n]).astype(np.float32) for n in names
-                   if n not in STANDARD and not n.startswith("f_rest_")},
+                   if n not in STANDARD and not _is_rest(n)},
     }
 
 

@@ -268,8 +268,8 @@ pub const QUAT_NORM2_TOL: f32 = 8.0 * f32::EPSILON;
 
 /// Normalise (w,x,y,z) quaternions whose squared norm is not within [`QUAT_NORM2_TOL`] of 1, by
 /// one division by the float32 norm sqrt(((w*w + x*x) + y*y) + z*z). A zero quaternion becomes the
-/// identity; one with a non-finite component is left for the NaN/Inf check; one whose squared norm
-/// overflows float32 is normalised in float64.
+/// identity; one with a non-finite component is left for the NaN/Inf check; one whose float32
+/// squared norm overflows or is subnormal (too imprecise to divide by) is normalised in float64.
 pub fn normalize_quats(quats: &mut [f32]) {
     for q in quats.chunks_exact_mut(4) {
         let n2 = ((q[0] * q[0] + q[1] * q[1]) + q[2] * q[2]) + q[3] * q[3];
@@ -278,7 +278,7 @@ pub fn normalize_quats(quats: &mut [f32]) {
         }
         if n2 == 0.0 {
             q.copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
-        } else if n2.is_finite() {
+        } else if n2.is_normal() {
             let n = n2.sqrt();
             for v in q.iter_mut() {
                 *v /= n;

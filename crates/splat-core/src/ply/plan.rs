@@ -66,13 +66,17 @@ const GROUPS: [(Dest, &[&str]); 5] = [
     (Dest::Quats, &["rot_0", "rot_1", "rot_2", "rot_3"]),
 ];
 
+/// `f_rest_<digits>`: a higher-band SH coefficient (anything else starting `f_rest_` is an extra).
+fn is_rest_name(name: &str) -> bool {
+    name.strip_prefix("f_rest_")
+        .is_some_and(|d| !d.is_empty() && d.bytes().all(|b| b.is_ascii_digit()))
+}
+
 /// Every standard property name the INRIA layout uses (extras may not take these names).
 pub fn is_standard_name(name: &str) -> bool {
     NORMALS.contains(&name)
         || GROUPS.iter().any(|(_, names)| names.contains(&name))
-        || name
-            .strip_prefix("f_rest_")
-            .is_some_and(|d| !d.is_empty() && d.bytes().all(|b| b.is_ascii_digit()))
+        || is_rest_name(name)
 }
 
 fn gather_of(cols: &[usize]) -> Gather {
@@ -134,7 +138,7 @@ pub fn plan_vertex(element: &Element, path: &Path) -> Result<Plan> {
     let n_rest = element
         .properties
         .iter()
-        .filter(|p| p.name.starts_with("f_rest_"))
+        .filter(|p| is_rest_name(&p.name))
         .count();
     let Some(sh_degree) = (n_rest % 3 == 0)
         .then(|| sh_degree_for_rest(n_rest / 3))
