@@ -365,7 +365,7 @@ mod tests {
     fn retain_compacts_every_array_in_order() {
         let mut s = Scene {
             means: (0..9).map(|v| v as f32).collect(),
-            quats: vec![1.0, 0.0, 0.0, 0.0].repeat(3),
+            quats: [1.0, 0.0, 0.0, 0.0].repeat(3),
             log_scales: vec![0.0; 9],
             opacity_logits: vec![0.0, 1.0, 2.0],
             sh0: vec![0.0; 9],
