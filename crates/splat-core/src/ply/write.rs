@@ -100,8 +100,10 @@ pub fn write_ply(path: &Path, scene: &SceneView<'_>, extras: &[(&str, &[f32])]) 
             .try_for_each_init(Vec::<f32>::new, |buf, t| {
                 let r0 = t * ROWS_PER_TASK;
                 let rows = ROWS_PER_TASK.min(n - r0);
-                buf.clear();
-                buf.resize(rows * stride, 0.0);
+                if buf.len() < rows * stride {
+                    buf.resize(rows * stride, 0.0);
+                }
+                let buf = &mut buf[..rows * stride];
                 encode_rows(scene, extras, k, r0, stride, buf);
                 if cfg!(target_endian = "big") {
                     for v in buf.iter_mut() {
@@ -123,24 +125,57 @@ fn encode_rows(
     stride: usize,
     out: &mut [f32],
 ) {
-    let p = 9 + 3 * k;
-    for (j, o) in out.chunks_exact_mut(stride).enumerate() {
-        let i = r0 + j;
-        o[0..3].copy_from_slice(&s.means[3 * i..3 * i + 3]);
-        o[3..6].fill(0.0);
-        o[6..9].copy_from_slice(&s.sh0[3 * i..3 * i + 3]);
-        let rest = &s.sh_rest[3 * k * i..3 * k * (i + 1)];
-        let fr = &mut o[9..p];
-        for c in 0..3 {
-            for b in 0..k {
-                fr[c * k + b] = rest[b * 3 + c];
+    match k {
+        0 => encode_rows_k::<0>(s, extras, r0, stride, out),
+        3 => encode_rows_k::<3>(s, extras, r0, stride, out),
+        8 => encode_rows_k::<8>(s, extras, r0, stride, out),
+        15 => encode_rows_k::<15>(s, extras, r0, stride, out),
+        _ => encode_rows_k::<24>(s, extras, r0, stride, out),
+    }
+}
+
+/// [`encode_rows`] for a compile-time SH rest count, so the f_rest transpose unrolls and the
+/// fixed part of each row needs no bounds checks.
+fn encode_rows_k<const K: usize>(
+    s: &SceneView<'_>,
+    extras: &[(&str, &[f32])],
+    r0: usize,
+    stride: usize,
+    out: &mut [f32],
+) {
+    let rows = out.len() / stride;
+    let r1 = r0 + rows;
+    let means = s.means[3 * r0..3 * r1].chunks_exact(3);
+    let sh0 = s.sh0[3 * r0..3 * r1].chunks_exact(3);
+    let scales = s.log_scales[3 * r0..3 * r1].chunks_exact(3);
+    let quats = s.quats[4 * r0..4 * r1].chunks_exact(4);
+    let opacity = &s.opacity_logits[r0..r1];
+    let rest = &s.sh_rest[3 * K * r0..3 * K * r1];
+    let rows_iter = out
+        .chunks_exact_mut(stride)
+        .zip(means)
+        .zip(sh0)
+        .zip(scales)
+        .zip(quats)
+        .enumerate();
+    for (j, ((((o, m), d), sc), q)) in rows_iter {
+        let (head, tail) = o.split_at_mut(9 + 3 * K);
+        head[0..3].copy_from_slice(m);
+        head[3..6].fill(0.0);
+        head[6..9].copy_from_slice(d);
+        if K > 0 {
+            let r = &rest[3 * K * j..3 * K * (j + 1)];
+            for c in 0..3 {
+                for b in 0..K {
+                    head[9 + c * K + b] = r[b * 3 + c];
+                }
             }
         }
-        o[p] = s.opacity_logits[i];
-        o[p + 1..p + 4].copy_from_slice(&s.log_scales[3 * i..3 * i + 3]);
-        o[p + 4..p + 8].copy_from_slice(&s.quats[4 * i..4 * i + 4]);
-        for (e, (_, v)) in o[p + 8..].iter_mut().zip(extras) {
-            *e = v[i];
+        tail[0] = opacity[j];
+        tail[1..4].copy_from_slice(sc);
+        tail[4..8].copy_from_slice(q);
+        for (e, (_, v)) in tail[8..].iter_mut().zip(extras) {
+            *e = v[r0 + j];
         }
     }
 }
