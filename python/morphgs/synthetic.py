@@ -216,7 +216,7 @@ def _cylinder(rng: np.random.Generator, m: int, c: tuple[float, float], r: float
     nrm = np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], axis=1)
     nrm[on_top] = (0, 0, 1)
     stripe = (np.floor(phi / (2 * np.pi) * 16) % 2)[:, None]
-    rgb = np.where(stripe == 0, np.float32([0.20, 0.55, 0.25]), np.float32([0.85, 0.80, 0.30]))
+    rgb = np.where(stripe == 0, np.array([0.20, 0.55, 0.25], dtype=np.float32), np.array([0.85, 0.80, 0.30], dtype=np.float32))
     rgb[on_top] = (0.30, 0.60, 0.32)
     return _Part(p.astype(np.float32), nrm.astype(np.float32), rgb.astype(np.float32), side + top, 0.4)
 
@@ -228,8 +228,8 @@ def _cone(rng: np.random.Generator, m: int, c: tuple[float, float], r: float, h:
     p = np.stack([c[0] + r * t * np.cos(phi), c[1] + r * t * np.sin(phi), h * (1 - t)], axis=1)
     sl = math.hypot(r, h)
     nrm = np.stack([h / sl * np.cos(phi), h / sl * np.sin(phi), np.full_like(phi, r / sl)], axis=1)
-    rgb = np.where((np.floor(p[:, 2] / 0.12) % 2 == 0)[:, None], np.float32([0.90, 0.45, 0.10]),
-                   np.float32([0.95, 0.92, 0.88]))
+    rgb = np.where((np.floor(p[:, 2] / 0.12) % 2 == 0)[:, None], np.array([0.90, 0.45, 0.10], dtype=np.float32),
+                   np.array([0.95, 0.92, 0.88], dtype=np.float32))
     return _Part(p.astype(np.float32), nrm.astype(np.float32), rgb.astype(np.float32),
                  math.pi * r * sl, 0.2)
 
@@ -334,7 +334,7 @@ def scene(n_gaussians: int = 100_000, sh_degree: int = 3, seed: int = 0) -> Gaus
     f_rgb = rng.uniform(0.3, 0.8, (mf, 1)) + rng.normal(0, 0.05, (mf, 3))
 
     means_all = np.concatenate([surf_means, f_means.astype(f32)])
-    np.clip(means_all, np.float32(EXTENT_MIN), np.float32(EXTENT_MAX), out=means_all)
+    np.clip(means_all, np.array(EXTENT_MIN, dtype=f32), np.array(EXTENT_MAX, dtype=f32), out=means_all)
     alpha_all = np.clip(np.concatenate([alpha, f_alpha.astype(f32)]), f32(1e-4), f32(1 - 1e-4))
     rgb_all = np.concatenate([surf_rgb, f_rgb.astype(f32)])
     np.clip(rgb_all, f32(0), f32(1), out=rgb_all)
