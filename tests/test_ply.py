@@ -228,3 +228,36 @@ def test_save_overwrites_an_existing_file(tmp_path: Path) -> None:
     morphgs.save_ply(scene, target)
     np.testing.assert_array_equal(morphgs.load(target).means, scene.means)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.ply"]
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_load_works_in_a_child_forked_after_a_load(tmp_path: Path) -> None:
+    # torch's DataLoader forks workers after the parent used the thread pool: the child must get
+    # a pool of its own instead of deadlocking on the parent's (which has no threads there).
+    import time
+    import warnings
+
+    path = write_ply(tmp_path / "f.ply", random_vertices(10_000, vertex_dtype(45), seed=13))
+    parent = morphgs.load(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # 3.12+: fork with threads
+        pid = os.fork()
+    if pid == 0:  # child
+        try:
+            child = morphgs.load(path)
+            morphgs.save_ply(child, tmp_path / "child.ply")
+            os._exit(0 if np.array_equal(child.sh_rest, parent.sh_rest) else 1)
+        except BaseException:
+            os._exit(2)
+    deadline = time.monotonic() + 60
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            break
+        if time.monotonic() > deadline:
+            os.kill(pid, 9)
+            os.waitpid(pid, 0)
+            pytest.fail("the forked child hung")
+        time.sleep(0.02)
+    assert os.waitstatus_to_exitcode(status) == 0
+    assert morphgs.load(tmp_path / "child.ply").sh_rest.shape == (10_000, 15, 3)
