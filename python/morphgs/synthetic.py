@@ -346,14 +346,16 @@ def scene(n_gaussians: int = 100_000, sh_degree: int = 3, seed: int = 0) -> Gaus
         # band l decays like 0.5^l; glossy parts carry more view dependence; a shared,
         # colour-neutral component makes highlights white-ish rather than random hues
         band = np.concatenate([np.full(2 * l + 1, 0.5**l, f32) for l in range(1, sh_degree + 1)])
-        sh_rest = rng.random((n, k, 3), dtype=f32)  # zero-mean, unit-variance uniform
+        sh_rest = rng.random((n, k, 3), dtype=f32)  # uniform, zero mean, unit variance
         sh_rest -= f32(0.5)
         sh_rest *= f32(math.sqrt(12.0))
-        neutral = sh_rest[:, :, 0] + sh_rest[:, :, 1]
-        neutral += sh_rest[:, :, 2]
-        neutral *= f32(0.5)
-        sh_rest += neutral[:, :, None]
-        sh_rest *= ((f32(0.04) + f32(0.16) * gloss_all)[:, None] * band[None, :])[:, :, None]
+        shared = rng.random((n, k, 1), dtype=f32)
+        shared -= f32(0.5)
+        shared *= f32(math.sqrt(12.0) * 1.2)
+        sh_rest += shared  # broadcast over the channels, in place
+        del shared
+        sh_rest *= band[None, :, None]
+        sh_rest *= (f32(0.03) + f32(0.12) * gloss_all)[:, None, None]
 
     return GaussianScene.from_arrays(
         means=means_all,
