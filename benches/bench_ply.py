@@ -2,7 +2,7 @@
 bare ``np.fromfile`` of the same bytes.
 
     python benches/bench_ply.py            # 1,000,000 Gaussians, SH degree 3
-    python benches/bench_ply.py --quick    # 20,000 Gaussians, one run (smoke check)
+    python benches/bench_ply.py --quick    # 20,000 Gaussians, two runs (smoke check)
 
 The file is written once from ``morphgs.synthetic`` and read once before timing, so every reader
 sees it in the page cache. Times are the best of several runs. Peak memory of ``morphgs.load`` is
@@ -106,13 +106,13 @@ def peak(kind: str, path: Path) -> dict[str, int]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="20k Gaussians, one run (smoke check)")
+    ap.add_argument("--quick", action="store_true", help="20k Gaussians, two runs (smoke check)")
     ap.add_argument("--gaussians", type=int, default=1_000_000)
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--dir", type=Path, default=None, help="where to write the test file")
     args = ap.parse_args()
     n = 20_000 if args.quick else args.gaussians
-    runs = 1 if args.quick else args.runs
+    runs = 2 if args.quick else args.runs
 
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         path = Path(tmp) / "bench.ply"
