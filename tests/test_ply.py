@@ -261,3 +261,16 @@ def test_load_works_in_a_child_forked_after_a_load(tmp_path: Path) -> None:
         time.sleep(0.02)
     assert os.waitstatus_to_exitcode(status) == 0
     assert morphgs.load(tmp_path / "child.ply").sh_rest.shape == (10_000, 15, 3)
+
+
+def test_crlf_header_with_comments_loads(tmp_path: Path) -> None:
+    v = random_vertices(7, vertex_dtype(9, extras=("filter_3D",)), seed=14)
+    data = write_ply(tmp_path / "lf.ply", v).read_bytes()
+    head, body = data.split(b"end_header\n", 1)
+    lines = head.decode().splitlines()
+    lines.insert(2, "comment made by a Windows tool")
+    lines.insert(3, "obj_info generator 1.0")
+    crlf = ("\r\n".join(lines) + "\r\nend_header\r\n").encode().replace(b"ply\r\n", b"ply \r\n", 1)
+    (tmp_path / "crlf.ply").write_bytes(crlf + body)
+    scene = morphgs.load(tmp_path / "crlf.ply")
+    assert_scene_equals(scene, reference_arrays(tmp_path / "lf.ply"))

@@ -157,7 +157,11 @@ impl Header {
 
 /// True when `bytes` start like a PLY file.
 pub fn is_ply(bytes: &[u8]) -> bool {
-    bytes.starts_with(b"ply\n") || bytes.starts_with(b"ply\r\n")
+    bytes.strip_prefix(b"ply").is_some_and(|rest| {
+        rest.iter()
+            .find(|&&b| !matches!(b, b' ' | b'\t' | b'\r'))
+            .is_some_and(|&b| b == b'\n')
+    })
 }
 
 /// Parse the header from a reader positioned at the start of the file.
