@@ -269,7 +269,13 @@ fn read_binary(
             .seek(SeekFrom::Start(body_start))
             .map_err(|e| Error::io(path, e))?;
         for e in &header.elements[..vi] {
-            skipped += skip_binary_element(&mut reader, e, big_endian, body_len - skipped, path)?;
+            skipped += skip_binary_element(
+                &mut reader,
+                e,
+                big_endian,
+                body_len.saturating_sub(skipped),
+                path,
+            )?;
         }
     }
     let vertex = &header.elements[vi];
@@ -284,7 +290,7 @@ fn read_binary(
         .collect();
     let nprops = types.len();
     let stride = vertex.fixed_stride().unwrap_or(0).max(1);
-    let available = body_len - skipped;
+    let available = body_len.saturating_sub(skipped);
     let whole_rows = available / stride as u64;
     if vertex.count > whole_rows {
         let want = vertex.count.saturating_mul(stride as u64);
