@@ -23,6 +23,7 @@ from morphgs.pair import Pair, render_pair
 from morphgs import trajectory
 # `morphgs.curate(...)` is the function; its package stays importable as `from morphgs.curate import ...`.
 from morphgs.curate import curate
+from morphgs import synthetic
 
 __all__ = [
     "Camera",
@@ -39,5 +40,6 @@ __all__ = [
     "num_threads",
     "render_pair",
     "save_ply",
+    "synthetic",
     "trajectory",
 ]

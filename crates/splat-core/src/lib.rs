@@ -4,6 +4,7 @@
 //! - [`ply`]: INRIA PLY reading and writing
 pub mod error;
 pub mod io;
+pub mod mem;
 pub mod ply;
 pub mod scene;
 
