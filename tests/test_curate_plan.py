@@ -183,3 +183,15 @@ def test_stale_temporaries_of_dead_processes_are_removed(tmp_path: Path) -> None
         live.kill()
         live.wait()
     assert sorted(p.name for p in root.iterdir()) == sorted([f"{host}-{live.pid}-def", f"otherhost-{pid}-ghi"])
+
+
+def test_plain_progress_without_tqdm_reports_rate_and_eta(capsys: pytest.CaptureFixture[str]) -> None:
+    from morphgs.curate.runner import _PlainProgress
+
+    bar = _PlainProgress(4, True)
+    bar.update(1)
+    bar.update(1)
+    err = capsys.readouterr().err.splitlines()
+    assert err[0].startswith("curate: 1/4 pairs, ") and "pairs/s, ETA" in err[1]
+    _PlainProgress(4, False).update(1)
+    assert capsys.readouterr().err == ""
