@@ -234,3 +234,17 @@ def test_video_output_writes_playable_mp4s(tmp_path: Path, scenes: list[str]) ->
     png = morphgs.render(morphgs.load(scenes[0]), morphgs.Cameras.from_dict(
         json.loads((out / rec["paths"]["cameras"]).read_text()))).to_uint8()
     assert np.abs(frames[2].astype(int) - png[2]).mean() < 8  # lossy, but the same pictures
+
+
+def test_curate_over_the_shared_fixture_files(tmp_path: Path, fixtures_dir: Path) -> None:
+    # Real files written by other tools (see fixtures ATTRIBUTION.md), framed by for_scene orbits.
+    names = ["metalsplatter_train3.ply", "splatapult_test.ply", "marcelpadilla_spot_10k.splat",
+             "playcanvas_engine_test.compressed.ply"]
+    s = morphgs.curate([fixtures_dir / n for n in names], tmp_path / "ds", configs=["morphological", "blur2d"],
+                       pairs_per_scene=1, frames=2, resolution=(48, 32), progress=False)
+    assert s.ok, s.text()
+    recs = load_manifest(tmp_path / "ds")
+    assert {r["scene"] for r in recs.values()} == {
+        "metalsplatter_train3", "splatapult_test", "marcelpadilla_spot_10k", "playcanvas_engine_test.compressed"}
+    spot = _image(tmp_path / "ds" / recs["marcelpadilla_spot_10k/morphological/0000"]["paths"]["clean"] / "00000.png")
+    assert (spot.sum(axis=2) > 0).mean() > 0.05  # the orbit frames the object
