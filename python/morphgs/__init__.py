@@ -16,6 +16,8 @@ from morphgs._core import (
     load,
     num_threads,
     save_ply,
+    save_splat,
+    save_spz,
 )
 from morphgs.camera import Camera, Cameras
 
@@ -30,4 +32,6 @@ __all__ = [
     "load",
     "num_threads",
     "save_ply",
+    "save_splat",
+    "save_spz",
 ]
