@@ -98,7 +98,7 @@ fn tables<'a>(header: &'a Header, body: &'a [u8], path: &Path) -> Result<Vec<Tab
             ));
         };
         let left = (body.len() - off) as u64;
-        let need = e.count.checked_mul(stride as u64).unwrap_or(u64::MAX);
+        let need = e.count.saturating_mul(stride as u64);
         if need > left {
             return Err(Error::format_at(
                 path,

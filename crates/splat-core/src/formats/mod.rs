@@ -63,13 +63,16 @@ pub(crate) fn read_file(path: &Path) -> Result<Vec<u8>> {
 
 /// Read at most `limit` bytes from a decompressor. Returns the bytes and whether the stream had
 /// more (the caller reports that as a lying header). `what` names the stream in messages.
+/// `expect` (at most `limit`) is reserved up front; callers have checked it against the
+/// compressed size, so a lying header cannot make this reservation large.
 pub(crate) fn read_bounded(
     r: impl Read,
+    expect: u64,
     limit: u64,
     path: &Path,
     what: &str,
 ) -> Result<(Vec<u8>, bool)> {
-    let mut out = Vec::new();
+    let mut out = Vec::with_capacity(expect.min(limit) as usize + 1);
     r.take(limit.saturating_add(1))
         .read_to_end(&mut out)
         .map_err(|e| {

@@ -23,7 +23,7 @@ use std::path::Path;
 use rayon::prelude::*;
 
 use super::{
-    check_finite, finish, logit_u8, read_bounded, sigmoid, to_u8, unit_quat, SpzAxes, ROWS_PER_TASK,
+    check_finite, logit_u8, read_bounded, sigmoid, to_u8, unit_quat, SpzAxes, ROWS_PER_TASK,
 };
 use crate::error::{Error, Result};
 use crate::ply::{atomic_write, LoadReport, OnInvalid};
@@ -156,8 +156,18 @@ impl Header {
 /// Read a `.spz` file of any supported version.
 pub fn read(path: &Path, on_invalid: OnInvalid, axes: SpzAxes) -> Result<(Scene, LoadReport)> {
     let data = super::read_file(path)?;
-    let scene = decode_bytes(&data, path, axes)?;
-    finish(scene, "spz", "spz", path, on_invalid)
+    let mut scene = decode_bytes(&data, path, axes)?;
+    drop(data);
+    // Every decoded value is a finite function of integer fields: nothing to drop.
+    scene.normalize_quats();
+    let _ = on_invalid;
+    Ok((
+        scene,
+        LoadReport {
+            format: "spz".into(),
+            dropped: 0,
+        },
+    ))
 }
 
 /// Decode the bytes of a `.spz` file (`path` only names it in errors).
@@ -220,7 +230,7 @@ fn decode_gzip(data: &[u8], path: &Path) -> Result<Scene> {
     } else {
         0
     };
-    let (body, more) = read_bounded(gz, payload + slack, path, "gzip stream")?;
+    let (body, more) = read_bounded(gz, payload, payload + slack, path, "gzip stream")?;
     if more {
         return Err(Error::format(
             path,
@@ -288,7 +298,7 @@ fn decode_v4(data: &[u8], path: &Path) -> Result<Scene> {
             ),
         ));
     }
-    let toc_end = toc.checked_add(16 * num_streams).unwrap_or(usize::MAX);
+    let toc_end = toc.saturating_add(16 * num_streams);
     if toc < 32 || toc_end > data.len() {
         return Err(Error::format(
             path,
@@ -354,7 +364,7 @@ fn decode_v4(data: &[u8], path: &Path) -> Result<Scene> {
             let dec = zstd::stream::read::Decoder::with_buffer(&data[a..b]).map_err(|e| {
                 Error::format(path, format!("{what}: cannot start zstd decoding ({e})"))
             })?;
-            let (out, more) = read_bounded(dec, plain, path, &what)?;
+            let (out, more) = read_bounded(dec, plain, plain, path, &what)?;
             if more || out.len() as u64 != plain {
                 return Err(Error::format(
                     path,
