@@ -169,3 +169,36 @@ def test_detection_uses_content_not_extension(fixtures_dir: Path, tmp_path: Path
 def test_spz_axes_rejects_unknown_values(fixtures_dir: Path) -> None:
     with pytest.raises(ValueError, match="spz_axes must be 'rdf' or 'stored'"):
         morphgs.load(fixtures_dir / "metalsplatter_train3.spz", spz_axes="rub")
+
+
+def test_decoding_and_encoding_are_identical_for_any_thread_count(fixtures_dir: Path) -> None:
+    import os
+    import subprocess
+    import sys
+
+    script = (
+        "import hashlib, sys, tempfile, os, morphgs\n"
+        "h = hashlib.sha256()\n"
+        "for f in sys.argv[1:]:\n"
+        "    s = morphgs.load(f)\n"
+        "    for a in (s.means, s.quats, s.log_scales, s.opacity_logits, s.sh0, s.sh_rest):\n"
+        "        h.update(a.tobytes())\n"
+        "    with tempfile.TemporaryDirectory() as d:\n"
+        "        for ext, save in (('.spz', morphgs.save_spz), ('.splat', morphgs.save_splat)):\n"
+        "            p = os.path.join(d, 'x' + ext)\n"
+        "            save(s, p)\n"
+        "            h.update(open(p, 'rb').read())\n"
+        "print(h.hexdigest(), morphgs.num_threads())\n"
+    )
+    files = [str(fixtures_dir / f) for f in (
+        "playcanvas_engine_guitar.compressed.ply", "marcelpadilla_spot_10k.splat",
+        "splat-transform_minimal-v4.spz", "metalsplatter_train3.spz")]
+    out = {}
+    for threads in ("1", "3"):
+        env = dict(os.environ, RAYON_NUM_THREADS=threads)
+        r = subprocess.run([sys.executable, "-c", script, *files], env=env, check=True,
+                           capture_output=True, text=True)
+        digest, used = r.stdout.split()
+        assert used == threads
+        out[threads] = digest
+    assert out["1"] == out["3"]
