@@ -57,7 +57,7 @@ pub fn load(path: &Path, opts: LoadOptions) -> Result<(Scene, LoadReport)> {
         return Err(Error::format(path, "the file is empty"));
     }
     if magic.starts_with(&spz::MAGIC.to_le_bytes()) || magic.starts_with(&spz::GZIP_MAGIC) {
-        return spz::read(path, opts.on_invalid, opts.spz_axes);
+        return spz::read(path, opts.spz_axes);
     }
     if len % splat::RECORD_BYTES as u64 == 0 {
         let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;

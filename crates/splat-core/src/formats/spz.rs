@@ -26,7 +26,7 @@ use super::{
     check_finite, logit_u8, read_bounded, sigmoid, to_u8, unit_quat, SpzAxes, ROWS_PER_TASK,
 };
 use crate::error::{Error, Result};
-use crate::ply::{atomic_write, LoadReport, OnInvalid};
+use crate::ply::{atomic_write, LoadReport};
 use crate::scene::{sh_rest_count, Scene, SceneView};
 
 pub const MAGIC: u32 = 0x5053_474e;
@@ -153,14 +153,13 @@ impl Header {
     }
 }
 
-/// Read a `.spz` file of any supported version.
-pub fn read(path: &Path, on_invalid: OnInvalid, axes: SpzAxes) -> Result<(Scene, LoadReport)> {
+/// Read a `.spz` file of any supported version. Every decoded value is a finite function of
+/// integer fields, so there is never a Gaussian to drop for NaN/Inf (no `on_invalid`).
+pub fn read(path: &Path, axes: SpzAxes) -> Result<(Scene, LoadReport)> {
     let data = super::read_file(path)?;
     let mut scene = decode_bytes(&data, path, axes)?;
     drop(data);
-    // Every decoded value is a finite function of integer fields: nothing to drop.
     scene.normalize_quats();
-    let _ = on_invalid;
     Ok((
         scene,
         LoadReport {
