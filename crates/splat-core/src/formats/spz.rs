@@ -679,6 +679,56 @@ mod tests {
         assert_eq!(&SH_FLIP_RUB_RDF[3..8], &[-1.0, 1.0, 1.0, -1.0, 1.0]);
     }
 
+    /// A v4 file built from v3 bytes (same sections, one zstd frame each) decodes to the same
+    /// scene, SH stream included (the fixtures only have SH degree 0 in v4).
+    #[test]
+    fn v4_streams_decode_like_the_v3_payload() {
+        let n = 300;
+        let k = sh_rest_count(2);
+        let f = |m: usize, s: f32| (0..m).map(move |i| ((i * 37 % 101) as f32 / 50.0 - 1.0) * s);
+        let mut quats: Vec<f32> = f(n * 4, 1.0).collect();
+        crate::scene::normalize_quats(&mut quats);
+        let scene = Scene {
+            means: f(n * 3, 7.0).collect(),
+            quats,
+            log_scales: f(n * 3, 3.0).map(|v| v - 4.0).collect(),
+            opacity_logits: f(n, 4.0).collect(),
+            sh0: f(n * 3, 1.0).collect(),
+            sh_rest: f(n * k * 3, 0.5).collect(),
+            sh_degree: 2,
+            extras: Vec::new(),
+        };
+        let v3 = encode_v3(&scene.view(), SpzAxes::Rdf).expect("encode");
+        let h = parse_header(&v3, Path::new("v3")).expect("header");
+        let mut streams = Vec::new();
+        let mut off = 16;
+        for (_, size) in h.sections() {
+            let part = &v3[off..off + size as usize];
+            streams.push((zstd::bulk::compress(part, 3).expect("zstd"), part.len()));
+            off += size as usize;
+        }
+        let mut v4 = Vec::new();
+        v4.extend_from_slice(&MAGIC.to_le_bytes());
+        v4.extend_from_slice(&4u32.to_le_bytes());
+        v4.extend_from_slice(&(n as u32).to_le_bytes());
+        v4.extend_from_slice(&[2, v3[13], FLAG_EXTENSIONS, 6]);
+        v4.extend_from_slice(&40u32.to_le_bytes());
+        v4.extend_from_slice(&[0u8; 12]);
+        v4.extend_from_slice(b"EXT8BYTE"); // extension bytes before the table of contents
+        for (c, plain) in &streams {
+            v4.extend_from_slice(&(c.len() as u64).to_le_bytes());
+            v4.extend_from_slice(&(*plain as u64).to_le_bytes());
+        }
+        for (c, _) in &streams {
+            v4.extend_from_slice(c);
+        }
+        let p = Path::new("mem.spz");
+        let a = decode_bytes(&v3, p, SpzAxes::Rdf).expect("v3");
+        let b = decode_bytes(&v4, p, SpzAxes::Rdf).expect("v4");
+        assert_eq!(a, b);
+        assert_eq!(b.sh_rest.len(), n * k * 3);
+    }
+
     #[test]
     fn lying_counts_fail_before_allocating() {
         let p = Path::new("lie.spz");
