@@ -20,6 +20,7 @@ from morphgs._core import (
     save_spz,
 )
 from morphgs.camera import Camera, Cameras
+from morphgs import synthetic
 
 __all__ = [
     "Camera",
@@ -34,4 +35,5 @@ __all__ = [
     "save_ply",
     "save_splat",
     "save_spz",
+    "synthetic",
 ]

@@ -15,6 +15,7 @@ from morphgs._core import MorphgsError
 _COMMAND_MODULES = (
     "morphgs.commands.info",
     "morphgs.commands.convert",
+    "morphgs.commands.sample",
 )
 
 

@@ -6,6 +6,7 @@
 pub mod error;
 pub mod formats;
 pub mod io;
+pub mod mem;
 pub mod ply;
 pub mod scene;
 
