@@ -205,6 +205,8 @@ def main(argv: list[str] | None = None) -> int:
         for label, path, np_decode in cases:
             scene = morphgs.load(path)
             diff = _max_diff(scene, np_decode(path))
+            if diff > 1e-5:
+                raise SystemExit(f"{label}: morphgs and the NumPy decoder disagree by {diff}")
             t_mg = _best_ms(lambda p=path: morphgs.load(p), args.repeat)
             t_np = _best_ms(lambda p=path, f=np_decode: f(p), args.repeat)
             rows.append((label, len(scene), path.stat().st_size, t_mg, t_np, diff))
