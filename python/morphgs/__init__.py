@@ -17,6 +17,8 @@ from morphgs._core import (
     load,
     num_threads,
     save_ply,
+    save_splat,
+    save_spz,
 )
 from morphgs.camera import Camera, Cameras
 from morphgs.pair import Pair, render_pair
@@ -40,6 +42,8 @@ __all__ = [
     "num_threads",
     "render_pair",
     "save_ply",
+    "save_splat",
+    "save_spz",
     "synthetic",
     "trajectory",
 ]

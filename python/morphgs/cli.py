@@ -17,6 +17,7 @@ _COMMAND_MODULES = (
     "morphgs.commands.curate",
     "morphgs.commands.export_difix",
     "morphgs.commands.preview",
+    "morphgs.commands.convert",
     "morphgs.commands.sample",
 )
 

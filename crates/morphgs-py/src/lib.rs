@@ -4,6 +4,7 @@ use pyo3::prelude::*;
 
 mod blur;
 mod errors;
+mod formats;
 mod io;
 mod pool;
 mod scene;
@@ -15,6 +16,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     scene::register(m)?;
     io::register(m)?;
     blur::register(m)?;
+    formats::register(m)?;
     m.add_function(wrap_pyfunction!(num_threads, m)?)?;
     Ok(())
 }

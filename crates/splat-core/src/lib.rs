@@ -2,7 +2,9 @@
 //!
 //! - [`scene`]: the structure-of-arrays scene model (SPEC §1)
 //! - [`ply`]: INRIA PLY reading and writing
+//! - [`formats`]: .splat, .spz and SuperSplat compressed PLY
 pub mod error;
+pub mod formats;
 pub mod io;
 pub mod mem;
 pub mod ply;
