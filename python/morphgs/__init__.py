@@ -18,6 +18,7 @@ from morphgs._core import (
     save_ply,
 )
 from morphgs.camera import Camera, Cameras
+from morphgs.perturb import PerturbConfig, perturb
 
 __all__ = [
     "Camera",
@@ -25,9 +26,11 @@ __all__ = [
     "GaussianScene",
     "MorphgsError",
     "MorphgsWarning",
+    "PerturbConfig",
     "SceneFormatError",
     "__version__",
     "load",
     "num_threads",
+    "perturb",
     "save_ply",
 ]

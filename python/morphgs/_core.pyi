@@ -68,3 +68,17 @@ def _scene_from_state(state: dict[str, Any]) -> GaussianScene: ...
 def load(path: _Path, *, on_invalid: Literal["error", "drop"] | str = "error") -> GaussianScene: ...
 def save_ply(scene: GaussianScene, path: _Path) -> None: ...
 def num_threads() -> int: ...
+
+# ---- perturb ----
+def _perturb(
+    scene: GaussianScene,
+    *,
+    position_jitter: float | None,
+    color_noise: float | None,
+    opacity_noise: float | None,
+    prune: float | None,
+    scale_noise: float | None,
+    rotation_noise: float | None,
+    seed: int,
+    return_mask: bool = False,
+) -> GaussianScene | tuple[GaussianScene, npt.NDArray[np.bool_]]: ...

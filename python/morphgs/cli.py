@@ -14,6 +14,7 @@ from morphgs._core import MorphgsError
 # Order is the order shown in --help.
 _COMMAND_MODULES = (
     "morphgs.commands.info",
+    "morphgs.commands.perturb",
 )
 
 

@@ -4,6 +4,7 @@ use pyo3::prelude::*;
 
 mod errors;
 mod io;
+mod perturb;
 mod pool;
 mod scene;
 
@@ -13,6 +14,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     errors::register(m)?;
     scene::register(m)?;
     io::register(m)?;
+    perturb::register(m)?;
     m.add_function(wrap_pyfunction!(num_threads, m)?)?;
     Ok(())
 }

@@ -2,9 +2,13 @@
 //!
 //! - [`scene`]: the structure-of-arrays scene model (SPEC §1)
 //! - [`ply`]: INRIA PLY reading and writing
+//! - [`rng`]: the counter-based generator behind every random draw (a stability promise)
+//! - [`perturb`]: the paper's six perturbation operations (SPEC §2)
 pub mod error;
 pub mod io;
+pub mod perturb;
 pub mod ply;
+pub mod rng;
 pub mod scene;
 
 pub use error::{Error, Result};
