@@ -39,12 +39,13 @@ sys.path.insert(0, {tests!r})
 import morphgs
 from test_perturb_determinism import make_scene
 s = make_scene(70_001)
-out, mask = morphgs.perturb(s, "naive", seed=123, return_mask=True)
 h = hashlib.sha256()
-for f in {fields!r}:
-    h.update(np.ascontiguousarray(getattr(out, f)).tobytes())
-h.update(out.extras["filter_3D"].tobytes())
-h.update(mask.tobytes())
+for preset in ("naive", "radiometric", "spatial"):
+    out, mask = morphgs.perturb(s, preset, seed=123, return_mask=True)
+    for f in {fields!r}:
+        h.update(np.ascontiguousarray(getattr(out, f)).tobytes())
+    h.update(out.extras["filter_3D"].tobytes())
+    h.update(mask.tobytes())
 print(morphgs.num_threads(), h.hexdigest())
 """
 
@@ -133,6 +134,19 @@ def test_mask_maps_perturbed_gaussians_back_to_the_originals() -> None:
     np.testing.assert_array_equal(out.sh_rest, s.sh_rest[mask])
     np.testing.assert_array_equal(out.extras["filter_3D"], np.flatnonzero(mask))
     np.testing.assert_array_equal(out.opacity_logits, s.opacity_logits[mask])
+
+
+def test_without_pruning_unchanged_arrays_are_shared_not_copied() -> None:
+    s = make_scene()
+    out = morphgs.perturb(s, "spatial", seed=2)
+    for f in ("quats", "log_scales", "opacity_logits", "sh0", "sh_rest"):
+        assert np.shares_memory(getattr(out, f), getattr(s, f)), f
+        assert not getattr(out, f).flags.writeable
+    assert np.shares_memory(out.extras["filter_3D"], s.extras["filter_3D"])
+    assert not np.shares_memory(out.means, s.means)
+    assert not np.array_equal(out.means, s.means)
+    pruned = morphgs.perturb(s, "morphological", seed=2)
+    assert not np.shares_memory(pruned.sh_rest, s.sh_rest)
 
 
 def test_config_with_every_op_disabled_is_the_identity() -> None:

@@ -19,7 +19,8 @@ use crate::scene::PyGaussianScene;
 ///     return_mask: also return the (N,) boolean keep-mask of the pruning.
 ///
 /// Returns:
-///     The perturbed GaussianScene, or (scene, mask) with return_mask.
+///     The perturbed GaussianScene, or (scene, mask) with return_mask. Without pruning, the
+///     arrays no enabled operation writes are shared with the input scene (read-only, no copy).
 ///
 /// Raises:
 ///     ValueError: a parameter is invalid (the message names it).
@@ -47,17 +48,34 @@ fn _perturb<'py>(
         rotation_noise,
     };
     let borrow = scene.borrow(py)?;
-    let extras = scene.extras_readonly(py)?;
     let view = borrow.view()?;
-    let extras_ref: Vec<(&str, &[f32])> = extras
-        .iter()
-        .map(|(n, a)| Ok((n.as_str(), a.as_slice()?)))
-        .collect::<Result<_, numpy::AsSliceError>>()
-        .map_err(|e| pyo3::exceptions::PyValueError::new_err(e.to_string()))?;
-    let (out, keep) = detach(py, || {
-        crate::pool::install(|| splat_core::perturb::perturb(&view, &extras_ref, &params, seed))
+    let n = view.len();
+    // Without pruning, only the arrays an enabled op writes are new; the output shares the
+    // others (sh_rest, extras, ...) with the input, which is safe as scene arrays are read-only.
+    let changed = detach(py, || {
+        crate::pool::install(|| splat_core::perturb::perturb_changed(&view, &params, seed))
     })?;
-    let out = Bound::new(py, PyGaussianScene::from_core(py, out)?)?.into_any();
+    let (out, keep) = match changed {
+        Some(c) => (
+            scene.with_arrays(py, c.means, c.quats, c.log_scales, c.opacity_logits, c.sh0)?,
+            vec![true; n],
+        ),
+        None => {
+            let extras = scene.extras_readonly(py)?;
+            let extras_ref: Vec<(&str, &[f32])> = extras
+                .iter()
+                .map(|(n, a)| Ok((n.as_str(), a.as_slice()?)))
+                .collect::<Result<_, numpy::AsSliceError>>()
+                .map_err(|e| pyo3::exceptions::PyValueError::new_err(e.to_string()))?;
+            let (out, keep) = detach(py, || {
+                crate::pool::install(|| {
+                    splat_core::perturb::perturb(&view, &extras_ref, &params, seed)
+                })
+            })?;
+            (PyGaussianScene::from_core(py, out)?, keep)
+        }
+    };
+    let out = Bound::new(py, out)?.into_any();
     if return_mask {
         Ok(PyTuple::new(py, [out, keep.into_pyarray(py).into_any()])?.into_any())
     } else {

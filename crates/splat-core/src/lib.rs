@@ -5,6 +5,7 @@
 //! - [`rng`]: the counter-based generator behind every random draw (a stability promise)
 //! - [`perturb`]: the paper's six perturbation operations (SPEC §2)
 pub mod error;
+pub mod fastmath;
 pub mod io;
 pub mod perturb;
 pub mod ply;

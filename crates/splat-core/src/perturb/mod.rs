@@ -11,11 +11,13 @@
 //! probability of zero (or `None`) keeps every Gaussian: `scaled(0)` configs are the identity.
 use rayon::prelude::*;
 
+mod kernel;
+
 use crate::error::{Error, Result};
 use crate::rng::{
     op_key, Stream, OP_COLOR, OP_OPACITY, OP_POSITION, OP_PRUNE, OP_ROTATION, OP_SCALE,
 };
-use crate::scene::{Scene, SceneView, SH_C0};
+use crate::scene::{Scene, SceneView};
 
 /// Gaussians per parallel work item (fixed, never derived from the thread count).
 pub const CHUNK: usize = 4096;
@@ -178,6 +180,51 @@ pub fn perturb(
     params: &PerturbParams,
     seed: u64,
 ) -> Result<(Scene, Vec<bool>)> {
+    run(view, extras, params, seed, false)
+}
+
+/// The arrays a perturbation without pruning writes; `None` means the op that writes it is
+/// disabled, so the array equals the input's bit for bit (as do `sh_rest` and the extras).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Changed {
+    pub means: Option<Vec<f32>>,
+    pub quats: Option<Vec<f32>>,
+    pub log_scales: Option<Vec<f32>>,
+    pub opacity_logits: Option<Vec<f32>>,
+    pub sh0: Option<Vec<f32>>,
+}
+
+/// [`perturb`] for parameters that prune nothing, allocating only the arrays an enabled op
+/// changes (callers share the others with the input). `Ok(None)` when `params` prune.
+pub fn perturb_changed(
+    view: &SceneView<'_>,
+    params: &PerturbParams,
+    seed: u64,
+) -> Result<Option<Changed>> {
+    if params.prune.is_some_and(|p| p > 0.0) {
+        params.validate()?;
+        return Ok(None);
+    }
+    let (s, _) = run(view, &[], params, seed, true)?;
+    let some = |v: Vec<f32>, on: Option<f32>| on.filter(|&x| x > 0.0).map(|_| v);
+    Ok(Some(Changed {
+        means: some(s.means, params.position_jitter),
+        quats: some(s.quats, params.rotation_noise),
+        log_scales: some(s.log_scales, params.scale_noise),
+        opacity_logits: some(s.opacity_logits, params.opacity_noise),
+        sh0: some(s.sh0, params.color_noise),
+    }))
+}
+
+/// The engine behind both entry points. With `only_changed` (and no pruning), arrays no enabled
+/// op writes are left empty instead of copied.
+fn run(
+    view: &SceneView<'_>,
+    extras: &[(&str, &[f32])],
+    params: &PerturbParams,
+    seed: u64,
+    only_changed: bool,
+) -> Result<(Scene, Vec<bool>)> {
     view.validate()?;
     params.validate()?;
     let n = view.len();
@@ -208,18 +255,25 @@ pub fn perturb(
         scale: active(params.scale_noise).map(|s| (op_key(seed, OP_SCALE), s)),
         rotation: active(params.rotation_noise).map(|s| (op_key(seed, OP_ROTATION), s)),
     };
-
+    let only_changed = only_changed && m == n;
+    let buffer = |len: usize, written: bool| {
+        if written || !only_changed {
+            output_buffer(len)
+        } else {
+            Vec::new()
+        }
+    };
     let mut out = Scene {
-        means: vec![0.0; m * 3],
-        quats: vec![0.0; m * 4],
-        log_scales: vec![0.0; m * 3],
-        opacity_logits: vec![0.0; m],
-        sh0: vec![0.0; m * 3],
-        sh_rest: vec![0.0; m * k3],
+        means: buffer(m * 3, ops.position.is_some()),
+        quats: buffer(m * 4, ops.rotation.is_some()),
+        log_scales: buffer(m * 3, ops.scale.is_some()),
+        opacity_logits: buffer(m, ops.opacity.is_some()),
+        sh0: buffer(m * 3, ops.color.is_some()),
+        sh_rest: buffer(m * k3, false),
         sh_degree: view.sh_degree,
         extras: extras
             .iter()
-            .map(|(name, _)| ((*name).to_owned(), vec![0.0; m]))
+            .map(|(name, _)| ((*name).to_owned(), buffer(m, false)))
             .collect(),
     };
     let mut rest = Rows {
@@ -241,49 +295,79 @@ pub fn perturb(
         parts.push(head);
         rest = tail;
     }
-    parts.into_par_iter().enumerate().for_each(|(c, rows)| {
-        let i0 = c * CHUNK;
-        let i1 = (i0 + CHUNK).min(n);
-        let idx: Vec<usize> = (i0..i1).filter(|&i| keep[i]).collect();
-        copy_rows(view, extras, k3, &idx, i1 - i0 == idx.len(), rows, &ops);
-    });
+    parts.into_par_iter().enumerate().for_each_init(
+        kernel::Scratch::default,
+        |scratch, (c, rows)| {
+            let i0 = c * CHUNK;
+            let i1 = (i0 + CHUNK).min(n);
+            scratch.idx.clear();
+            scratch
+                .idx
+                .extend((i0..i1).filter(|&i| keep[i]).map(|i| i as u64));
+            kernel::run_chunk(view, extras, k3, &ops, rows, scratch);
+        },
+    );
     Ok((out, keep))
 }
 
+/// A zeroed output array. Large ones come straight from the OS untouched (calloc), and on Linux
+/// they are advised to use transparent huge pages before the parallel fill first touches them,
+/// as NumPy does for its own large arrays: page faults otherwise cost more than the copy.
+fn output_buffer(len: usize) -> Vec<f32> {
+    let v = vec![0.0f32; len];
+    #[cfg(target_os = "linux")]
+    {
+        const HUGE: usize = 2 << 20;
+        let start = v.as_ptr() as usize;
+        let end = start + len * std::mem::size_of::<f32>();
+        let lo = start.next_multiple_of(HUGE);
+        let hi = end / HUGE * HUGE;
+        if hi > lo {
+            // SAFETY: [lo, hi) lies inside the allocation owned by `v`; MADV_HUGEPAGE is only
+            // advice about how to back those pages and changes no contents.
+            unsafe {
+                libc::madvise(lo as *mut libc::c_void, hi - lo, libc::MADV_HUGEPAGE);
+            }
+        }
+    }
+    v
+}
+
 /// Enabled ops with their stream key and sigma (position: sigma already times E_avg).
-struct Ops {
-    position: Option<(u64, f32)>,
-    color: Option<(u64, f32)>,
-    opacity: Option<(u64, f32)>,
-    scale: Option<(u64, f32)>,
-    rotation: Option<(u64, f32)>,
+pub(crate) struct Ops {
+    pub position: Option<(u64, f32)>,
+    pub color: Option<(u64, f32)>,
+    pub opacity: Option<(u64, f32)>,
+    pub scale: Option<(u64, f32)>,
+    pub rotation: Option<(u64, f32)>,
 }
 
 /// Mutable output rows of one chunk.
-struct Rows<'a> {
-    means: &'a mut [f32],
-    quats: &'a mut [f32],
-    log_scales: &'a mut [f32],
-    opacity_logits: &'a mut [f32],
-    sh0: &'a mut [f32],
-    sh_rest: &'a mut [f32],
-    extras: Vec<&'a mut [f32]>,
+pub(crate) struct Rows<'a> {
+    pub means: &'a mut [f32],
+    pub quats: &'a mut [f32],
+    pub log_scales: &'a mut [f32],
+    pub opacity_logits: &'a mut [f32],
+    pub sh0: &'a mut [f32],
+    pub sh_rest: &'a mut [f32],
+    pub extras: Vec<&'a mut [f32]>,
 }
 
 impl<'a> Rows<'a> {
     /// The first `rows` rows and the rest.
+    /// An empty array (one not written) stays empty in both halves.
     fn split(self, rows: usize, k3: usize) -> (Rows<'a>, Rows<'a>) {
-        let (means, means_t) = self.means.split_at_mut(rows * 3);
-        let (quats, quats_t) = self.quats.split_at_mut(rows * 4);
-        let (log_scales, log_scales_t) = self.log_scales.split_at_mut(rows * 3);
-        let (opacity_logits, opacity_t) = self.opacity_logits.split_at_mut(rows);
-        let (sh0, sh0_t) = self.sh0.split_at_mut(rows * 3);
-        let (sh_rest, sh_rest_t) = self.sh_rest.split_at_mut(rows * k3);
-        let (extras, extras_t) = self
-            .extras
-            .into_iter()
-            .map(|e| e.split_at_mut(rows))
-            .unzip();
+        fn cut(s: &mut [f32], len: usize) -> (&mut [f32], &mut [f32]) {
+            let len = if s.is_empty() { 0 } else { len };
+            s.split_at_mut(len)
+        }
+        let (means, means_t) = cut(self.means, rows * 3);
+        let (quats, quats_t) = cut(self.quats, rows * 4);
+        let (log_scales, log_scales_t) = cut(self.log_scales, rows * 3);
+        let (opacity_logits, opacity_t) = cut(self.opacity_logits, rows);
+        let (sh0, sh0_t) = cut(self.sh0, rows * 3);
+        let (sh_rest, sh_rest_t) = cut(self.sh_rest, rows * k3);
+        let (extras, extras_t) = self.extras.into_iter().map(|e| cut(e, rows)).unzip();
         (
             Rows {
                 means,
@@ -307,175 +391,15 @@ impl<'a> Rows<'a> {
     }
 }
 
-/// Copy the rows `idx` (global indices, ascending; `contiguous` when they are a whole range)
-/// into `out`, then apply the enabled ops in place.
-fn copy_rows(
-    view: &SceneView<'_>,
-    extras: &[(&str, &[f32])],
-    k3: usize,
-    idx: &[usize],
-    contiguous: bool,
-    out: Rows<'_>,
-    ops: &Ops,
-) {
-    let gather = |dst: &mut [f32], src: &[f32], w: usize| {
-        if w == 0 {
-            return;
-        }
-        if contiguous {
-            if let Some(&first) = idx.first() {
-                dst.copy_from_slice(&src[first * w..(first + idx.len()) * w]);
-            }
-        } else {
-            for (d, &i) in dst.chunks_exact_mut(w).zip(idx) {
-                d.copy_from_slice(&src[i * w..(i + 1) * w]);
-            }
-        }
-    };
-    gather(out.means, view.means, 3);
-    gather(out.quats, view.quats, 4);
-    gather(out.log_scales, view.log_scales, 3);
-    gather(out.opacity_logits, view.opacity_logits, 1);
-    gather(out.sh0, view.sh0, 3);
-    gather(out.sh_rest, view.sh_rest, k3);
-    for (dst, (_, src)) in out.extras.into_iter().zip(extras) {
-        gather(dst, src, 1);
-    }
-
-    if let Some((key, sigma)) = ops.position {
-        for (row, &i) in out.means.chunks_exact_mut(3).zip(idx) {
-            let z: [f32; 3] = Stream::new(key, i as u64).normals();
-            for d in 0..3 {
-                row[d] += sigma * z[d];
-            }
-        }
-    }
-    if let Some((key, sigma)) = ops.color {
-        for (row, &i) in out.sh0.chunks_exact_mut(3).zip(idx) {
-            let z: [f32; 3] = Stream::new(key, i as u64).normals();
-            for d in 0..3 {
-                let c = 0.5 + SH_C0 * row[d];
-                row[d] = sh0_from_color((c + sigma * z[d]).clamp(0.0, 1.0));
-            }
-        }
-    }
-    if let Some((key, sigma)) = ops.opacity {
-        for (x, &i) in out.opacity_logits.iter_mut().zip(idx) {
-            let [z]: [f32; 1] = Stream::new(key, i as u64).normals();
-            let a = (sigmoid(*x) + sigma * z).clamp(OPACITY_MIN, OPACITY_MAX);
-            *x = logit_in_range(a);
-        }
-    }
-    if let Some((key, sigma)) = ops.scale {
-        for (row, &i) in out.log_scales.chunks_exact_mut(3).zip(idx) {
-            let z: [f32; 3] = Stream::new(key, i as u64).normals();
-            for d in 0..3 {
-                let s = row[d].exp() + sigma * z[d];
-                row[d] = log_scale_floored(s);
-            }
-        }
-    }
-    if let Some((key, sigma)) = ops.rotation {
-        for (q, &i) in out.quats.chunks_exact_mut(4).zip(idx) {
-            let z: [f32; 4] = Stream::new(key, i as u64).normals();
-            let u = unit(q);
-            let w = [
-                u[0] + sigma * z[0],
-                u[1] + sigma * z[1],
-                u[2] + sigma * z[2],
-                u[3] + sigma * z[3],
-            ];
-            let n2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2] + w[3] * w[3];
-            if n2 > 0.0 && n2.is_finite() {
-                let norm = n2.sqrt();
-                for d in 0..4 {
-                    q[d] = w[d] / norm;
-                }
-            } else {
-                q.copy_from_slice(&u);
-            }
-        }
-    }
-}
-
-/// q / |q|; a zero quaternion becomes the identity, a non-finite one is returned as is.
-#[inline]
-fn unit(q: &[f32]) -> [f32; 4] {
-    let n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
-    if n2 > 0.0 && n2.is_finite() {
-        let norm = n2.sqrt();
-        [q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm]
-    } else if n2 == 0.0 {
-        [1.0, 0.0, 0.0, 0.0]
-    } else {
-        [q[0], q[1], q[2], q[3]]
-    }
-}
-
-/// The activation `GaussianScene.opacities` uses.
-#[inline]
-pub fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
-}
-
-/// One float step toward zero (for nonzero finite `v`).
-#[inline]
-fn toward_zero(v: f32) -> f32 {
-    f32::from_bits(v.to_bits() - 1)
-}
-
-/// sh0 for a colour in [0, 1], nudged by an ulp where needed so that 0.5 + C0 * sh0 (float32,
-/// as `GaussianScene.colors` computes it) stays inside [0, 1].
-#[inline]
-fn sh0_from_color(c: f32) -> f32 {
-    let mut v = (c - 0.5) / SH_C0;
-    if c <= 0.0 || c >= 1.0 {
-        for _ in 0..4 {
-            let back = 0.5 + SH_C0 * v;
-            if (0.0..=1.0).contains(&back) || v == 0.0 {
-                break;
-            }
-            v = toward_zero(v);
-        }
-    }
-    v
-}
-
-/// logit(a) for a in [OPACITY_MIN, OPACITY_MAX], nudged so that sigmoid of it stays in range.
-#[inline]
-fn logit_in_range(a: f32) -> f32 {
-    let mut x = (a / (1.0 - a)).ln();
-    if !(1.01 * OPACITY_MIN..=1.0 - 1.01 * (1.0 - OPACITY_MAX)).contains(&a) {
-        for _ in 0..8 {
-            let s = sigmoid(x);
-            if (OPACITY_MIN..=OPACITY_MAX).contains(&s) || x == 0.0 || !x.is_finite() {
-                break;
-            }
-            x = toward_zero(x);
-        }
-    }
-    x
-}
-
-/// ln(max(s, SCALE_MIN)), nudged so that exp of it is >= SCALE_MIN. NaN stays NaN.
-#[inline]
-fn log_scale_floored(s: f32) -> f32 {
-    if s >= 1.01 * SCALE_MIN || s.is_nan() {
-        return s.ln();
-    }
-    let mut x = SCALE_MIN.max(s).ln();
-    for _ in 0..8 {
-        if x.exp() >= SCALE_MIN {
-            break;
-        }
-        x = toward_zero(x);
-    }
-    x
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene::SH_C0;
+
+    /// The activation `GaussianScene.opacities` uses.
+    fn sigmoid(x: f32) -> f32 {
+        1.0 / (1.0 + (-x).exp())
+    }
 
     fn scene(n: usize, degree: u8) -> Scene {
         let k3 = crate::scene::sh_rest_count(degree) * 3;
@@ -644,6 +568,61 @@ mod tests {
             let n = q.iter().map(|v| v * v).sum::<f32>().sqrt();
             assert!((n - 1.0).abs() < 1e-6);
         }
+    }
+
+    #[test]
+    fn batched_kernel_draws_the_documented_stream_values() {
+        let s = scene(CHUNK + 300, 0);
+        let p = PerturbParams {
+            position_jitter: Some(0.01),
+            prune: Some(0.5),
+            ..Default::default()
+        };
+        let (out, keep) = run(&s, &p, 99);
+        let sigma = (f64::from(0.01f32) * mean_extent(&s.view())) as f32;
+        let kept: Vec<usize> = (0..s.len()).filter(|&i| keep[i]).collect();
+        for (r, &i) in kept.iter().enumerate() {
+            assert_eq!(keep[i], crate::rng::uniform(99, OP_PRUNE, i as u64) >= 0.5);
+            for d in 0..3 {
+                let z = crate::rng::normal(99, OP_POSITION, i as u64, d as u32);
+                let want = s.means[i * 3 + d] + sigma * z;
+                assert_eq!(
+                    out.means[r * 3 + d].to_bits(),
+                    want.to_bits(),
+                    "row {i} axis {d}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn changed_arrays_match_the_full_perturbation() {
+        let s = scene(2 * CHUNK + 9, 3);
+        for name in ["spatial", "radiometric"] {
+            let p = PerturbParams::preset(name).expect("known");
+            let (full, _) = run(&s, &p, 4);
+            let c = perturb_changed(&s.view(), &p, 4)
+                .expect("valid")
+                .expect("no pruning");
+            let pick = |v: Option<Vec<f32>>, orig: &Vec<f32>| v.unwrap_or_else(|| orig.clone());
+            assert_eq!(pick(c.means, &s.means), full.means);
+            assert_eq!(pick(c.quats, &s.quats), full.quats);
+            assert_eq!(pick(c.log_scales, &s.log_scales), full.log_scales);
+            assert_eq!(
+                pick(c.opacity_logits, &s.opacity_logits),
+                full.opacity_logits
+            );
+            assert_eq!(pick(c.sh0, &s.sh0), full.sh0);
+        }
+        let morph = PerturbParams::preset("morphological").expect("known");
+        assert!(perturb_changed(&s.view(), &morph, 4)
+            .expect("valid")
+            .is_none());
+        let bad = PerturbParams {
+            prune: Some(2.0),
+            ..Default::default()
+        };
+        assert!(perturb_changed(&s.view(), &bad, 4).is_err());
     }
 
     #[test]
