@@ -8,7 +8,7 @@
 //! lands inside the clamp range.
 use super::{Ops, Rows, OPACITY_MAX, OPACITY_MIN, SCALE_MIN};
 use crate::fastmath;
-use crate::rng::{mix64, normal_pair, GAMMA};
+use crate::rng::{mix64, normal_pair, Stream, GAMMA};
 use crate::scene::{SceneView, SH_C0};
 
 /// Reusable buffers of one worker: the chunk's surviving global indices, the op's stream bases,
@@ -72,6 +72,35 @@ unsafe fn run_chunk_avx2(
     scratch: &mut Scratch,
 ) {
     run_chunk_impl(view, extras, k3, ops, out, scratch)
+}
+
+/// keep[l] = (uniform draw of Gaussian i0 + l in the prune op) >= p, vectorised like the chunks.
+pub(crate) fn fill_keep(key: u64, i0: u64, p: f32, keep: &mut [bool]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::is_x86_feature_detected!("avx512f")
+            && std::is_x86_feature_detected!("avx512dq")
+            && std::is_x86_feature_detected!("avx512vl")
+            && std::is_x86_feature_detected!("avx2")
+        {
+            // SAFETY: the CPU has the features the function is compiled for (checked above).
+            return unsafe { fill_keep_avx512(key, i0, p, keep) };
+        }
+    }
+    fill_keep_impl(key, i0, p, keep)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2,bmi2")]
+unsafe fn fill_keep_avx512(key: u64, i0: u64, p: f32, keep: &mut [bool]) {
+    fill_keep_impl(key, i0, p, keep)
+}
+
+#[inline(always)]
+fn fill_keep_impl(key: u64, i0: u64, p: f32, keep: &mut [bool]) {
+    for (l, k) in keep.iter_mut().enumerate() {
+        *k = Stream::new(key, i0 + l as u64).uniform() >= p;
+    }
 }
 
 #[inline(always)]

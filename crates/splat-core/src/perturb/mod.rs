@@ -14,9 +14,7 @@ use rayon::prelude::*;
 mod kernel;
 
 use crate::error::{Error, Result};
-use crate::rng::{
-    op_key, Stream, OP_COLOR, OP_OPACITY, OP_POSITION, OP_PRUNE, OP_ROTATION, OP_SCALE,
-};
+use crate::rng::{op_key, OP_COLOR, OP_OPACITY, OP_POSITION, OP_PRUNE, OP_ROTATION, OP_SCALE};
 use crate::scene::{Scene, SceneView};
 
 /// Gaussians per parallel work item (fixed, never derived from the thread count).
@@ -159,12 +157,9 @@ pub fn prune_mask(n: usize, p: Option<f32>, seed: u64) -> Vec<bool> {
     let mut keep = vec![true; n];
     if let Some(p) = p.filter(|&p| p > 0.0) {
         let key = op_key(seed, OP_PRUNE);
-        keep.par_chunks_mut(CHUNK).enumerate().for_each(|(c, ks)| {
-            let i0 = (c * CHUNK) as u64;
-            for (l, k) in ks.iter_mut().enumerate() {
-                *k = Stream::new(key, i0 + l as u64).uniform() >= p;
-            }
-        });
+        keep.par_chunks_mut(CHUNK)
+            .enumerate()
+            .for_each(|(c, ks)| kernel::fill_keep(key, (c * CHUNK) as u64, p, ks));
     }
     keep
 }
