@@ -119,40 +119,15 @@ fn run_chunk_impl(
         .last()
         .is_some_and(|&l| l as usize == first + rows - 1);
     let idx = &s.idx;
-    let gather = |dst: &mut [f32], src: &[f32], w: usize| {
-        // an empty destination is an array this call does not write (see `perturb_changed`)
-        if dst.is_empty() || w == 0 {
-            return;
-        }
-        if contiguous {
-            dst.copy_from_slice(&src[first * w..(first + rows) * w]);
-            return;
-        }
-        // fixed widths turn each row copy into a few vector moves instead of a memcpy call
-        match w {
-            1 => gather_rows::<1>(dst, src, idx),
-            3 => gather_rows::<3>(dst, src, idx),
-            4 => gather_rows::<4>(dst, src, idx),
-            9 => gather_rows::<9>(dst, src, idx),
-            24 => gather_rows::<24>(dst, src, idx),
-            45 => gather_rows::<45>(dst, src, idx),
-            72 => gather_rows::<72>(dst, src, idx),
-            _ => {
-                for (d, &i) in dst.chunks_exact_mut(w).zip(idx) {
-                    let i = i as usize;
-                    d.copy_from_slice(&src[i * w..(i + 1) * w]);
-                }
-            }
-        }
-    };
-    gather(out.means, view.means, 3);
-    gather(out.quats, view.quats, 4);
-    gather(out.log_scales, view.log_scales, 3);
-    gather(out.opacity_logits, view.opacity_logits, 1);
-    gather(out.sh0, view.sh0, 3);
-    gather(out.sh_rest, view.sh_rest, k3);
+    let span = contiguous.then_some(first);
+    gather(out.means, view.means, 3, idx, span);
+    gather(out.quats, view.quats, 4, idx, span);
+    gather(out.log_scales, view.log_scales, 3, idx, span);
+    gather(out.opacity_logits, view.opacity_logits, 1, idx, span);
+    gather(out.sh0, view.sh0, 3, idx, span);
+    gather(out.sh_rest, view.sh_rest, k3, idx, span);
     for (dst, (_, src)) in out.extras.into_iter().zip(extras) {
-        gather(dst, src, 1);
+        gather(dst, src, 1, idx, span);
     }
     if rows == 0 {
         return;
@@ -259,6 +234,36 @@ fn draw_normals(key: u64, dims: usize, idx: &[u64], base: &mut [u64], z: &mut [V
         } else {
             for (a, &bs) in za.iter_mut().zip(base.iter()) {
                 *a = normal_pair(mix64(bs.wrapping_add(inc))).0;
+            }
+        }
+    }
+}
+
+/// Copy rows `idx` of `src` (rows of `w` floats) into `dst`; `span` is `Some(first)` when they
+/// are the whole range first..first + idx.len(). A function, not a closure, so that it inlines
+/// into the feature-specific builds (row copies become a few vector moves, not memcpy calls).
+#[inline(always)]
+fn gather(dst: &mut [f32], src: &[f32], w: usize, idx: &[u64], span: Option<usize>) {
+    // an empty destination is an array this call does not write (see `perturb_changed`)
+    if dst.is_empty() || w == 0 {
+        return;
+    }
+    if let Some(first) = span {
+        dst.copy_from_slice(&src[first * w..(first + idx.len()) * w]);
+        return;
+    }
+    match w {
+        1 => gather_rows::<1>(dst, src, idx),
+        3 => gather_rows::<3>(dst, src, idx),
+        4 => gather_rows::<4>(dst, src, idx),
+        9 => gather_rows::<9>(dst, src, idx),
+        24 => gather_rows::<24>(dst, src, idx),
+        45 => gather_rows::<45>(dst, src, idx),
+        72 => gather_rows::<72>(dst, src, idx),
+        _ => {
+            for (d, &i) in dst.chunks_exact_mut(w).zip(idx) {
+                let i = i as usize;
+                d.copy_from_slice(&src[i * w..(i + 1) * w]);
             }
         }
     }
