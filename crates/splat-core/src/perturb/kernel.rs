@@ -103,6 +103,41 @@ fn fill_keep_impl(key: u64, i0: u64, p: f32, keep: &mut [bool]) {
     }
 }
 
+/// Per-axis (min, max) of the (x, y, z) rows whose three values are finite; (inf, -inf) if none.
+pub(crate) fn finite_bounds(means: &[f32]) -> ([f32; 3], [f32; 3]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::is_x86_feature_detected!("avx512f")
+            && std::is_x86_feature_detected!("avx512dq")
+            && std::is_x86_feature_detected!("avx512vl")
+            && std::is_x86_feature_detected!("avx2")
+        {
+            // SAFETY: the CPU has the features the function is compiled for (checked above).
+            return unsafe { finite_bounds_avx512(means) };
+        }
+    }
+    finite_bounds_impl(means)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2,bmi2")]
+unsafe fn finite_bounds_avx512(means: &[f32]) -> ([f32; 3], [f32; 3]) {
+    finite_bounds_impl(means)
+}
+
+#[inline(always)]
+fn finite_bounds_impl(means: &[f32]) -> ([f32; 3], [f32; 3]) {
+    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for p in means.chunks_exact(3) {
+        let ok = p[0].is_finite() & p[1].is_finite() & p[2].is_finite();
+        for d in 0..3 {
+            lo[d] = lo[d].min(if ok { p[d] } else { f32::INFINITY });
+            hi[d] = hi[d].max(if ok { p[d] } else { f32::NEG_INFINITY });
+        }
+    }
+    (lo, hi)
+}
+
 #[inline(always)]
 fn run_chunk_impl(
     view: &SceneView<'_>,

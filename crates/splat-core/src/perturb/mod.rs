@@ -123,18 +123,7 @@ pub fn mean_extent(view: &SceneView<'_>) -> f64 {
     let (lo, hi) = view
         .means
         .par_chunks(CHUNK * 3)
-        .map(|c| {
-            let (mut lo, mut hi) = init();
-            for p in c.chunks_exact(3) {
-                if p.iter().all(|v| v.is_finite()) {
-                    for d in 0..3 {
-                        lo[d] = lo[d].min(p[d]);
-                        hi[d] = hi[d].max(p[d]);
-                    }
-                }
-            }
-            (lo, hi)
-        })
+        .map(kernel::finite_bounds)
         // min/max are exact and associative: any reduction order gives the same bits
         .reduce(init, |(a, b), (c, d)| {
             (
