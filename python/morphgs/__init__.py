@@ -16,8 +16,11 @@ from morphgs._core import (
     load,
     num_threads,
     save_ply,
+    save_splat,
+    save_spz,
 )
 from morphgs.camera import Camera, Cameras
+from morphgs import synthetic
 from morphgs.perturb import PerturbConfig, perturb
 
 __all__ = [
@@ -33,4 +36,7 @@ __all__ = [
     "num_threads",
     "perturb",
     "save_ply",
+    "save_splat",
+    "save_spz",
+    "synthetic",
 ]

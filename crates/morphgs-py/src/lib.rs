@@ -3,6 +3,7 @@
 use pyo3::prelude::*;
 
 mod errors;
+mod formats;
 mod io;
 mod perturb;
 mod pool;
@@ -14,6 +15,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     errors::register(m)?;
     scene::register(m)?;
     io::register(m)?;
+    formats::register(m)?;
     perturb::register(m)?;
     m.add_function(wrap_pyfunction!(num_threads, m)?)?;
     Ok(())

@@ -72,7 +72,7 @@ fn shape_err(name: &str, want: &str, got: &[usize]) -> PyErr {
     PyValueError::new_err(format!("{name} must have shape {want}, got {got:?}"))
 }
 
-/// Convert any real-valued array-like to a fresh C-contiguous float32 array (a copy the scene owns).
+/// Convert any real-valued array-like to a C-contiguous float32 array (no copy when it already is).
 fn to_f32_array<'py>(
     py: Python<'py>,
     name: &str,
@@ -90,11 +90,10 @@ fn to_f32_array<'py>(
             arr.dtype()
         )));
     }
+    // A C-contiguous float32 view or copy; `vec_of` then copies it once into the scene's buffer.
     let kwargs = PyDict::new(py);
     kwargs.set_item("dtype", np.getattr("float32")?)?;
-    kwargs.set_item("copy", true)?;
-    let out = np.call_method("array", (arr,), Some(&kwargs))?;
-    let out = np.call_method1("ascontiguousarray", (out,))?;
+    let out = np.call_method("ascontiguousarray", (arr,), Some(&kwargs))?;
     Ok(out.cast_into::<PyUntypedArray>()?)
 }
 
@@ -316,6 +315,13 @@ impl PyGaussianScene {
             extras: Vec::new(),
         };
         if let Some(extras) = extras {
+            let names: Vec<String> = extras
+                .keys()
+                .iter()
+                .map(|k| k.extract::<String>())
+                .collect::<PyResult<_>>()?;
+            splat_core::ply::check_extra_names(names.iter().map(String::as_str))
+                .map_err(CoreError)?;
             for (k, v) in extras.iter() {
                 let name: String = k.extract()?;
                 let a = to_f32_array(py, &format!("extras['{name}']"), &v)?;
@@ -494,9 +500,14 @@ impl PyGaussianScene {
     }
 }
 
+/// Copy a contiguous float32 array into a new buffer the scene owns (huge pages when large).
 fn vec_of(a: &Bound<'_, PyUntypedArray>) -> PyResult<Vec<f32>> {
     let a = a.cast::<numpy::PyArrayDyn<f32>>()?;
-    Ok(contiguous(a.try_readonly()?.as_slice())?.to_vec())
+    let ro = a.try_readonly()?;
+    let src = contiguous(ro.as_slice())?;
+    let mut v = splat_core::mem::zeroed_f32(src.len());
+    v.copy_from_slice(src);
+    Ok(v)
 }
 
 /// Rebuild a pickled scene (internal).

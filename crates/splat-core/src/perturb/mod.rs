@@ -14,6 +14,7 @@ use rayon::prelude::*;
 mod kernel;
 
 use crate::error::{Error, Result};
+use crate::mem::zeroed_f32;
 use crate::rng::{op_key, OP_COLOR, OP_OPACITY, OP_POSITION, OP_PRUNE, OP_ROTATION, OP_SCALE};
 use crate::scene::{Scene, SceneView};
 
@@ -242,7 +243,7 @@ fn run(
     let only_changed = only_changed && m == n;
     let buffer = |len: usize, written: bool| {
         if written || !only_changed {
-            output_buffer(len)
+            zeroed_f32(len)
         } else {
             Vec::new()
         }
@@ -292,29 +293,6 @@ fn run(
         },
     );
     Ok((out, keep))
-}
-
-/// A zeroed output array. Large ones come straight from the OS untouched (calloc), and on Linux
-/// they are advised to use transparent huge pages before the parallel fill first touches them,
-/// as NumPy does for its own large arrays: page faults otherwise cost more than the copy.
-fn output_buffer(len: usize) -> Vec<f32> {
-    let v = vec![0.0f32; len];
-    #[cfg(target_os = "linux")]
-    {
-        const HUGE: usize = 2 << 20;
-        let start = v.as_ptr() as usize;
-        let end = start + len * std::mem::size_of::<f32>();
-        let lo = start.next_multiple_of(HUGE);
-        let hi = end / HUGE * HUGE;
-        if hi > lo {
-            // SAFETY: [lo, hi) lies inside the allocation owned by `v`; MADV_HUGEPAGE is only
-            // advice about how to back those pages and changes no contents.
-            unsafe {
-                libc::madvise(lo as *mut libc::c_void, hi - lo, libc::MADV_HUGEPAGE);
-            }
-        }
-    }
-    v
 }
 
 /// Enabled ops with their stream key and sigma (position: sigma already times E_avg).
