@@ -26,6 +26,7 @@ from morphgs import trajectory
 # `morphgs.curate(...)` is the function; its package stays importable as `from morphgs.curate import ...`.
 from morphgs.curate import curate
 from morphgs import synthetic
+from morphgs.perturb import PerturbConfig, perturb
 
 __all__ = [
     "Camera",
@@ -34,12 +35,14 @@ __all__ = [
     "MorphgsError",
     "MorphgsWarning",
     "Pair",
+    "PerturbConfig",
     "SceneFormatError",
     "__version__",
     "curate",
     "gaussian_blur",
     "load",
     "num_threads",
+    "perturb",
     "render_pair",
     "save_ply",
     "save_splat",

@@ -82,3 +82,17 @@ def save_spz(
 
 # ---- blur (curate / blur2d baseline) ----
 def gaussian_blur(images: npt.NDArray[np.float32], sigma: float) -> _F32: ...
+
+# ---- perturb ----
+def _perturb(
+    scene: GaussianScene,
+    *,
+    position_jitter: float | None,
+    color_noise: float | None,
+    opacity_noise: float | None,
+    prune: float | None,
+    scale_noise: float | None,
+    rotation_noise: float | None,
+    seed: int,
+    return_mask: bool = False,
+) -> GaussianScene | tuple[GaussianScene, npt.NDArray[np.bool_]]: ...

@@ -19,6 +19,7 @@ _COMMAND_MODULES = (
     "morphgs.commands.preview",
     "morphgs.commands.convert",
     "morphgs.commands.sample",
+    "morphgs.commands.perturb",
 )
 
 

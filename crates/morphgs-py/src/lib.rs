@@ -6,6 +6,7 @@ mod blur;
 mod errors;
 mod formats;
 mod io;
+mod perturb;
 mod pool;
 mod scene;
 
@@ -17,6 +18,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     io::register(m)?;
     blur::register(m)?;
     formats::register(m)?;
+    perturb::register(m)?;
     m.add_function(wrap_pyfunction!(num_threads, m)?)?;
     Ok(())
 }

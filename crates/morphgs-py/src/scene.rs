@@ -188,6 +188,53 @@ impl PyGaussianScene {
         self.sh_degree
     }
 
+    /// A scene holding the given arrays and sharing this scene's other arrays (no copy: every
+    /// array of a scene is read-only). Each given array must have this scene's length.
+    pub fn with_arrays(
+        &self,
+        py: Python<'_>,
+        means: Option<Vec<f32>>,
+        quats: Option<Vec<f32>>,
+        log_scales: Option<Vec<f32>>,
+        opacity_logits: Option<Vec<f32>>,
+        sh0: Option<Vec<f32>>,
+    ) -> PyResult<Self> {
+        let n = self.len_py(py);
+        let rows = |v: Vec<f32>, w: usize| -> PyResult<Py<PyArray2<f32>>> {
+            let a = Array2::from_shape_vec((n, w), v)
+                .map_err(|e| PyValueError::new_err(e.to_string()))?;
+            Ok(readonly(a.into_pyarray(py))?.unbind())
+        };
+        let pick = |new: Option<Vec<f32>>, old: &Py<PyArray2<f32>>, w: usize| match new {
+            Some(v) => rows(v, w),
+            None => Ok(old.clone_ref(py)),
+        };
+        let opacity_logits = match opacity_logits {
+            Some(v) if v.len() == n => readonly(Array1::from_vec(v).into_pyarray(py))?.unbind(),
+            Some(v) => {
+                return Err(PyValueError::new_err(format!(
+                    "opacity_logits holds {} values, expected {n}",
+                    v.len()
+                )))
+            }
+            None => self.opacity_logits.clone_ref(py),
+        };
+        Ok(PyGaussianScene {
+            means: pick(means, &self.means, 3)?,
+            quats: pick(quats, &self.quats, 4)?,
+            log_scales: pick(log_scales, &self.log_scales, 3)?,
+            opacity_logits,
+            sh0: pick(sh0, &self.sh0, 3)?,
+            sh_rest: self.sh_rest.clone_ref(py),
+            sh_degree: self.sh_degree,
+            extras: self
+                .extras
+                .iter()
+                .map(|(name, a)| (name.clone(), a.clone_ref(py)))
+                .collect(),
+        })
+    }
+
     fn len_py(&self, py: Python<'_>) -> usize {
         self.opacity_logits.bind(py).len()
     }
