@@ -18,6 +18,7 @@ from morphgs._core import (
     save_ply,
 )
 from morphgs.camera import Camera, Cameras
+from morphgs.render import Render, render, render_many
 
 __all__ = [
     "Camera",
@@ -25,9 +26,12 @@ __all__ = [
     "GaussianScene",
     "MorphgsError",
     "MorphgsWarning",
+    "Render",
     "SceneFormatError",
     "__version__",
     "load",
     "num_threads",
+    "render",
+    "render_many",
     "save_ply",
 ]

@@ -68,3 +68,37 @@ def _scene_from_state(state: dict[str, Any]) -> GaussianScene: ...
 def load(path: _Path, *, on_invalid: Literal["error", "drop"] | str = "error") -> GaussianScene: ...
 def save_ply(scene: GaussianScene, path: _Path) -> None: ...
 def num_threads() -> int: ...
+
+# ---- render ----
+_U8 = npt.NDArray[np.uint8]
+
+def _render(
+    scenes: list[GaussianScene],
+    world_to_camera: npt.NDArray[np.float64],
+    K: npt.NDArray[np.float64],
+    width: int,
+    height: int,
+    *,
+    near: float = 0.01,
+    far: float = 1e10,
+    background: tuple[float, float, float] | list[float] = [0.0, 0.0, 0.0],
+    max_alpha: float = 0.99,
+    sh_degree: int | None = None,
+    antialiased: bool = False,
+) -> tuple[_F32, _F32, _F32, dict[str, Any]]: ...
+def _project(
+    scene: GaussianScene,
+    world_to_camera: npt.NDArray[np.float64],
+    K: npt.NDArray[np.float64],
+    width: int,
+    height: int,
+    *,
+    near: float = 0.01,
+    far: float = 1e10,
+    sh_degree: int | None = None,
+    antialiased: bool = False,
+) -> dict[str, npt.NDArray[Any]]: ...
+def _write_png(path: _Path, image: _U8) -> None: ...
+def _write_exr(path: _Path, image: _F32) -> None: ...
+def _write_png_batch(paths: list[_Path], images: _U8, batched: bool = True) -> None: ...
+def _write_exr_batch(paths: list[_Path], images: _F32, batched: bool = True) -> None: ...

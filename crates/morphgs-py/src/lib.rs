@@ -5,6 +5,7 @@ use pyo3::prelude::*;
 mod errors;
 mod io;
 mod pool;
+mod render;
 mod scene;
 
 #[pymodule]
@@ -13,6 +14,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     errors::register(m)?;
     scene::register(m)?;
     io::register(m)?;
+    render::register(m)?;
     m.add_function(wrap_pyfunction!(num_threads, m)?)?;
     Ok(())
 }

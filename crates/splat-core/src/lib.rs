@@ -9,3 +9,6 @@ pub mod scene;
 
 pub use error::{Error, Result};
 pub use scene::{Scene, SceneView};
+pub mod camera;
+pub mod image_out;
+pub mod raster;
