@@ -155,12 +155,11 @@ def test_save_writes_png_and_float_exr_per_frame(tmp_path: Path) -> None:
                      "00001.alpha.exr", "00001.depth.exr", "00001.png"]
     png = np.asarray(Image.open(paths[1]))
     np.testing.assert_array_equal(png, r.to_uint8()[1])
-    imageio = pytest.importorskip("imageio.v3")
-    try:
-        depth = imageio.imread(tmp_path / "out" / "00000.depth.exr")
-    except Exception as e:  # no EXR plugin in this imageio install
-        pytest.skip(f"imageio cannot read EXR here: {e}")
-    np.testing.assert_array_equal(np.squeeze(depth), r.depth[0])
+    # OpenEXR magic, one float channel "Y" (values are checked against the exr decoder in the
+    # Rust tests of image_out)
+    head = (tmp_path / "out" / "00000.depth.exr").read_bytes()
+    assert head[:4] == b"\x76\x2f\x31\x01"
+    assert b"channels\x00chlist\x00" in head and b"Y\x00\x02\x00\x00\x00" in head
 
 
 def test_writers_reject_wrong_dtypes_and_shapes(tmp_path: Path) -> None:

@@ -1,5 +1,5 @@
 # Hand-written stubs for the native module; checked with `python -m mypy.stubtest morphgs._core`.
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from os import PathLike
 from typing import Any, Literal, final
 
@@ -81,7 +81,7 @@ def _render(
     *,
     near: float = 0.01,
     far: float = 1e10,
-    background: tuple[float, float, float] | list[float] = [0.0, 0.0, 0.0],
+    background: tuple[float, float, float] | list[float] = ...,
     max_alpha: float = 0.99,
     sh_degree: int | None = None,
     antialiased: bool = False,
@@ -100,5 +100,5 @@ def _project(
 ) -> dict[str, npt.NDArray[Any]]: ...
 def _write_png(path: _Path, image: _U8) -> None: ...
 def _write_exr(path: _Path, image: _F32) -> None: ...
-def _write_png_batch(paths: list[_Path], images: _U8, batched: bool = True) -> None: ...
-def _write_exr_batch(paths: list[_Path], images: _F32, batched: bool = True) -> None: ...
+def _write_png_batch(paths: Sequence[_Path], images: _U8, batched: bool = True) -> None: ...
+def _write_exr_batch(paths: Sequence[_Path], images: _F32, batched: bool = True) -> None: ...
