@@ -145,15 +145,10 @@ fn blend_tile_impl<'a, const FMA: bool>(
             let s = &splats[gi as usize];
             let (mx, my) = (s.xy[0], s.xy[1]);
             let [ca, cb, cc] = s.conic;
-            // The 1/255 contour: 0.5 (a dx^2 + 2 b dx dy + c dy^2) = level, enlarged by a
-            // relative 1e-4 so rounding never drops a pixel the exact test keeps. Rows beyond
-            // |dy| <= sqrt(2 level a / det) and rows whose contour misses the tile's columns
-            // are skipped: for them every lane's alpha is below 1/255.
-            let two_level = 2.0 * (s.level * 1.0001 + 1e-4);
-            let det = ca * cc - cb * cb;
-            let inv_a = 1.0 / ca;
-            let two_a_level = ca * two_level;
-            let ey = (two_a_level / det).sqrt();
+            // Rows beyond the 1/255 contour's half-height, and rows where the contour misses
+            // the tile's columns, are skipped: there every lane's alpha is below 1/255.
+            let (two_a_level, det, inv_a) = (s.two_a_level, s.conic_det, s.inv_a);
+            let ey = s.half_height;
             let lo = (my - ey - 0.5 - y0f).ceil().clamp(0.0, 16.0) as usize;
             let hi = (my + ey - 0.5 - y0f).floor().clamp(-1.0, 15.0) as isize + 1;
             let hi = hi.max(0) as usize;

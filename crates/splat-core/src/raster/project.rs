@@ -29,8 +29,14 @@ pub struct Splat {
     pub depth: f32,
     /// Integer-valued box half-sizes in pixels (x, y).
     pub radius: [f32; 2],
-    /// ln(255 opacity): pixels with sigma above it have alpha below 1/255.
-    pub level: f32,
+    /// Blend-side constants of the 1/255 contour 0.5 (a dx^2 + 2 b dx dy + c dy^2) = level,
+    /// level = ln(255 opacity) enlarged by a relative 1e-4 (so rounding never drops a pixel
+    /// the exact per-pixel test keeps): 2 a level, the conic's determinant a c - b^2, 1 / a and
+    /// the contour's half-height sqrt(2 level a / det) in pixels.
+    pub two_a_level: f32,
+    pub conic_det: f32,
+    pub inv_a: f32,
+    pub half_height: f32,
 }
 
 /// Per-camera constants, in float32 as the reference kernels use them.
@@ -222,7 +228,18 @@ impl Projector {
             rgb,
             depth: z,
             radius,
-            level: (opacity / ALPHA_THRESHOLD).ln(),
+            ..Default::default()
+        };
+        let level = (opacity / ALPHA_THRESHOLD).ln() * 1.0001 + 1e-4;
+        let two_a_level = 2.0 * conic[0] * level;
+        let conic_det = conic[0] * conic[2] - conic[1] * conic[1];
+        let splat = Splat {
+            two_a_level,
+            conic_det,
+            inv_a: 1.0 / conic[0],
+            // sqrt(2 level a / det) = sqrt(2 level Sigma_yy), the robust form
+            half_height: (2.0 * level * c11).sqrt(),
+            ..splat
         };
         splat_is_finite(&splat).then_some(splat)
     }
@@ -233,7 +250,8 @@ fn splat_is_finite(s: &Splat) -> bool {
         .chain(&s.conic)
         .chain(&s.rgb)
         .chain(&s.radius)
-        .chain([&s.opacity, &s.depth, &s.level])
+        .chain([&s.opacity, &s.depth, &s.two_a_level, &s.inv_a])
+        .chain([&s.conic_det, &s.half_height])
         .all(|v| v.is_finite())
 }
 

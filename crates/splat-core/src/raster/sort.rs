@@ -59,13 +59,19 @@ pub(crate) fn sort_by_depth(splats: &[Splat]) -> Vec<Splat> {
 #[inline]
 pub(crate) fn tile_range(s: &Splat, tiles_x: u32, tiles_y: u32) -> (u32, u32, u32, u32) {
     let t = TILE as f32;
-    let clampx = |v: f32| v.clamp(0.0, tiles_x as f32) as u32;
-    let clampy = |v: f32| v.clamp(0.0, tiles_y as f32) as u32;
+    // clamping to [0, n] first lets floor be a truncation and ceil a truncation plus one
+    // (no libm calls on baseline x86-64); clamp and floor/ceil commute for integer bounds
+    let floor = |v: f32, n: u32| v.clamp(0.0, n as f32) as u32;
+    let ceil = |v: f32, n: u32| {
+        let c = v.clamp(0.0, n as f32);
+        let i = c as u32;
+        i + u32::from((i as f32) < c)
+    };
     (
-        clampx((s.xy[0] / t - s.radius[0] / t).floor()),
-        clampx((s.xy[0] / t + s.radius[0] / t).ceil()),
-        clampy((s.xy[1] / t - s.radius[1] / t).floor()),
-        clampy((s.xy[1] / t + s.radius[1] / t).ceil()),
+        floor(s.xy[0] / t - s.radius[0] / t, tiles_x),
+        ceil(s.xy[0] / t + s.radius[0] / t, tiles_x),
+        floor(s.xy[1] / t - s.radius[1] / t, tiles_y),
+        ceil(s.xy[1] / t + s.radius[1] / t, tiles_y),
     )
 }
 
