@@ -246,10 +246,16 @@ impl Scene {
     }
 }
 
-/// Normalise (w,x,y,z) quaternions in place; zero or non-finite norms become the identity.
+/// Normalise (w,x,y,z) quaternions in place; a zero norm becomes the identity.
+///
+/// Idempotent: a quaternion whose squared norm is already within rounding of 1 is left bit for
+/// bit as it is, so load -> save -> load reproduces the same bytes.
 pub fn normalize_quats(quats: &mut [f32]) {
     for q in quats.chunks_exact_mut(4) {
         let n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
+        if (n2 - 1.0).abs() <= 8.0 * f32::EPSILON {
+            continue;
+        }
         if n2 > 0.0 && n2.is_finite() {
             let inv = 1.0 / n2.sqrt();
             for v in q.iter_mut() {
