@@ -212,3 +212,24 @@ def test_max_alpha_caps_opaque_gaussians_as_the_reference_does() -> None:
     hi = assert_images_match(scene, cam, max_alpha=0.999, background=(0.0, 1.0, 0.0))
     # the cap decides how much background shows through fully covered pixels
     assert np.abs(lo.rgb - hi.rgb).max() > 1e-3
+
+
+def test_off_screen_centres_whose_boxes_reach_in_are_kept_exactly() -> None:
+    """Centres outside the image with boxes reaching into it (the projection's early out must
+    never drop them), for a rigid and for a scaled (non-rigid) world-to-camera matrix."""
+    rng = np.random.default_rng(8)
+    n = 3000
+    ang = rng.uniform(0, 2 * np.pi, n)
+    rad = rng.uniform(0.9, 2.0, n)
+    means = np.stack([rad * np.cos(ang) * 1.6, rad * np.sin(ang) * 1.1, rng.uniform(-0.5, 0.5, n)], 1)
+    scene = morphgs.GaussianScene.from_arrays(
+        means=means, quats=rng.normal(size=(n, 4)), log_scales=rng.uniform(-4, -0.5, (n, 3)),
+        opacity_logits=rng.normal(0, 2, n), sh0=rng.normal(0, 1, (n, 3)))
+    cam = front_camera(96, 64, distance=3.0)
+    for w2c in (cam.world_to_camera, cam.world_to_camera @ np.diag([1.7, 0.6, 1.2, 1.0])):
+        c = morphgs.Camera(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, w2c)
+        got = project(scene, c)
+        ref = gsplat_project(scene, c)
+        kept = (ref.radii > 0).all(axis=1)
+        assert 100 < kept.sum() < n
+        np.testing.assert_array_equal((got["radii"] > 0).all(axis=1), kept)

@@ -58,6 +58,8 @@ pub(crate) struct Projector {
     near: f64,
     far: f64,
     center: [f64; 3],
+    /// Upper bound of the spectral norm of R (1 for a rigid camera).
+    rot_gain: f32,
     antialiased: bool,
     sh_degree: u8,
 }
@@ -86,6 +88,7 @@ impl Projector {
             near: cam.near,
             far: cam.far,
             center: cam.center(),
+            rot_gain: spectral_norm_bound(&rot),
             antialiased: opts.antialiased,
             sh_degree,
         }
@@ -109,6 +112,34 @@ impl Projector {
             return None;
         }
         let (x, y, z) = (pc[0] as f32, pc[1] as f32, pc[2] as f32);
+        let ls = &scene.log_scales[i * 3..i * 3 + 3];
+        let sh0 = &scene.sh0[i * 3..i * 3 + 3];
+        if !ls.iter().chain(sh0).all(|v| v.is_finite()) {
+            return None;
+        }
+
+        // EWA Jacobian with the frustum clamp
+        let tx = z * (x / z).clamp(-self.lim_x_neg, self.lim_x_pos);
+        let ty = z * (y / z).clamp(-self.lim_y_neg, self.lim_y_pos);
+        let j00 = self.fx / z;
+        let j02 = -self.fx * tx / (z * z);
+        let j11 = self.fy / z;
+        let j12 = -self.fy * ty / (z * z);
+        let xy = [self.fx * x / z + self.cx, self.fy * y / z + self.cy];
+
+        // Early out for Gaussians far off-screen, before the covariance: the box half-size on
+        // axis a is at most 3.33 sqrt(|J_a|^2 s_max^2 + eps2d) (|T^T v| <= s_max |v|), so a
+        // mean farther out than that (plus a pixel for ceil and rounding) is culled anyway.
+        let s_max = ls[0].max(ls[1]).max(ls[2]).exp() * self.rot_gain;
+        let bx = 3.33 * ((j00 * j00 + j02 * j02) * s_max * s_max + EPS2D).sqrt() + 1.0;
+        let by = 3.33 * ((j11 * j11 + j12 * j12) * s_max * s_max + EPS2D).sqrt() + 1.0;
+        if xy[0] + bx <= 0.0
+            || xy[0] - bx >= self.width
+            || xy[1] + by <= 0.0
+            || xy[1] - by >= self.height
+        {
+            return None;
+        }
 
         // world covariance factor M = R(q) S, camera factor T = W M
         let q = &scene.quats[i * 4..i * 4 + 4];
@@ -134,11 +165,6 @@ impl Projector {
                 1.0 - 2.0 * (qx * qx + qy * qy),
             ],
         ];
-        let ls = &scene.log_scales[i * 3..i * 3 + 3];
-        let sh0 = &scene.sh0[i * 3..i * 3 + 3];
-        if !ls.iter().chain(sh0).all(|v| v.is_finite()) {
-            return None;
-        }
         let s = [ls[0].exp(), ls[1].exp(), ls[2].exp()];
         // T = W R S (3x3)
         let mut t = [[0.0f32; 3]; 3];
@@ -149,13 +175,6 @@ impl Projector {
             }
         }
 
-        // EWA Jacobian with the frustum clamp
-        let tx = z * (x / z).clamp(-self.lim_x_neg, self.lim_x_pos);
-        let ty = z * (y / z).clamp(-self.lim_y_neg, self.lim_y_pos);
-        let j00 = self.fx / z;
-        let j02 = -self.fx * tx / (z * z);
-        let j11 = self.fy / z;
-        let j12 = -self.fy * ty / (z * z);
         // A = J T (2x3); Sigma_2d = A A^T
         let mut a0 = [0.0f32; 3];
         let mut a1 = [0.0f32; 3];
@@ -192,7 +211,6 @@ impl Projector {
         if !(radius[0] > 0.0 && radius[1] > 0.0) {
             return None;
         }
-        let xy = [self.fx * x / z + self.cx, self.fy * y / z + self.cy];
         let inside = xy[0] + radius[0] > 0.0
             && xy[0] - radius[0] < self.width
             && xy[1] + radius[1] > 0.0
@@ -242,6 +260,27 @@ impl Projector {
             ..splat
         };
         splat_is_finite(&splat).then_some(splat)
+    }
+}
+
+/// An upper bound of the largest singular value of `m`: 1 (plus rounding slack) for a rotation,
+/// else the Frobenius norm, so the off-screen early out stays conservative for any matrix.
+fn spectral_norm_bound(m: &[[f64; 3]; 3]) -> f32 {
+    let mut frob2 = 0.0;
+    let mut off = 0.0f64;
+    for i in 0..3 {
+        for j in 0..3 {
+            let mtm: f64 = (0..3).map(|k| m[k][i] * m[k][j]).sum();
+            off = off.max((mtm - if i == j { 1.0 } else { 0.0 }).abs());
+            if i == j {
+                frob2 += mtm;
+            }
+        }
+    }
+    if off < 1e-5 {
+        1.0001
+    } else {
+        (frob2.sqrt() * 1.0001) as f32
     }
 }
 
