@@ -299,3 +299,137 @@ pub fn render_batch(
         stats,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::Scene;
+
+    fn scene(n: usize) -> Scene {
+        // a deterministic cloud in front of the camera
+        let mut s = Scene::empty(0);
+        let mut h = 0x1234_5678u64;
+        let mut next = || {
+            h ^= h << 13;
+            h ^= h >> 7;
+            h ^= h << 17;
+            (h >> 40) as f32 / (1u64 << 24) as f32
+        };
+        for _ in 0..n {
+            s.means
+                .extend([next() * 2.0 - 1.0, next() * 2.0 - 1.0, next() * 2.0 - 1.0]);
+            s.quats
+                .extend([1.0, next() - 0.5, next() - 0.5, next() - 0.5]);
+            s.log_scales
+                .extend([-3.0 - next(), -3.0 - next(), -2.5 - next()]);
+            s.opacity_logits.push(next() * 4.0 - 2.0);
+            s.sh0.extend([next() - 0.5, next() - 0.5, next() - 0.5]);
+        }
+        s.normalize_quats();
+        s
+    }
+
+    fn camera() -> Camera {
+        let mut m = [[0.0; 4]; 4];
+        for (i, row) in m.iter_mut().enumerate() {
+            row[i] = 1.0;
+        }
+        m[2][3] = 4.0;
+        Camera::new(120.0, 120.0, 50.0, 37.0, 100, 70, m)
+    }
+
+    fn render(s: &Scene, opts: &RenderOptions) -> (Vec<f32>, Vec<f32>, Vec<f32>, RenderStats) {
+        let cam = camera();
+        let n = 100 * 70;
+        let (mut rgb, mut depth, mut alpha) = (vec![0.0; n * 3], vec![0.0; n], vec![0.0; n]);
+        let st =
+            render_into(&s.view(), &cam, opts, &mut rgb, &mut depth, &mut alpha).expect("render");
+        (rgb, depth, alpha, st)
+    }
+
+    #[test]
+    fn output_is_identical_for_any_thread_count() {
+        let s = scene(5000);
+        let opts = RenderOptions::default();
+        let run = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("pool")
+                .install(|| render(&s, &opts))
+        };
+        let (a, b, c) = (run(1), run(3), run(8));
+        assert!(a.3.evaluations > 0);
+        for other in [&b, &c] {
+            assert_eq!(a.0, other.0);
+            assert_eq!(a.1, other.1);
+            assert_eq!(a.2, other.2);
+        }
+    }
+
+    #[test]
+    fn simd_kernels_agree_with_the_plain_one() {
+        let s = scene(3000);
+        let base = render(
+            &s,
+            &RenderOptions {
+                simd: Simd::Scalar,
+                ..Default::default()
+            },
+        );
+        for simd in [Simd::Avx2, Simd::Avx512] {
+            let got = render(
+                &s,
+                &RenderOptions {
+                    simd,
+                    ..Default::default()
+                },
+            );
+            let err = got
+                .0
+                .iter()
+                .zip(&base.0)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max);
+            assert!(err < 1e-4, "{}: max error {err}", simd.resolve().name());
+            assert_eq!(got.3.evaluations, base.3.evaluations);
+        }
+    }
+
+    #[test]
+    fn empty_scene_gives_the_background_and_bad_options_are_errors() {
+        let opts = RenderOptions {
+            background: [0.25, 0.5, 1.0],
+            ..Default::default()
+        };
+        let (rgb, depth, alpha, st) = render(&Scene::empty(0), &opts);
+        assert!(rgb.chunks_exact(3).all(|p| p == [0.25, 0.5, 1.0]));
+        assert!(depth.iter().chain(&alpha).all(|&v| v == 0.0));
+        assert_eq!(st.visible, 0);
+        let s = scene(10);
+        let cam = camera();
+        let mut buf = vec![0.0; 3];
+        let bad = RenderOptions {
+            max_alpha: 1.5,
+            ..Default::default()
+        };
+        assert!(render_into(
+            &s.view(),
+            &cam,
+            &bad,
+            &mut buf.clone(),
+            &mut buf.clone(),
+            &mut buf
+        )
+        .is_err());
+        let deg = RenderOptions {
+            sh_degree: Some(1),
+            ..Default::default()
+        };
+        assert!(deg.effective_sh_degree(0).is_err());
+        assert_eq!(
+            RenderOptions::default().effective_sh_degree(4).ok(),
+            Some(3)
+        );
+    }
+}
