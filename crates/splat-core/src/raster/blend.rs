@@ -278,16 +278,18 @@ pub(crate) fn blend_frame(
     alpha: &mut [f32],
 ) -> u64 {
     let (tiles_x, tiles_y) = (bins.tiles_x as usize, bins.tiles_y as usize);
-    let mut tiles = vec![TileOut::default(); tiles_x * tiles_y];
-    let evals: u64 = tiles
-        .par_iter_mut()
-        .enumerate()
-        .map(|(t, out)| {
+    // each tile initialises and fills its own output inside its work unit
+    let tiles: Vec<(TileOut, u64)> = (0..tiles_x * tiles_y)
+        .into_par_iter()
+        .map(|t| {
             let x0 = (t % tiles_x) as u32 * TILE;
             let y0 = (t / tiles_x) as u32 * TILE;
-            blend_tile(x0, y0, p, sorted, bins.lists(t), out)
+            let mut out = TileOut::default();
+            let evals = blend_tile(x0, y0, p, sorted, bins.lists(t), &mut out);
+            (out, evals)
         })
-        .sum();
+        .collect();
+    let evals: u64 = tiles.iter().map(|t| t.1).sum();
     let w = p.width as usize;
     let band = LANES * w;
     let bg = p.background;
@@ -299,7 +301,7 @@ pub(crate) fn blend_frame(
             let rows = depth.len() / w;
             for r in 0..rows {
                 for x in 0..w {
-                    let tile = &tiles[ty * tiles_x + x / LANES];
+                    let tile = &tiles[ty * tiles_x + x / LANES].0;
                     let l = x % LANES;
                     let t = tile.t[r][l].abs();
                     let i = r * w + x;

@@ -183,6 +183,12 @@ pub fn render_into(
         )));
     }
     let degree = opts.effective_sh_degree(scene.sh_degree)?;
+    if scene.len() > u32::MAX as usize {
+        return Err(Error::InvalidArgument(format!(
+            "a scene of {} Gaussians exceeds the rasterizer's limit of 2^32",
+            scene.len()
+        )));
+    }
     let mut stats = RenderStats {
         frames: 1,
         gaussians: scene.len() as u64,
@@ -192,7 +198,7 @@ pub fn render_into(
     let t0 = Instant::now();
     let proj = project::Projector::new(cam, opts, degree);
     let visible = project::project_visible(scene, &proj);
-    stats.visible = visible.len() as u64;
+    stats.visible = visible.iter().map(|p| p.len() as u64).sum();
     let t1 = Instant::now();
     let sorted = sort::sort_by_depth(&visible);
     drop(visible);

@@ -12,7 +12,7 @@ pub const EPS2D: f32 = 0.3;
 /// Smallest alpha that contributes (and smallest opacity kept).
 pub const ALPHA_THRESHOLD: f32 = 1.0 / 255.0;
 /// Gaussians per projection work unit (fixed, independent of the thread count).
-const PROJECT_CHUNK: usize = 8192;
+const PROJECT_CHUNK: usize = 1 << PROJECT_CHUNK_BITS;
 
 /// One Gaussian as the blend sees it.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -294,23 +294,21 @@ fn splat_is_finite(s: &Splat) -> bool {
         .all(|v| v.is_finite())
 }
 
-/// The visible splats of one view, in Gaussian-index order.
-pub(crate) fn project_visible(scene: &SceneView<'_>, proj: &Projector) -> Vec<Splat> {
+/// Gaussians per projection work unit, as a shift: chunk c holds Gaussians
+/// [c << PROJECT_CHUNK_BITS, (c + 1) << PROJECT_CHUNK_BITS).
+pub(crate) const PROJECT_CHUNK_BITS: u32 = 13;
+
+/// The visible splats of one view, per projection chunk, each in Gaussian-index order.
+pub(crate) fn project_visible(scene: &SceneView<'_>, proj: &Projector) -> Vec<Vec<Splat>> {
     let n = scene.len();
-    let parts: Vec<Vec<Splat>> = (0..n.div_ceil(PROJECT_CHUNK))
+    (0..n.div_ceil(PROJECT_CHUNK))
         .into_par_iter()
         .map(|c| {
             let lo = c * PROJECT_CHUNK;
             let hi = (lo + PROJECT_CHUNK).min(n);
             (lo..hi).filter_map(|i| proj.project(scene, i)).collect()
         })
-        .collect();
-    let total = parts.iter().map(Vec::len).sum();
-    let mut out = Vec::with_capacity(total);
-    for p in parts {
-        out.extend_from_slice(&p);
-    }
-    out
+        .collect()
 }
 
 /// Every Gaussian's projection, for inspection and tests (gsplat's `fully_fused_projection`

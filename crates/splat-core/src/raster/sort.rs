@@ -8,7 +8,7 @@
 //! index, and independent of the thread count.
 use rayon::prelude::*;
 
-use super::project::Splat;
+use super::project::{Splat, PROJECT_CHUNK_BITS};
 use crate::error::{Error, Result};
 
 /// Tile side in pixels.
@@ -18,15 +18,21 @@ const BIN_CHUNK: usize = 16384;
 const RADIX_BITS: u32 = 11;
 const RADIX: usize = 1 << RADIX_BITS;
 
-/// Sort splats front to back by depth; equal depths keep their input (Gaussian-index) order.
-pub(crate) fn sort_by_depth(splats: &[Splat]) -> Vec<Splat> {
-    let n = splats.len();
-    // (depth bits, position); positive floats order like their bit patterns
-    let mut keys: Vec<(u32, u32)> = splats
-        .iter()
-        .enumerate()
-        .map(|(i, s)| (s.depth.to_bits(), i as u32))
-        .collect();
+/// Sort splats front to back by depth; equal depths keep Gaussian-index order. `parts` are the
+/// projection chunks in order (chunk c, local position j: payload c << PROJECT_CHUNK_BITS | j,
+/// which orders like the Gaussian index), so no concatenated copy is needed.
+pub(crate) fn sort_by_depth(parts: &[Vec<Splat>]) -> Vec<Splat> {
+    // (depth bits, payload); positive floats order like their bit patterns
+    let mut keys: Vec<(u32, u32)> = Vec::with_capacity(parts.iter().map(Vec::len).sum());
+    for (c, part) in parts.iter().enumerate() {
+        let base = (c as u32) << PROJECT_CHUNK_BITS;
+        keys.extend(
+            part.iter()
+                .enumerate()
+                .map(|(j, s)| (s.depth.to_bits(), base | j as u32)),
+        );
+    }
+    let n = keys.len();
     let mut tmp = vec![(0u32, 0u32); n];
     let max_key = keys.iter().map(|k| k.0).max().unwrap_or(0);
     let mut shift = 0;
@@ -51,7 +57,10 @@ pub(crate) fn sort_by_depth(splats: &[Splat]) -> Vec<Splat> {
     }
     keys.par_iter()
         .with_min_len(BIN_CHUNK)
-        .map(|&(_, i)| splats[i as usize])
+        .map(|&(_, i)| {
+            parts[(i >> PROJECT_CHUNK_BITS) as usize]
+                [(i & ((1 << PROJECT_CHUNK_BITS) - 1)) as usize]
+        })
         .collect()
 }
 
@@ -178,7 +187,7 @@ mod tests {
             .enumerate()
             .map(|(i, &d)| splat(d, i as f32, 0.0))
             .collect();
-        let sorted = sort_by_depth(&s);
+        let sorted = sort_by_depth(&[s]);
         let order: Vec<f32> = sorted.iter().map(|s| s.xy[0]).collect();
         assert_eq!(order, [4.0, 1.0, 3.0, 2.0, 0.0, 5.0]);
     }
