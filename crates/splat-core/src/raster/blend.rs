@@ -63,6 +63,7 @@ fn select(m: bool, a: f32, b: f32) -> f32 {
 }
 
 /// exp(-s) for s >= 0 (Cephes expf polynomial, relative error about 1e-7); s is clamped to 87.
+/// Slightly negative s (rounding, about -1e-6) still gives exp(-s); callers mask s < 0 anyway.
 #[inline(always)]
 fn exp_neg<const FMA: bool>(s: f32) -> f32 {
     const LOG2E: f32 = std::f32::consts::LOG2_E;
@@ -71,7 +72,6 @@ fn exp_neg<const FMA: bool>(s: f32) -> f32 {
     const LN2_HI: f32 = 0.693_359_4;
     const LN2_LO: f32 = -2.121_944_4e-4;
     let x = -select(s < 87.0, s, 87.0);
-    let x = select(x < 0.0, x, 0.0);
     let t = fmadd::<FMA>(x, LOG2E, MAGIC);
     let n = t - MAGIC;
     let scale = f32::from_bits(t.to_bits() << 23);
@@ -157,6 +157,13 @@ fn blend_tile_impl<'a, const FMA: bool>(
             let [cr, cg, cbl] = s.rgb;
             let z = s.depth;
             let (xl, xh) = (px[0], px[LANES - 1]);
+            // per-lane terms shared by every row: dx and 0.5 a dx^2
+            let mut dxs = [0.0f32; LANES];
+            let mut adx2 = [0.0f32; LANES];
+            for l in 0..LANES {
+                dxs[l] = mx - px[l];
+                adx2[l] = half_a * dxs[l] * dxs[l];
+            }
             for r in lo..hi {
                 if !alive[r] {
                     continue;
@@ -177,8 +184,8 @@ fn blend_tile_impl<'a, const FMA: bool>(
                 let cdy2 = 0.5 * cc * dy * dy;
                 let trow = &mut out.t[r];
                 for l in 0..LANES {
-                    let dx = mx - px[l];
-                    let sigma = fmadd::<FMA>(half_a * dx, dx, fmadd::<FMA>(bdy, dx, cdy2));
+                    // sigma = 0.5 a dx^2 + b dx dy + 0.5 c dy^2
+                    let sigma = fmadd::<FMA>(bdy, dxs[l], adx2[l]) + cdy2;
                     let e = op * exp_neg::<FMA>(sigma);
                     let alpha = select(e < max_alpha, e, max_alpha);
                     let t = trow[l];
