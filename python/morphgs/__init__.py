@@ -16,9 +16,13 @@ from morphgs._core import (
     load,
     num_threads,
     save_ply,
+    save_splat,
+    save_spz,
 )
 from morphgs.camera import Camera, Cameras
 from morphgs.render import Render, render, render_many
+from morphgs import synthetic
+from morphgs.perturb import PerturbConfig, perturb
 
 __all__ = [
     "Camera",
@@ -26,12 +30,17 @@ __all__ = [
     "GaussianScene",
     "MorphgsError",
     "MorphgsWarning",
+    "PerturbConfig",
     "Render",
     "SceneFormatError",
     "__version__",
     "load",
     "num_threads",
+    "perturb",
     "render",
     "render_many",
     "save_ply",
+    "save_splat",
+    "save_spz",
+    "synthetic",
 ]

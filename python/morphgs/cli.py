@@ -14,6 +14,9 @@ from morphgs._core import MorphgsError
 # Order is the order shown in --help.
 _COMMAND_MODULES = (
     "morphgs.commands.info",
+    "morphgs.commands.convert",
+    "morphgs.commands.sample",
+    "morphgs.commands.perturb",
 )
 
 

@@ -81,12 +81,14 @@ impl From<CoreError> for PyErr {
     }
 }
 
-/// Run `f` with the GIL released and convert its error: the one chokepoint for long calls.
+/// Run `f` with the GIL released, inside this process's rayon pool (fork-safe, see `pool`), and
+/// convert its error: the one chokepoint for long calls.
 pub fn detach<T: Send>(
     py: Python<'_>,
     f: impl FnOnce() -> splat_core::Result<T> + Send,
 ) -> PyResult<T> {
-    py.detach(f).map_err(|e| CoreError(e).into())
+    py.detach(|| crate::pool::install(f))
+        .map_err(|e| CoreError(e).into())
 }
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {

@@ -2,6 +2,7 @@
 use std::path::PathBuf;
 
 use pyo3::prelude::*;
+use splat_core::formats::SpzAxes;
 use splat_core::io::LoadOptions;
 use splat_core::ply::OnInvalid;
 
@@ -18,12 +19,25 @@ fn parse_on_invalid(s: &str) -> PyResult<OnInvalid> {
     }
 }
 
-/// Load a Gaussian-splat scene, detecting the format from the file's content.
+pub(crate) fn parse_spz_axes(s: &str) -> PyResult<SpzAxes> {
+    match s {
+        "rdf" => Ok(SpzAxes::Rdf),
+        "stored" => Ok(SpzAxes::Stored),
+        other => Err(pyo3::exceptions::PyValueError::new_err(format!(
+            "spz_axes must be 'rdf' or 'stored', got '{other}'"
+        ))),
+    }
+}
+
+/// Load a Gaussian-splat scene, detecting the format from the file's content (not its name):
+/// INRIA 3DGS PLY, SuperSplat compressed PLY, Niantic .spz (v2, v3, v4) or antimatter15 .splat.
 ///
 /// Args:
 ///     path: the scene file.
 ///     on_invalid: "error" (default) raises SceneFormatError on NaN/Inf values; "drop" removes
 ///         those Gaussians and warns with MorphgsWarning saying how many.
+///     spz_axes: "rdf" (default) converts .spz scenes from their stored RUB axes to the PLY/OpenCV
+///         RDF convention (positions, rotations and SH); "stored" keeps them as stored.
 ///
 /// Returns:
 ///     GaussianScene
@@ -32,10 +46,16 @@ fn parse_on_invalid(s: &str) -> PyResult<OnInvalid> {
 ///     FileNotFoundError: the file does not exist.
 ///     SceneFormatError: the file is malformed or unsupported (names the file, element, property).
 #[pyfunction]
-#[pyo3(signature = (path, *, on_invalid = "error"))]
-fn load(py: Python<'_>, path: PathBuf, on_invalid: &str) -> PyResult<PyGaussianScene> {
+#[pyo3(signature = (path, *, on_invalid = "error", spz_axes = "rdf"))]
+fn load(
+    py: Python<'_>,
+    path: PathBuf,
+    on_invalid: &str,
+    spz_axes: &str,
+) -> PyResult<PyGaussianScene> {
     let opts = LoadOptions {
         on_invalid: parse_on_invalid(on_invalid)?,
+        spz_axes: parse_spz_axes(spz_axes)?,
     };
     let p = path.clone();
     let (scene, report) = detach(py, move || splat_core::io::load(&p, opts))?;

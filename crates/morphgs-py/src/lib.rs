@@ -3,7 +3,9 @@
 use pyo3::prelude::*;
 
 mod errors;
+mod formats;
 mod io;
+mod perturb;
 mod pool;
 mod render;
 mod scene;
@@ -15,6 +17,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     scene::register(m)?;
     io::register(m)?;
     render::register(m)?;
+    formats::register(m)?;
+    perturb::register(m)?;
     m.add_function(wrap_pyfunction!(num_threads, m)?)?;
     Ok(())
 }

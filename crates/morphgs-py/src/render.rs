@@ -133,9 +133,7 @@ fn _render<'py>(
         .map(SceneBorrow::view)
         .collect::<PyResult<Vec<_>>>()?;
     let opts = options(background, max_alpha, sh_degree, antialiased);
-    let out = detach(py, || {
-        pool::install(|| raster::render_batch(&views, &cams, &opts))
-    })?;
+    let out = detach(py, || raster::render_batch(&views, &cams, &opts))?;
     let (s, f, h, w) = (views.len(), cams.len(), height as usize, width as usize);
     let bad = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
     let rgb = Array5::from_shape_vec((s, f, h, w, 3), out.rgb).map_err(bad)?;
@@ -187,9 +185,7 @@ fn _project<'py>(
     let b = scene.borrow(py)?;
     let view = b.view()?;
     let opts = options([0.0; 3], 0.99, sh_degree, antialiased);
-    let p = detach(py, || {
-        pool::install(|| raster::project_all(&view, &cam, &opts))
-    })?;
+    let p = detach(py, || raster::project_all(&view, &cam, &opts))?;
     let n = p.depths.len();
     let bad = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
     let d = PyDict::new(py);
@@ -295,9 +291,7 @@ fn _write_png_batch(
             data: &data[i * per..(i + 1) * per],
         })
         .collect();
-    detach(py, || {
-        pool::install(|| image_out::write_png_batch(&frames, w, h, c))
-    })
+    detach(py, || image_out::write_png_batch(&frames, w, h, c))
 }
 
 /// Write F float32 images (F,H,W[,C]) as OpenEXRs, in parallel; `paths` has F entries.
@@ -325,9 +319,7 @@ fn _write_exr_batch(
             data: &data[i * per..(i + 1) * per],
         })
         .collect();
-    detach(py, || {
-        pool::install(|| image_out::write_exr_batch(&frames, w, h, c))
-    })
+    detach(py, || image_out::write_exr_batch(&frames, w, h, c))
 }
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {

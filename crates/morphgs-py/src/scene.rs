@@ -72,7 +72,7 @@ fn shape_err(name: &str, want: &str, got: &[usize]) -> PyErr {
     PyValueError::new_err(format!("{name} must have shape {want}, got {got:?}"))
 }
 
-/// Convert any real-valued array-like to a fresh C-contiguous float32 array (a copy the scene owns).
+/// Convert any real-valued array-like to a C-contiguous float32 array (no copy when it already is).
 fn to_f32_array<'py>(
     py: Python<'py>,
     name: &str,
@@ -90,11 +90,10 @@ fn to_f32_array<'py>(
             arr.dtype()
         )));
     }
+    // A C-contiguous float32 view or copy; `vec_of` then copies it once into the scene's buffer.
     let kwargs = PyDict::new(py);
     kwargs.set_item("dtype", np.getattr("float32")?)?;
-    kwargs.set_item("copy", true)?;
-    let out = np.call_method("array", (arr,), Some(&kwargs))?;
-    let out = np.call_method1("ascontiguousarray", (out,))?;
+    let out = np.call_method("ascontiguousarray", (arr,), Some(&kwargs))?;
     Ok(out.cast_into::<PyUntypedArray>()?)
 }
 
@@ -189,6 +188,53 @@ impl PyGaussianScene {
         self.sh_degree
     }
 
+    /// A scene holding the given arrays and sharing this scene's other arrays (no copy: every
+    /// array of a scene is read-only). Each given array must have this scene's length.
+    pub fn with_arrays(
+        &self,
+        py: Python<'_>,
+        means: Option<Vec<f32>>,
+        quats: Option<Vec<f32>>,
+        log_scales: Option<Vec<f32>>,
+        opacity_logits: Option<Vec<f32>>,
+        sh0: Option<Vec<f32>>,
+    ) -> PyResult<Self> {
+        let n = self.len_py(py);
+        let rows = |v: Vec<f32>, w: usize| -> PyResult<Py<PyArray2<f32>>> {
+            let a = Array2::from_shape_vec((n, w), v)
+                .map_err(|e| PyValueError::new_err(e.to_string()))?;
+            Ok(readonly(a.into_pyarray(py))?.unbind())
+        };
+        let pick = |new: Option<Vec<f32>>, old: &Py<PyArray2<f32>>, w: usize| match new {
+            Some(v) => rows(v, w),
+            None => Ok(old.clone_ref(py)),
+        };
+        let opacity_logits = match opacity_logits {
+            Some(v) if v.len() == n => readonly(Array1::from_vec(v).into_pyarray(py))?.unbind(),
+            Some(v) => {
+                return Err(PyValueError::new_err(format!(
+                    "opacity_logits holds {} values, expected {n}",
+                    v.len()
+                )))
+            }
+            None => self.opacity_logits.clone_ref(py),
+        };
+        Ok(PyGaussianScene {
+            means: pick(means, &self.means, 3)?,
+            quats: pick(quats, &self.quats, 4)?,
+            log_scales: pick(log_scales, &self.log_scales, 3)?,
+            opacity_logits,
+            sh0: pick(sh0, &self.sh0, 3)?,
+            sh_rest: self.sh_rest.clone_ref(py),
+            sh_degree: self.sh_degree,
+            extras: self
+                .extras
+                .iter()
+                .map(|(name, a)| (name.clone(), a.clone_ref(py)))
+                .collect(),
+        })
+    }
+
     fn len_py(&self, py: Python<'_>) -> usize {
         self.opacity_logits.bind(py).len()
     }
@@ -269,6 +315,13 @@ impl PyGaussianScene {
             extras: Vec::new(),
         };
         if let Some(extras) = extras {
+            let names: Vec<String> = extras
+                .keys()
+                .iter()
+                .map(|k| k.extract::<String>())
+                .collect::<PyResult<_>>()?;
+            splat_core::ply::check_extra_names(names.iter().map(String::as_str))
+                .map_err(CoreError)?;
             for (k, v) in extras.iter() {
                 let name: String = k.extract()?;
                 let a = to_f32_array(py, &format!("extras['{name}']"), &v)?;
@@ -447,9 +500,14 @@ impl PyGaussianScene {
     }
 }
 
+/// Copy a contiguous float32 array into a new buffer the scene owns (huge pages when large).
 fn vec_of(a: &Bound<'_, PyUntypedArray>) -> PyResult<Vec<f32>> {
     let a = a.cast::<numpy::PyArrayDyn<f32>>()?;
-    Ok(contiguous(a.try_readonly()?.as_slice())?.to_vec())
+    let ro = a.try_readonly()?;
+    let src = contiguous(ro.as_slice())?;
+    let mut v = splat_core::mem::zeroed_f32(src.len());
+    v.copy_from_slice(src);
+    Ok(v)
 }
 
 /// Rebuild a pickled scene (internal).

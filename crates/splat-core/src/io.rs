@@ -1,9 +1,16 @@
 //! Format detection: `load` looks at the content (magic bytes and header), not the extension.
+//!
+//! - `ply\n`: a PLY; a `chunk` element plus packed `vertex` properties make it a SuperSplat
+//!   compressed PLY, anything else is read as an INRIA 3DGS PLY.
+//! - `NGSP` (plain) or a gzip stream (`1f 8b`): Niantic `.spz`.
+//! - otherwise a non-empty file whose size is a multiple of 32 and whose first records hold
+//!   plausible positions and scales: antimatter15 `.splat` (a format without magic).
 use std::fs::File;
 use std::io::{BufReader, Read};
 use std::path::Path;
 
 use crate::error::{Error, Result};
+use crate::formats::{compressed_ply, splat, spz, SpzAxes};
 use crate::ply::{self, OnInvalid};
 use crate::scene::Scene;
 
@@ -13,32 +20,71 @@ pub use crate::ply::LoadReport;
 #[derive(Debug, Clone, Copy, Default)]
 pub struct LoadOptions {
     pub on_invalid: OnInvalid,
+    /// Axes of `.spz` scenes: converted to RDF (default) or kept as stored (RUB).
+    pub spz_axes: SpzAxes,
 }
 
 /// Load a scene from any supported format, detected from the file's content.
 pub fn load(path: &Path, opts: LoadOptions) -> Result<(Scene, LoadReport)> {
     let mut magic = [0u8; 16];
-    let n = {
+    let (n, len) = {
         let mut f = File::open(path).map_err(|e| Error::io(path, e))?;
-        if f.metadata().map_err(|e| Error::io(path, e))?.is_dir() {
+        let meta = f.metadata().map_err(|e| Error::io(path, e))?;
+        if meta.is_dir() {
             return Err(Error::io(
                 path,
                 std::io::Error::new(std::io::ErrorKind::IsADirectory, "is a directory"),
             ));
         }
-        read_up_to(&mut f, &mut magic).map_err(|e| Error::io(path, e))?
+        (
+            read_up_to(&mut f, &mut magic).map_err(|e| Error::io(path, e))?,
+            meta.len(),
+        )
     };
     let magic = &magic[..n];
     if ply::is_ply(magic) {
+        let header = {
+            let mut r = open(path)?;
+            ply::read_header(&mut r, path)?
+        };
+        if compressed_ply::is_compressed(&header) {
+            let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+            return compressed_ply::read(path, &header, &bytes, opts.on_invalid);
+        }
         return ply::read_ply(path, opts.on_invalid);
     }
     if n == 0 {
         return Err(Error::format(path, "the file is empty"));
     }
+    if magic.starts_with(&spz::MAGIC.to_le_bytes()) || magic.starts_with(&spz::GZIP_MAGIC) {
+        return spz::read(path, opts.spz_axes);
+    }
+    if len % splat::RECORD_BYTES as u64 == 0 {
+        let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+        match splat::looks_like_splat(&bytes) {
+            None => {
+                let scene = splat::decode(&bytes);
+                drop(bytes);
+                return crate::formats::finish(scene, "splat", "splat", path, opts.on_invalid);
+            }
+            Some(why) => {
+                return Err(Error::format(
+                    path,
+                    format!(
+                        "unrecognised scene format: no known magic (first bytes {}), and as an \
+                         antimatter15 .splat {why}",
+                        hex(magic)
+                    ),
+                ))
+            }
+        }
+    }
     Err(Error::format(
         path,
         format!(
-            "unrecognised scene format (first bytes {}); supported: INRIA 3DGS PLY",
+            "unrecognised scene format (first bytes {}); supported: INRIA 3DGS PLY, SuperSplat \
+             compressed PLY, Niantic .spz (v2-v4), antimatter15 .splat (size a multiple of 32, \
+             this file has {len} bytes)",
             hex(magic)
         ),
     ))

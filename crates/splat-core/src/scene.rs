@@ -208,6 +208,21 @@ impl Scene {
         self.gather(&idx)
     }
 
+    /// Keep the Gaussians whose `keep` flag is set, in order, compacting every array in place
+    /// (no second copy of the scene).
+    pub fn retain(&mut self, keep: &[bool]) {
+        let k = self.sh_rest_k() * 3;
+        retain_rows(&mut self.means, 3, keep);
+        retain_rows(&mut self.quats, 4, keep);
+        retain_rows(&mut self.log_scales, 3, keep);
+        retain_rows(&mut self.opacity_logits, 1, keep);
+        retain_rows(&mut self.sh0, 3, keep);
+        retain_rows(&mut self.sh_rest, k, keep);
+        for (_, v) in &mut self.extras {
+            retain_rows(v, 1, keep);
+        }
+    }
+
     /// Gather Gaussians by index (indices must be < len; callers check).
     pub fn gather(&self, idx: &[usize]) -> Scene {
         let k = self.sh_rest_k();
@@ -246,25 +261,56 @@ impl Scene {
     }
 }
 
-/// Normalise (w,x,y,z) quaternions in place; a zero norm becomes the identity.
-///
-/// Idempotent: a quaternion whose squared norm is already within rounding of 1 is left bit for
-/// bit as it is, so load -> save -> load reproduces the same bytes.
+/// Quaternions whose squared norm is this close to 1 are kept bit for bit: normalising is not
+/// idempotent in float32, and load -> save -> load must be exact. One float32 division leaves
+/// the squared norm within 3 ulp of 1, so normalised quaternions always pass this test.
+pub const QUAT_NORM2_TOL: f32 = 8.0 * f32::EPSILON;
+
+/// Normalise (w,x,y,z) quaternions whose squared norm is not within [`QUAT_NORM2_TOL`] of 1, by
+/// one division by the float32 norm sqrt(((w*w + x*x) + y*y) + z*z). A zero quaternion becomes the
+/// identity; one with a non-finite component is left for the NaN/Inf check; one whose float32
+/// squared norm overflows or is subnormal (too imprecise to divide by) is normalised in float64.
 pub fn normalize_quats(quats: &mut [f32]) {
     for q in quats.chunks_exact_mut(4) {
-        let n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
-        if (n2 - 1.0).abs() <= 8.0 * f32::EPSILON {
+        let n2 = ((q[0] * q[0] + q[1] * q[1]) + q[2] * q[2]) + q[3] * q[3];
+        if (n2 - 1.0).abs() <= QUAT_NORM2_TOL {
             continue;
         }
-        if n2 > 0.0 && n2.is_finite() {
-            let inv = 1.0 / n2.sqrt();
-            for v in q.iter_mut() {
-                *v *= inv;
-            }
-        } else if n2 == 0.0 {
+        if n2 == 0.0 {
             q.copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
+        } else if n2.is_normal() {
+            let n = n2.sqrt();
+            for v in q.iter_mut() {
+                *v /= n;
+            }
+        } else if q.iter().all(|v| v.is_finite()) {
+            let n = q
+                .iter()
+                .map(|&v| f64::from(v) * f64::from(v))
+                .sum::<f64>()
+                .sqrt();
+            for v in q.iter_mut() {
+                *v = (f64::from(*v) / n) as f32;
+            }
         }
     }
+}
+
+fn retain_rows(v: &mut Vec<f32>, width: usize, keep: &[bool]) {
+    if width == 0 {
+        return;
+    }
+    let mut w = 0;
+    for (r, &k) in keep.iter().enumerate() {
+        if k {
+            if w != r {
+                v.copy_within(r * width..(r + 1) * width, w * width);
+            }
+            w += 1;
+        }
+    }
+    v.truncate(w * width);
+    v.shrink_to_fit();
 }
 
 fn gather_rows(src: &[f32], width: usize, idx: &[usize]) -> Vec<f32> {
@@ -294,5 +340,47 @@ mod tests {
         let mut q = vec![2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
         normalize_quats(&mut q);
         assert_eq!(q, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn normalising_twice_changes_no_bit() {
+        // A cheap deterministic spread of quaternions, norms from 1e-3 to 1e3.
+        let mut q: Vec<f32> = (0..40_000u32)
+            .map(|i| {
+                let h = i.wrapping_mul(2_654_435_761).rotate_left(13) ^ 0x9e37_79b9;
+                (h as f32 / u32::MAX as f32 - 0.5) * 10f32.powi((i % 7) as i32 - 3)
+            })
+            .collect();
+        normalize_quats(&mut q);
+        let once = q.clone();
+        normalize_quats(&mut q);
+        assert_eq!(q, once);
+        for r in q.chunks_exact(4) {
+            let n2: f32 = r.iter().map(|v| v * v).sum();
+            assert!((n2 - 1.0).abs() < 1e-6, "{r:?}");
+        }
+    }
+
+    #[test]
+    fn retain_compacts_every_array_in_order() {
+        let mut s = Scene {
+            means: (0..9).map(|v| v as f32).collect(),
+            quats: [1.0, 0.0, 0.0, 0.0].repeat(3),
+            log_scales: vec![0.0; 9],
+            opacity_logits: vec![0.0, 1.0, 2.0],
+            sh0: vec![0.0; 9],
+            sh_rest: (0..27).map(|v| v as f32).collect(),
+            sh_degree: 1,
+            extras: vec![("f".into(), vec![5.0, 6.0, 7.0])],
+        };
+        s.retain(&[true, false, true]);
+        assert_eq!(s.means, [0.0, 1.0, 2.0, 6.0, 7.0, 8.0]);
+        assert_eq!(s.opacity_logits, [0.0, 2.0]);
+        assert_eq!(
+            &s.sh_rest[9..],
+            (18..27).map(|v| v as f32).collect::<Vec<_>>()
+        );
+        assert_eq!(s.extras[0].1, [5.0, 7.0]);
+        s.validate().expect("consistent");
     }
 }

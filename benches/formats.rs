@@ -1,0 +1,83 @@
+//! Decode throughput of the compressed formats: the real SuperSplat capture
+//! (playcanvas_engine_guitar.compressed.ply, from MORPHGS_FIXTURES or ../shared/fixtures) and a
+//! generated 100k-splat SH-3 .spz (v3 gzip), decoded from memory.
+use std::hint::black_box;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use splat_core::formats::{spz, SpzAxes};
+use splat_core::io::{load, LoadOptions};
+use splat_core::scene::{normalize_quats, sh_rest_count, Scene};
+
+fn fixtures() -> PathBuf {
+    std::env::var_os("MORPHGS_FIXTURES").map_or_else(
+        || Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures"),
+        PathBuf::from,
+    )
+}
+
+fn synthetic(n: usize, degree: u8) -> Scene {
+    let k = sh_rest_count(degree);
+    // a cheap deterministic pseudo-random sequence in [-1, 1)
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+    };
+    let mut f = |m: usize, s: f32, o: f32| (0..m).map(|_| next() * s + o).collect::<Vec<_>>();
+    let mut quats = f(n * 4, 1.0, 0.0);
+    normalize_quats(&mut quats);
+    Scene {
+        means: f(n * 3, 5.0, 0.0),
+        quats,
+        log_scales: f(n * 3, 2.0, -4.0),
+        opacity_logits: f(n, 3.0, 0.0),
+        sh0: f(n * 3, 1.0, 0.0),
+        sh_rest: f(n * k * 3, 0.3, 0.0),
+        sh_degree: degree,
+        extras: Vec::new(),
+    }
+}
+
+fn bench(c: &mut Criterion) {
+    let mut g = c.benchmark_group("formats");
+    g.sample_size(20);
+    let guitar = fixtures().join("playcanvas_engine_guitar.compressed.ply");
+    if guitar.is_file() {
+        g.throughput(Throughput::Elements(90_854));
+        g.bench_function("load guitar.compressed.ply", |b| {
+            b.iter(|| black_box(load(&guitar, LoadOptions::default()).map(|s| s.0.len())))
+        });
+    } else {
+        eprintln!(
+            "skipping the compressed PLY bench: {} not found",
+            guitar.display()
+        );
+    }
+    let n = 100_000;
+    let scene = synthetic(n, 3);
+    let raw = spz::encode_v3(&scene.view(), SpzAxes::Rdf).expect("encode");
+    let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+    gz.write_all(&raw).expect("gzip");
+    let bytes = gz.finish().expect("gzip");
+    g.throughput(Throughput::Elements(n as u64));
+    g.bench_function("decode 100k-splat SH3 .spz (gzip)", |b| {
+        b.iter(|| {
+            black_box(spz::decode_bytes(
+                &bytes,
+                Path::new("mem.spz"),
+                SpzAxes::Rdf,
+            ))
+        })
+    });
+    g.bench_function("decode 100k-splat SH3 .spz (uncompressed NGSP)", |b| {
+        b.iter(|| black_box(spz::decode_bytes(&raw, Path::new("mem.spz"), SpzAxes::Rdf)))
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

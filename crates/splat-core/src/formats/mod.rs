@@ -1,0 +1,184 @@
+//! Scene formats beyond the INRIA PLY: antimatter15 `.splat`, Niantic `.spz` (v2, v3 gzip and v4
+//! zstd) and the PlayCanvas/SuperSplat `compressed.ply`.
+//!
+//! Every reader checks the counts a header declares against the bytes the file actually holds
+//! before it allocates, and decompression is bounded by what those counts justify, so a lying or
+//! truncated file fails with [`Error::Format`] naming the file and the problem.
+use std::io::Read;
+use std::path::Path;
+
+use crate::error::{Error, Result};
+use crate::ply::{LoadReport, OnInvalid};
+use crate::scene::{Scene, SceneView};
+
+pub mod compressed_ply;
+pub mod splat;
+pub mod spz;
+
+/// Gaussians decoded per parallel task (fixed, so results never depend on the thread count).
+pub(crate) const ROWS_PER_TASK: usize = 4096;
+
+/// Opacities are clamped to [EPS, 1-EPS] before the logit, as splat-transform does, so a stored
+/// alpha of 0 or 255 gives a finite logit (about -13.8 / +13.8) instead of an infinity.
+pub(crate) const ALPHA_EPS: f32 = 1e-6;
+
+/// How `.spz` axes are returned. SPZ stores RUB (right, up, back: three.js); PLY and the OpenCV
+/// convention used by morphgs are RDF (right, down, front).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum SpzAxes {
+    /// Convert to RDF on load (and from RDF on save), as nianticlabs/spz's PLY converters do.
+    #[default]
+    Rdf,
+    /// Keep the axes exactly as stored in the file.
+    Stored,
+}
+
+/// The logit of an 8-bit alpha, clamped away from 0 and 1.
+#[inline]
+pub(crate) fn logit_u8(a: u8) -> f32 {
+    logit_unit(a as f32 / 255.0)
+}
+
+#[inline]
+pub(crate) fn logit_unit(a: f32) -> f32 {
+    let a = a.clamp(ALPHA_EPS, 1.0 - ALPHA_EPS);
+    (a / (1.0 - a)).ln()
+}
+
+#[inline]
+pub(crate) fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// Round and clamp to a byte, as the reference encoders' `toUint8`.
+#[inline]
+pub(crate) fn to_u8(x: f32) -> u8 {
+    x.round().clamp(0.0, 255.0) as u8
+}
+
+/// Read a whole file into memory (the formats here are compact: a few bytes per Gaussian).
+pub(crate) fn read_file(path: &Path) -> Result<Vec<u8>> {
+    std::fs::read(path).map_err(|e| Error::io(path, e))
+}
+
+/// Read at most `limit` bytes from a decompressor. Returns the bytes and whether the stream had
+/// more (the caller reports that as a lying header). `what` names the stream in messages.
+/// `expect` (at most `limit`) is reserved up front; callers have checked it against the
+/// compressed size, so a lying header cannot make this reservation large.
+pub(crate) fn read_bounded(
+    r: impl Read,
+    expect: u64,
+    limit: u64,
+    path: &Path,
+    what: &str,
+) -> Result<(Vec<u8>, bool)> {
+    let mut out = Vec::with_capacity(expect.min(limit) as usize + 1);
+    r.take(limit.saturating_add(1))
+        .read_to_end(&mut out)
+        .map_err(|e| {
+            Error::format(
+                path,
+                format!("{what}: corrupt or truncated compressed data ({e})"),
+            )
+        })?;
+    let more = out.len() as u64 > limit;
+    if more {
+        out.truncate(limit as usize);
+    }
+    Ok((out, more))
+}
+
+/// Normalise quaternions and apply `on_invalid` to Gaussians holding NaN or Inf values.
+pub(crate) fn finish(
+    mut scene: Scene,
+    format: &str,
+    element: &str,
+    path: &Path,
+    on_invalid: OnInvalid,
+) -> Result<(Scene, LoadReport)> {
+    scene.normalize_quats();
+    let bad = scene.invalid_rows();
+    let mut report = LoadReport {
+        format: format.to_owned(),
+        dropped: 0,
+    };
+    if !bad.is_empty() {
+        match on_invalid {
+            OnInvalid::Error => {
+                return Err(Error::format_at(
+                    path,
+                    element,
+                    None,
+                    format!(
+                        "Gaussian {} holds NaN or Inf values ({} of {} do; pass \
+                         on_invalid=\"drop\" to skip them)",
+                        bad[0],
+                        bad.len(),
+                        scene.len()
+                    ),
+                ));
+            }
+            OnInvalid::Drop => {
+                let mut keep = vec![true; scene.len()];
+                for &i in &bad {
+                    keep[i] = false;
+                }
+                scene = scene.filter(&keep);
+                report.dropped = bad.len();
+            }
+        }
+    }
+    Ok((scene, report))
+}
+
+/// Writers refuse non-finite values: quantised formats cannot hold them.
+pub(crate) fn check_finite(scene: &SceneView<'_>, format: &str) -> Result<()> {
+    scene.validate()?;
+    let k = scene.sh_rest_k() * 3;
+    for i in 0..scene.len() {
+        let rows: [(&str, &[f32]); 6] = [
+            ("means", &scene.means[i * 3..i * 3 + 3]),
+            ("quats", &scene.quats[i * 4..i * 4 + 4]),
+            ("log_scales", &scene.log_scales[i * 3..i * 3 + 3]),
+            ("opacity_logits", &scene.opacity_logits[i..i + 1]),
+            ("sh0", &scene.sh0[i * 3..i * 3 + 3]),
+            ("sh_rest", &scene.sh_rest[i * k..i * k + k]),
+        ];
+        for (name, r) in rows {
+            if let Some(v) = r.iter().find(|v| !v.is_finite()) {
+                return Err(Error::InvalidArgument(format!(
+                    "cannot write {format}: Gaussian {i} has {name} = {v} (only finite values \
+                     can be quantised)"
+                )));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// A normalised (w,x,y,z) quaternion; zero or non-finite norms give the identity.
+#[inline]
+pub(crate) fn unit_quat(q: &[f32]) -> [f32; 4] {
+    let n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
+    if n2 > 0.0 && n2.is_finite() {
+        let inv = 1.0 / n2.sqrt();
+        [q[0] * inv, q[1] * inv, q[2] * inv, q[3] * inv]
+    } else {
+        [1.0, 0.0, 0.0, 0.0]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn alpha_extremes_give_finite_logits() {
+        assert!(logit_u8(0).is_finite() && logit_u8(0) < -13.0);
+        assert!(logit_u8(255).is_finite() && logit_u8(255) > 13.0);
+        assert!((logit_u8(128) - (128.0f32 / 127.0).ln()).abs() < 1e-6);
+        for a in 0..=255u8 {
+            assert_eq!(to_u8(sigmoid(logit_u8(a)) * 255.0), a);
+        }
+    }
+}
