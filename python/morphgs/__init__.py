@@ -25,6 +25,7 @@ from morphgs.pair import Pair, render_pair
 from morphgs import trajectory
 # `morphgs.curate(...)` is the function; its package stays importable as `from morphgs.curate import ...`.
 from morphgs.curate import curate
+from morphgs.render import Render, render, render_many
 from morphgs import synthetic
 from morphgs.perturb import PerturbConfig, perturb
 
@@ -36,6 +37,7 @@ __all__ = [
     "MorphgsWarning",
     "Pair",
     "PerturbConfig",
+    "Render",
     "SceneFormatError",
     "__version__",
     "curate",
@@ -43,6 +45,8 @@ __all__ = [
     "load",
     "num_threads",
     "perturb",
+    "render",
+    "render_many",
     "render_pair",
     "save_ply",
     "save_splat",

@@ -1,5 +1,5 @@
 # Hand-written stubs for the native module; checked with `python -m mypy.stubtest morphgs._core`.
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from os import PathLike
 from typing import Any, Literal, final
 
@@ -74,6 +74,39 @@ def load(
 def save_ply(scene: GaussianScene, path: _Path) -> None: ...
 def num_threads() -> int: ...
 
+# ---- render ----
+_U8 = npt.NDArray[np.uint8]
+
+def _render(
+    scenes: list[GaussianScene],
+    world_to_camera: npt.NDArray[np.float64],
+    K: npt.NDArray[np.float64],
+    width: int,
+    height: int,
+    *,
+    near: float = 0.01,
+    far: float = 1e10,
+    background: tuple[float, float, float] | list[float] = ...,
+    max_alpha: float = 0.99,
+    sh_degree: int | None = None,
+    antialiased: bool = False,
+) -> tuple[_F32, _F32, _F32, dict[str, Any]]: ...
+def _project(
+    scene: GaussianScene,
+    world_to_camera: npt.NDArray[np.float64],
+    K: npt.NDArray[np.float64],
+    width: int,
+    height: int,
+    *,
+    near: float = 0.01,
+    far: float = 1e10,
+    sh_degree: int | None = None,
+    antialiased: bool = False,
+) -> dict[str, npt.NDArray[Any]]: ...
+def _write_png(path: _Path, image: _U8) -> None: ...
+def _write_exr(path: _Path, image: _F32) -> None: ...
+def _write_png_batch(paths: Sequence[_Path], images: _U8, batched: bool = True) -> None: ...
+def _write_exr_batch(paths: Sequence[_Path], images: _F32, batched: bool = True) -> None: ...
 # ---- formats (.splat, .spz) ----
 def save_splat(scene: GaussianScene, path: _Path) -> None: ...
 def save_spz(

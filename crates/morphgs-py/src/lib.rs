@@ -8,6 +8,7 @@ mod formats;
 mod io;
 mod perturb;
 mod pool;
+mod render;
 mod scene;
 
 #[pymodule]
@@ -17,6 +18,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     scene::register(m)?;
     io::register(m)?;
     blur::register(m)?;
+    render::register(m)?;
     formats::register(m)?;
     perturb::register(m)?;
     m.add_function(wrap_pyfunction!(num_threads, m)?)?;

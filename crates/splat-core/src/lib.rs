@@ -18,3 +18,6 @@ pub mod scene;
 pub use error::{Error, Result};
 pub use scene::{Scene, SceneView};
 pub mod blur;
+pub mod camera;
+pub mod image_out;
+pub mod raster;

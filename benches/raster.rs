@@ -1,0 +1,219 @@
+//! Criterion benchmarks of the CPU rasterizer on gsplat's profiling scene (the Mip-NeRF 360
+//! garden points of ../shared/fixtures/gsplat_test_garden.npz, Gaussians built as gsplat's
+//! `load_test_data` does: crop to [-2,2]^3, scales uniform in [1e-4, 0.02], random unit
+//! quaternions, opacities uniform in (0,1); `grid` 5 tiles 5x5 copies offset by 4 in x and y).
+//!
+//! Throughput is reported in Gaussian-pixel evaluations per second of the whole frame; each
+//! configuration also prints its stage times and the blend-only rate once.
+//!
+//!     cargo bench -p splat-core --bench raster
+//!     MORPHGS_FIXTURES=/path/to/fixtures cargo bench -p splat-core --bench raster
+use std::path::PathBuf;
+
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use splat_core::camera::Camera;
+use splat_core::raster::{render_into, RenderOptions, RenderStats, Simd};
+use splat_core::Scene;
+
+/// One array of an uncompressed .npz: (dtype descr, shape, raw little-endian bytes).
+fn npz_array(bytes: &[u8], name: &str) -> (String, Vec<usize>, Vec<u8>) {
+    let want = format!("{name}.npy");
+    let mut pos = 0;
+    while pos + 30 <= bytes.len() && bytes[pos..pos + 4] == [0x50, 0x4b, 0x03, 0x04] {
+        let u16_at = |p: usize| u16::from_le_bytes([bytes[p], bytes[p + 1]]) as usize;
+        let (name_len, extra_len) = (u16_at(pos + 26), u16_at(pos + 28));
+        let fname = std::str::from_utf8(&bytes[pos + 30..pos + 30 + name_len]).expect("name");
+        let data = pos + 30 + name_len + extra_len;
+        // .npy: magic, version, header length, header dict, data
+        let major = bytes[data + 6];
+        let (hlen, hstart) = if major == 1 {
+            (u16_at(data + 8), data + 10)
+        } else {
+            let b = &bytes[data + 8..data + 12];
+            (
+                u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize,
+                data + 12,
+            )
+        };
+        let header = std::str::from_utf8(&bytes[hstart..hstart + hlen]).expect("header");
+        let descr = header.split("'descr': '").nth(1).expect("descr")[..3].to_owned();
+        let shape_txt = header.split("'shape': (").nth(1).expect("shape");
+        let shape: Vec<usize> = shape_txt[..shape_txt.find(')').expect(")")]
+            .split(',')
+            .filter_map(|s| s.trim().parse().ok())
+            .collect();
+        let item: usize = descr[2..].parse().expect("itemsize");
+        let len = shape.iter().product::<usize>() * item;
+        let start = hstart + hlen;
+        if fname == want {
+            return (descr, shape, bytes[start..start + len].to_vec());
+        }
+        pos = start + len;
+    }
+    panic!("{name} not found in the npz");
+}
+
+fn f32s(raw: &[u8]) -> Vec<f32> {
+    raw.chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+/// SplitMix64 uniform in [0, 1).
+struct Rng(u64);
+impl Rng {
+    fn uniform(&mut self) -> f64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn normal(&mut self) -> f64 {
+        let (u, v) = (self.uniform().max(1e-300), self.uniform());
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+}
+
+fn garden(grid: i32) -> (Scene, Vec<Camera>) {
+    let dir = std::env::var_os("MORPHGS_FIXTURES")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures")
+        });
+    let bytes = std::fs::read(dir.join("gsplat_test_garden.npz")).expect("garden npz");
+    let means = f32s(&npz_array(&bytes, "means3d").2);
+    let colors = npz_array(&bytes, "colors").2;
+    let viewmats = f32s(&npz_array(&bytes, "viewmats").2);
+    let ks = f32s(&npz_array(&bytes, "Ks").2);
+    let int = |n: &str| {
+        let raw = npz_array(&bytes, n).2;
+        i64::from_le_bytes(raw[..8].try_into().expect("i8")) as u32
+    };
+    let (width, height) = (int("width"), int("height"));
+    let mut scene = Scene::empty(0);
+    let mut rng = Rng(0);
+    let h = grid / 2;
+    for gx in -h..=h {
+        for gy in -h..=h {
+            for (p, c) in means.chunks_exact(3).zip(colors.chunks_exact(3)) {
+                if p.iter().any(|v| !(-2.0..=2.0).contains(v)) {
+                    continue;
+                }
+                scene
+                    .means
+                    .extend([p[0] + 4.0 * gx as f32, p[1] + 4.0 * gy as f32, p[2]]);
+                for _ in 0..3 {
+                    let s = 1e-4 + rng.uniform() * (0.02 - 1e-4);
+                    scene.log_scales.push(s.ln() as f32);
+                }
+                let q: Vec<f64> = (0..4).map(|_| rng.normal()).collect();
+                let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+                scene.quats.extend(q.iter().map(|v| (v / n) as f32));
+                let o = 1e-3 + rng.uniform() * (1.0 - 2e-3);
+                scene.opacity_logits.push((o / (1.0 - o)).ln() as f32);
+                scene
+                    .sh0
+                    .extend(c.iter().map(|&v| ((v as f32 / 255.0) - 0.5) / 0.282_094_8));
+            }
+        }
+    }
+    let cams = (0..3)
+        .map(|i| {
+            let w: Vec<f64> = viewmats[i * 16..i * 16 + 16]
+                .iter()
+                .map(|&v| v as f64)
+                .collect();
+            let k: Vec<f64> = ks[i * 9..i * 9 + 9].iter().map(|&v| v as f64).collect();
+            Camera::from_matrices(&w, &k, width, height, 0.01, 1e10).expect("camera")
+        })
+        .collect();
+    (scene, cams)
+}
+
+fn resized(c: &Camera, width: u32, height: u32) -> Camera {
+    let (sx, sy) = (
+        width as f64 / c.width as f64,
+        height as f64 / c.height as f64,
+    );
+    Camera {
+        fx: c.fx * sx,
+        cx: c.cx * sx,
+        fy: c.fy * sy,
+        cy: c.cy * sy,
+        width,
+        height,
+        ..*c
+    }
+}
+
+fn render(scene: &Scene, cam: &Camera, opts: &RenderOptions) -> RenderStats {
+    let n = cam.width as usize * cam.height as usize;
+    let (mut rgb, mut depth, mut alpha) = (vec![0.0; n * 3], vec![0.0; n], vec![0.0; n]);
+    render_into(&scene.view(), cam, opts, &mut rgb, &mut depth, &mut alpha).expect("render")
+}
+
+fn report(label: &str, s: &RenderStats) {
+    println!(
+        "{label}: visible {} evals {:.1}M | project {:.2} ms, sort {:.2} ms, bin {:.2} ms, \
+         blend {:.2} ms ({:.2} G evals/s)",
+        s.visible,
+        s.evaluations as f64 / 1e6,
+        s.project_s * 1e3,
+        s.sort_s * 1e3,
+        s.bin_s * 1e3,
+        s.blend_s * 1e3,
+        s.evaluations as f64 / s.blend_s / 1e9
+    );
+}
+
+fn bench_garden(c: &mut Criterion) {
+    let (scene, cams) = garden(1);
+    let cam = cams[0];
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut g = c.benchmark_group("garden_648x420");
+    g.sample_size(20);
+    for simd in [Simd::Avx512, Simd::Avx2, Simd::Scalar] {
+        if simd.resolve() != simd {
+            continue;
+        }
+        let opts = RenderOptions {
+            simd,
+            ..Default::default()
+        };
+        let s = render(&scene, &cam, &opts);
+        report(&format!("garden {} {threads} threads", simd.name()), &s);
+        g.throughput(Throughput::Elements(s.evaluations));
+        g.bench_function(format!("{}_{threads}threads", simd.name()), |b| {
+            b.iter(|| render(&scene, &cam, &opts))
+        });
+    }
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("pool");
+    let opts = RenderOptions::default();
+    let s = one.install(|| render(&scene, &cam, &opts));
+    report("garden auto 1 thread", &s);
+    g.throughput(Throughput::Elements(s.evaluations));
+    g.bench_function("auto_1thread", |b| {
+        b.iter(|| one.install(|| render(&scene, &cam, &opts)))
+    });
+    g.finish();
+}
+
+fn bench_grid5(c: &mut Criterion) {
+    let (scene, cams) = garden(5);
+    let cam = resized(&cams[0], 1920, 1080);
+    let opts = RenderOptions::default();
+    let s = render(&scene, &cam, &opts);
+    report(&format!("grid-5 ({} Gaussians) 1920x1080", scene.len()), &s);
+    let mut g = c.benchmark_group("garden_grid5_1920x1080");
+    g.sample_size(10);
+    g.throughput(Throughput::Elements(s.evaluations));
+    g.bench_function("auto", |b| b.iter(|| render(&scene, &cam, &opts)));
+    g.finish();
+}
+
+criterion_group!(benches, bench_garden, bench_grid5);
+criterion_main!(benches);

@@ -1,0 +1,333 @@
+//! Rendering natives: `_render` (S scenes x F cameras), `_project` (one view, for tests and
+//! inspection) and the PNG / EXR writers. The Python API lives in `morphgs/render.py`.
+use std::path::PathBuf;
+
+use numpy::ndarray::{Array1, Array2, Array4, Array5};
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyArray4, PyArray5, PyArrayMethods, PyReadonlyArray2,
+    PyReadonlyArray3, PyUntypedArray, PyUntypedArrayMethods,
+};
+use pyo3::exceptions::{PyTypeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+use splat_core::camera::Camera;
+use splat_core::image_out::{self, Frame};
+use splat_core::raster::{self, RenderOptions, RenderStats};
+
+use crate::errors::detach;
+use crate::pool;
+use crate::scene::{PyGaussianScene, SceneBorrow};
+
+fn slice_of<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
+    a: &'a numpy::PyReadonlyArray<'_, T, D>,
+    name: &str,
+) -> PyResult<&'a [T]> {
+    a.as_slice()
+        .map_err(|_| PyValueError::new_err(format!("{name} must be C-contiguous")))
+}
+
+fn cameras_from(
+    w2c: &PyReadonlyArray3<'_, f64>,
+    k: &PyReadonlyArray3<'_, f64>,
+    width: u32,
+    height: u32,
+    near: f64,
+    far: f64,
+) -> PyResult<Vec<Camera>> {
+    let (ws, ks) = (w2c.shape(), k.shape());
+    if ws[1..] != [4, 4] || ks[1..] != [3, 3] || ws[0] != ks[0] {
+        return Err(PyValueError::new_err(format!(
+            "world_to_camera must be (F,4,4) and K (F,3,3), got {ws:?} and {ks:?}"
+        )));
+    }
+    let (w, kk) = (slice_of(w2c, "world_to_camera")?, slice_of(k, "K")?);
+    (0..ws[0])
+        .map(|f| {
+            Camera::from_matrices(
+                &w[f * 16..f * 16 + 16],
+                &kk[f * 9..f * 9 + 9],
+                width,
+                height,
+                near,
+                far,
+            )
+            .map_err(|e| crate::errors::CoreError(e).into())
+        })
+        .collect()
+}
+
+fn options(
+    background: [f32; 3],
+    max_alpha: f32,
+    sh_degree: Option<u8>,
+    antialiased: bool,
+) -> RenderOptions {
+    RenderOptions {
+        background,
+        max_alpha,
+        sh_degree,
+        antialiased,
+        ..Default::default()
+    }
+}
+
+fn stats_dict<'py>(py: Python<'py>, s: &RenderStats) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("frames", s.frames)?;
+    d.set_item("gaussians", s.gaussians)?;
+    d.set_item("visible", s.visible)?;
+    d.set_item("intersections", s.intersections)?;
+    d.set_item("evaluations", s.evaluations)?;
+    d.set_item("project_s", s.project_s)?;
+    d.set_item("sort_s", s.sort_s)?;
+    d.set_item("bin_s", s.bin_s)?;
+    d.set_item("blend_s", s.blend_s)?;
+    d.set_item("simd", raster::Simd::Auto.resolve().name())?;
+    d.set_item("threads", py.detach(pool::num_threads))?;
+    Ok(d)
+}
+
+type RenderOut<'py> = (
+    Bound<'py, PyArray5<f32>>,
+    Bound<'py, PyArray4<f32>>,
+    Bound<'py, PyArray4<f32>>,
+    Bound<'py, PyDict>,
+);
+
+/// Render S scenes from F cameras sharing one image size, in one parallel pass (GIL released).
+///
+/// Returns (rgb (S,F,H,W,3), depth (S,F,H,W), alpha (S,F,H,W), stats dict), float32.
+#[pyfunction]
+#[pyo3(signature = (scenes, world_to_camera, K, width, height, *, near = 0.01, far = 1e10,
+                    background = [0.0, 0.0, 0.0], max_alpha = 0.99, sh_degree = None,
+                    antialiased = false))]
+#[allow(non_snake_case)]
+fn _render<'py>(
+    py: Python<'py>,
+    scenes: &Bound<'py, PyList>,
+    world_to_camera: PyReadonlyArray3<'py, f64>,
+    K: PyReadonlyArray3<'py, f64>,
+    width: u32,
+    height: u32,
+    near: f64,
+    far: f64,
+    background: [f32; 3],
+    max_alpha: f32,
+    sh_degree: Option<u8>,
+    antialiased: bool,
+) -> PyResult<RenderOut<'py>> {
+    let cams = cameras_from(&world_to_camera, &K, width, height, near, far)?;
+    let handles: Vec<Bound<'py, PyGaussianScene>> = scenes
+        .iter()
+        .map(|s| {
+            s.cast_into::<PyGaussianScene>()
+                .map_err(|_| PyTypeError::new_err("scenes must be a list of GaussianScene"))
+        })
+        .collect::<PyResult<_>>()?;
+    let borrows: Vec<SceneBorrow<'py>> = handles
+        .iter()
+        .map(|h| h.get().borrow(py))
+        .collect::<PyResult<_>>()?;
+    let views = borrows
+        .iter()
+        .map(SceneBorrow::view)
+        .collect::<PyResult<Vec<_>>>()?;
+    let opts = options(background, max_alpha, sh_degree, antialiased);
+    let out = detach(py, || raster::render_batch(&views, &cams, &opts))?;
+    let (s, f, h, w) = (views.len(), cams.len(), height as usize, width as usize);
+    let bad = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
+    let rgb = Array5::from_shape_vec((s, f, h, w, 3), out.rgb).map_err(bad)?;
+    let depth = Array4::from_shape_vec((s, f, h, w), out.depth).map_err(bad)?;
+    let alpha = Array4::from_shape_vec((s, f, h, w), out.alpha).map_err(bad)?;
+    Ok((
+        rgb.into_pyarray(py),
+        depth.into_pyarray(py),
+        alpha.into_pyarray(py),
+        stats_dict(py, &out.stats)?,
+    ))
+}
+
+/// Project every Gaussian of a scene for one camera (SPEC §4 steps 1-5), as gsplat's
+/// `fully_fused_projection` reports it. Culled Gaussians have radii 0.
+///
+/// Returns a dict: radii (N,2) int32, means2d (N,2), depths (N,), conics (N,3),
+/// opacities (N,), colors (N,3), float32.
+#[pyfunction]
+#[pyo3(signature = (scene, world_to_camera, K, width, height, *, near = 0.01, far = 1e10,
+                    sh_degree = None, antialiased = false))]
+#[allow(non_snake_case)]
+fn _project<'py>(
+    py: Python<'py>,
+    scene: &PyGaussianScene,
+    world_to_camera: PyReadonlyArray2<'py, f64>,
+    K: PyReadonlyArray2<'py, f64>,
+    width: u32,
+    height: u32,
+    near: f64,
+    far: f64,
+    sh_degree: Option<u8>,
+    antialiased: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    if world_to_camera.shape() != [4, 4] || K.shape() != [3, 3] {
+        return Err(PyValueError::new_err(
+            "world_to_camera must be (4,4) and K (3,3)",
+        ));
+    }
+    let cam = Camera::from_matrices(
+        slice_of(&world_to_camera, "world_to_camera")?,
+        slice_of(&K, "K")?,
+        width,
+        height,
+        near,
+        far,
+    )
+    .map_err(crate::errors::CoreError)?;
+    let b = scene.borrow(py)?;
+    let view = b.view()?;
+    let opts = options([0.0; 3], 0.99, sh_degree, antialiased);
+    let p = detach(py, || raster::project_all(&view, &cam, &opts))?;
+    let n = p.depths.len();
+    let bad = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
+    let d = PyDict::new(py);
+    let radii: Bound<'_, PyArray2<i32>> = Array2::from_shape_vec((n, 2), p.radii)
+        .map_err(bad)?
+        .into_pyarray(py);
+    d.set_item("radii", radii)?;
+    d.set_item(
+        "means2d",
+        Array2::from_shape_vec((n, 2), p.means2d)
+            .map_err(bad)?
+            .into_pyarray(py),
+    )?;
+    let depths: Bound<'_, PyArray1<f32>> = Array1::from_vec(p.depths).into_pyarray(py);
+    d.set_item("depths", depths)?;
+    d.set_item(
+        "conics",
+        Array2::from_shape_vec((n, 3), p.conics)
+            .map_err(bad)?
+            .into_pyarray(py),
+    )?;
+    d.set_item("opacities", Array1::from_vec(p.opacities).into_pyarray(py))?;
+    d.set_item(
+        "colors",
+        Array2::from_shape_vec((n, 3), p.colors)
+            .map_err(bad)?
+            .into_pyarray(py),
+    )?;
+    Ok(d)
+}
+
+/// (frames, height, width, channels) of an (F,H,W) or (F,H,W,C) array, or of (H,W) / (H,W,C)
+/// when `batched` is false.
+fn image_dims(a: &Bound<'_, PyUntypedArray>, batched: bool) -> PyResult<(usize, u32, u32, usize)> {
+    let s = a.shape();
+    let (f, rest) = if batched {
+        match s.split_first() {
+            Some((f, rest)) => (*f, rest),
+            None => return Err(PyValueError::new_err("images must be (F,H,W) or (F,H,W,C)")),
+        }
+    } else {
+        (1, s)
+    };
+    let (h, w, c) = match rest {
+        [h, w] => (*h, *w, 1),
+        [h, w, c] => (*h, *w, *c),
+        _ => {
+            return Err(PyValueError::new_err(format!(
+                "an image must be (H,W) or (H,W,C), got shape {s:?}"
+            )))
+        }
+    };
+    let as_u32 = |v: usize| {
+        u32::try_from(v).map_err(|_| PyValueError::new_err(format!("image side {v} too large")))
+    };
+    Ok((f, as_u32(w)?, as_u32(h)?, c))
+}
+
+fn check_paths(paths: &[PathBuf], frames: usize) -> PyResult<()> {
+    if paths.len() != frames {
+        return Err(PyValueError::new_err(format!(
+            "{} paths for {frames} images",
+            paths.len()
+        )));
+    }
+    Ok(())
+}
+
+/// Write a uint8 image (H,W), (H,W,3) or (H,W,4) as PNG (atomically).
+#[pyfunction]
+fn _write_png(py: Python<'_>, path: PathBuf, image: &Bound<'_, PyUntypedArray>) -> PyResult<()> {
+    _write_png_batch(py, vec![path], image, false)
+}
+
+/// Write a float32 image (H,W) or (H,W,C) as OpenEXR (atomically).
+#[pyfunction]
+fn _write_exr(py: Python<'_>, path: PathBuf, image: &Bound<'_, PyUntypedArray>) -> PyResult<()> {
+    _write_exr_batch(py, vec![path], image, false)
+}
+
+/// Write F uint8 images (F,H,W[,C]) as PNGs, in parallel; `paths` has F entries.
+#[pyfunction]
+#[pyo3(signature = (paths, images, batched = true))]
+fn _write_png_batch(
+    py: Python<'_>,
+    paths: Vec<PathBuf>,
+    images: &Bound<'_, PyUntypedArray>,
+    batched: bool,
+) -> PyResult<()> {
+    let (f, w, h, c) = image_dims(images, batched)?;
+    check_paths(&paths, f)?;
+    let arr = images
+        .cast::<numpy::PyArrayDyn<u8>>()
+        .map_err(|_| PyTypeError::new_err("PNG images must be uint8 arrays"))?
+        .try_readonly()?;
+    let data = slice_of(&arr, "images")?;
+    let per = data.len() / f.max(1);
+    let frames: Vec<Frame<'_, u8>> = paths
+        .into_iter()
+        .enumerate()
+        .map(|(i, path)| Frame {
+            path,
+            data: &data[i * per..(i + 1) * per],
+        })
+        .collect();
+    detach(py, || image_out::write_png_batch(&frames, w, h, c))
+}
+
+/// Write F float32 images (F,H,W[,C]) as OpenEXRs, in parallel; `paths` has F entries.
+#[pyfunction]
+#[pyo3(signature = (paths, images, batched = true))]
+fn _write_exr_batch(
+    py: Python<'_>,
+    paths: Vec<PathBuf>,
+    images: &Bound<'_, PyUntypedArray>,
+    batched: bool,
+) -> PyResult<()> {
+    let (f, w, h, c) = image_dims(images, batched)?;
+    check_paths(&paths, f)?;
+    let arr = images
+        .cast::<numpy::PyArrayDyn<f32>>()
+        .map_err(|_| PyTypeError::new_err("EXR images must be float32 arrays"))?
+        .try_readonly()?;
+    let data = slice_of(&arr, "images")?;
+    let per = data.len() / f.max(1);
+    let frames: Vec<Frame<'_, f32>> = paths
+        .into_iter()
+        .enumerate()
+        .map(|(i, path)| Frame {
+            path,
+            data: &data[i * per..(i + 1) * per],
+        })
+        .collect();
+    detach(py, || image_out::write_exr_batch(&frames, w, h, c))
+}
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(_render, m)?)?;
+    m.add_function(wrap_pyfunction!(_project, m)?)?;
+    m.add_function(wrap_pyfunction!(_write_png, m)?)?;
+    m.add_function(wrap_pyfunction!(_write_exr, m)?)?;
+    m.add_function(wrap_pyfunction!(_write_png_batch, m)?)?;
+    m.add_function(wrap_pyfunction!(_write_exr_batch, m)?)?;
+    Ok(())
+}

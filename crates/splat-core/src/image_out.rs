@@ -1,0 +1,184 @@
+//! Image files: 8-bit PNG (image crate) and float32 OpenEXR (exr crate), written atomically
+//! (a temporary beside the target, then a rename), one frame or many frames in parallel.
+use std::io::Cursor;
+use std::path::{Path, PathBuf};
+
+use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+use image::{ExtendedColorType, ImageEncoder};
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+use crate::ply::atomic_write;
+
+fn check_len(path: &Path, got: usize, width: u32, height: u32, channels: usize) -> Result<()> {
+    let want = width as usize * height as usize * channels;
+    if width == 0 || height == 0 {
+        return Err(Error::InvalidArgument(format!(
+            "{}: image size must be positive, got {width}x{height}",
+            path.display()
+        )));
+    }
+    if got != want {
+        return Err(Error::InvalidArgument(format!(
+            "{}: {got} values do not make a {width}x{height}x{channels} image",
+            path.display()
+        )));
+    }
+    Ok(())
+}
+
+/// Float colour in [0, 1] to 8 bits: round(clip(v, 0, 1) * 255); NaN becomes 0.
+pub fn to_u8(values: &[f32]) -> Vec<u8> {
+    values
+        .iter()
+        .map(|&v| {
+            let c = if v > 0.0 { v.min(1.0) } else { 0.0 };
+            (c * 255.0).round() as u8
+        })
+        .collect()
+}
+
+/// Write an 8-bit PNG with 1 (grey), 3 (RGB) or 4 (RGBA) interleaved channels.
+pub fn write_png(path: &Path, width: u32, height: u32, channels: usize, data: &[u8]) -> Result<()> {
+    let color = match channels {
+        1 => ExtendedColorType::L8,
+        3 => ExtendedColorType::Rgb8,
+        4 => ExtendedColorType::Rgba8,
+        c => {
+            return Err(Error::InvalidArgument(format!(
+                "{}: a PNG takes 1, 3 or 4 channels, got {c}",
+                path.display()
+            )))
+        }
+    };
+    check_len(path, data.len(), width, height, channels)?;
+    atomic_write(path, |w| {
+        PngEncoder::new_with_quality(w, CompressionType::Fast, FilterType::Adaptive)
+            .write_image(data, width, height, color)
+            .map_err(std::io::Error::other)
+    })
+}
+
+/// Channel names of an EXR with `channels` interleaved float channels.
+fn exr_channel_names(channels: usize) -> Vec<String> {
+    match channels {
+        1 => vec!["Y".into()],
+        3 => ["R", "G", "B"].map(String::from).to_vec(),
+        4 => ["R", "G", "B", "A"].map(String::from).to_vec(),
+        c => (0..c).map(|i| format!("C{i}")).collect(),
+    }
+}
+
+/// Write a float32 OpenEXR (ZIP-compressed, lossless) with `channels` interleaved channels:
+/// 1 -> "Y", 3 -> "R","G","B", 4 -> "R","G","B","A", otherwise "C0", "C1", ...
+pub fn write_exr(
+    path: &Path,
+    width: u32,
+    height: u32,
+    channels: usize,
+    data: &[f32],
+) -> Result<()> {
+    use exr::prelude::{
+        AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes, SmallVec,
+        WritableImage,
+    };
+    if channels == 0 {
+        return Err(Error::InvalidArgument(format!(
+            "{}: an EXR needs at least one channel",
+            path.display()
+        )));
+    }
+    check_len(path, data.len(), width, height, channels)?;
+    let list: Vec<AnyChannel<FlatSamples>> = exr_channel_names(channels)
+        .into_iter()
+        .enumerate()
+        .map(|(c, name)| {
+            let plane: Vec<f32> = data.iter().skip(c).step_by(channels).copied().collect();
+            AnyChannel::new(name.as_str(), FlatSamples::F32(plane))
+        })
+        .collect();
+    let layer = Layer::new(
+        (width as usize, height as usize),
+        LayerAttributes::default(),
+        Encoding::SMALL_LOSSLESS,
+        AnyChannels::sort(SmallVec::from_vec(list)),
+    );
+    let mut bytes = Vec::new();
+    Image::from_layer(layer)
+        .write()
+        .non_parallel()
+        .to_buffered(Cursor::new(&mut bytes))
+        .map_err(|e| Error::io(path, std::io::Error::other(e.to_string())))?;
+    atomic_write(path, |w| w.write_all(&bytes))
+}
+
+/// One frame to write: path and interleaved samples.
+pub struct Frame<'a, T> {
+    pub path: PathBuf,
+    pub data: &'a [T],
+}
+
+/// Write many PNGs of one size in parallel (one frame per work unit). Stops at the first error
+/// in frame order.
+pub fn write_png_batch(
+    frames: &[Frame<'_, u8>],
+    width: u32,
+    height: u32,
+    channels: usize,
+) -> Result<()> {
+    frames
+        .par_iter()
+        .map(|f| write_png(&f.path, width, height, channels, f.data))
+        .collect::<Vec<_>>()
+        .into_iter()
+        .collect()
+}
+
+/// Write many float EXRs of one size in parallel.
+pub fn write_exr_batch(
+    frames: &[Frame<'_, f32>],
+    width: u32,
+    height: u32,
+    channels: usize,
+) -> Result<()> {
+    frames
+        .par_iter()
+        .map(|f| write_exr(&f.path, width, height, channels, f.data))
+        .collect::<Vec<_>>()
+        .into_iter()
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn to_u8_rounds_and_clips() {
+        assert_eq!(
+            to_u8(&[-1.0, 0.0, 0.5, 1.0 / 255.0 * 0.49, 1.0, 3.0, f32::NAN]),
+            [0, 0, 128, 0, 255, 255, 0]
+        );
+    }
+
+    #[test]
+    fn png_and_exr_round_trip_through_their_decoders() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let rgb: Vec<u8> = (0..4 * 3 * 3).map(|v| (v * 7) as u8).collect();
+        let p = dir.path().join("a.png");
+        write_png(&p, 4, 3, 3, &rgb).expect("png");
+        let back = image::open(&p).expect("decode").to_rgb8();
+        assert_eq!(back.dimensions(), (4, 3));
+        assert_eq!(back.into_raw(), rgb);
+
+        let depth: Vec<f32> = (0..12).map(|v| v as f32 * 0.25 - 1.0).collect();
+        let e = dir.path().join("d.exr");
+        write_exr(&e, 4, 3, 1, &depth).expect("exr");
+        let img = exr::prelude::read_first_flat_layer_from_file(&e).expect("read exr");
+        let ch = &img.layer_data.channel_data.list[0];
+        assert_eq!(ch.name.to_string(), "Y");
+        let vals: Vec<f32> = ch.sample_data.values_as_f32().collect();
+        assert_eq!(vals, depth);
+        assert!(write_png(&p, 4, 3, 3, &rgb[..5]).is_err());
+    }
+}

@@ -1,0 +1,208 @@
+//! Depth sort and tile binning (SPEC §4 step 6).
+//!
+//! The visible splats are sorted once, front to back, by a stable LSD radix sort on the bits of
+//! their (positive) depth, so ties keep Gaussian-index order, exactly what gsplat's stable radix
+//! sort of (tile, depth bits) keys gives. The sorted array is then cut into fixed-size chunks;
+//! each chunk buckets its splats by tile (a counting sort, which keeps the depth order). A tile's
+//! list is the concatenation of its buckets over the chunks in order: front to back, ties by
+//! index, and independent of the thread count.
+use rayon::prelude::*;
+
+use super::project::{Splat, PROJECT_CHUNK_BITS};
+use crate::error::{Error, Result};
+
+/// Tile side in pixels.
+pub const TILE: u32 = 16;
+/// Sorted splats per binning work unit.
+const BIN_CHUNK: usize = 16384;
+const RADIX_BITS: u32 = 11;
+const RADIX: usize = 1 << RADIX_BITS;
+
+/// Sort splats front to back by depth; equal depths keep Gaussian-index order. `parts` are the
+/// projection chunks in order (chunk c, local position j: payload c << PROJECT_CHUNK_BITS | j,
+/// which orders like the Gaussian index), so no concatenated copy is needed.
+pub(crate) fn sort_by_depth(parts: &[Vec<Splat>]) -> Vec<Splat> {
+    // (depth bits, payload); positive floats order like their bit patterns
+    let mut keys: Vec<(u32, u32)> = Vec::with_capacity(parts.iter().map(Vec::len).sum());
+    for (c, part) in parts.iter().enumerate() {
+        let base = (c as u32) << PROJECT_CHUNK_BITS;
+        keys.extend(
+            part.iter()
+                .enumerate()
+                .map(|(j, s)| (s.depth.to_bits(), base | j as u32)),
+        );
+    }
+    let n = keys.len();
+    let mut tmp = vec![(0u32, 0u32); n];
+    let max_key = keys.iter().map(|k| k.0).max().unwrap_or(0);
+    let mut shift = 0;
+    while shift < 32 && (max_key >> shift) != 0 {
+        let mut hist = vec![0usize; RADIX];
+        for k in &keys {
+            hist[((k.0 >> shift) as usize) & (RADIX - 1)] += 1;
+        }
+        let mut sum = 0;
+        for h in hist.iter_mut() {
+            let c = *h;
+            *h = sum;
+            sum += c;
+        }
+        for k in &keys {
+            let b = ((k.0 >> shift) as usize) & (RADIX - 1);
+            tmp[hist[b]] = *k;
+            hist[b] += 1;
+        }
+        std::mem::swap(&mut keys, &mut tmp);
+        shift += RADIX_BITS;
+    }
+    keys.par_iter()
+        .with_min_len(BIN_CHUNK)
+        .map(|&(_, i)| {
+            parts[(i >> PROJECT_CHUNK_BITS) as usize]
+                [(i & ((1 << PROJECT_CHUNK_BITS) - 1)) as usize]
+        })
+        .collect()
+}
+
+/// Tiles touched by a splat's box: [x0, x1) x [y0, y1), as gsplat's `isect_tiles`.
+#[inline]
+pub(crate) fn tile_range(s: &Splat, tiles_x: u32, tiles_y: u32) -> (u32, u32, u32, u32) {
+    let t = TILE as f32;
+    // clamping to [0, n] first lets floor be a truncation and ceil a truncation plus one
+    // (no libm calls on baseline x86-64); clamp and floor/ceil commute for integer bounds
+    let floor = |v: f32, n: u32| v.clamp(0.0, n as f32) as u32;
+    let ceil = |v: f32, n: u32| {
+        let c = v.clamp(0.0, n as f32);
+        let i = c as u32;
+        i + u32::from((i as f32) < c)
+    };
+    (
+        floor(s.xy[0] / t - s.radius[0] / t, tiles_x),
+        ceil(s.xy[0] / t + s.radius[0] / t, tiles_x),
+        floor(s.xy[1] / t - s.radius[1] / t, tiles_y),
+        ceil(s.xy[1] / t + s.radius[1] / t, tiles_y),
+    )
+}
+
+struct BinChunk {
+    /// n_tiles + 1 offsets into `items`.
+    offsets: Vec<u32>,
+    /// Positions in the sorted splat array.
+    items: Vec<u32>,
+}
+
+/// Per-tile lists of sorted splat positions.
+pub(crate) struct TileBins {
+    pub tiles_x: u32,
+    pub tiles_y: u32,
+    chunks: Vec<BinChunk>,
+}
+
+impl TileBins {
+    /// Bucket depth-sorted splats by tile.
+    pub(crate) fn build(sorted: &[Splat], tiles_x: u32, tiles_y: u32) -> Result<Self> {
+        let n_tiles = (tiles_x * tiles_y) as usize;
+        let chunks = sorted
+            .par_chunks(BIN_CHUNK)
+            .enumerate()
+            .map(|(c, part)| {
+                let base = c * BIN_CHUNK;
+                let mut counts = vec![0u64; n_tiles + 1];
+                for s in part {
+                    let (x0, x1, y0, y1) = tile_range(s, tiles_x, tiles_y);
+                    for ty in y0..y1 {
+                        let row = (ty * tiles_x) as usize;
+                        for tx in x0..x1 {
+                            counts[row + tx as usize] += 1;
+                        }
+                    }
+                }
+                let total: u64 = counts.iter().sum();
+                if total > u32::MAX as u64 {
+                    return Err(Error::InvalidArgument(format!(
+                        "too many Gaussian-tile intersections ({total}): Gaussians cover \
+                         unreasonably large screen areas"
+                    )));
+                }
+                let mut offsets = vec![0u32; n_tiles + 1];
+                let mut sum = 0u32;
+                for (o, c) in offsets.iter_mut().zip(&counts) {
+                    *o = sum;
+                    sum += *c as u32;
+                }
+                let mut cursor: Vec<u32> = offsets[..n_tiles].to_vec();
+                let mut items = vec![0u32; sum as usize];
+                for (j, s) in part.iter().enumerate() {
+                    let (x0, x1, y0, y1) = tile_range(s, tiles_x, tiles_y);
+                    for ty in y0..y1 {
+                        let row = (ty * tiles_x) as usize;
+                        for tx in x0..x1 {
+                            let cur = &mut cursor[row + tx as usize];
+                            items[*cur as usize] = (base + j) as u32;
+                            *cur += 1;
+                        }
+                    }
+                }
+                Ok(BinChunk { offsets, items })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(TileBins {
+            tiles_x,
+            tiles_y,
+            chunks,
+        })
+    }
+
+    /// The front-to-back list of tile `t`, as consecutive slices of sorted-splat positions.
+    #[inline]
+    pub(crate) fn lists(&self, t: usize) -> impl Iterator<Item = &[u32]> + '_ {
+        self.chunks
+            .iter()
+            .map(move |c| &c.items[c.offsets[t] as usize..c.offsets[t + 1] as usize])
+    }
+
+    /// Total Gaussian-tile intersections.
+    pub(crate) fn intersections(&self) -> u64 {
+        self.chunks.iter().map(|c| c.items.len() as u64).sum()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn splat(depth: f32, x: f32, y: f32) -> Splat {
+        Splat {
+            xy: [x, y],
+            depth,
+            radius: [1.0, 1.0],
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn sort_is_front_to_back_and_stable_on_ties() {
+        let s: Vec<Splat> = [3.0, 1.0, 2.0, 1.0, 1e-3, 7e5]
+            .iter()
+            .enumerate()
+            .map(|(i, &d)| splat(d, i as f32, 0.0))
+            .collect();
+        let sorted = sort_by_depth(&[s]);
+        let order: Vec<f32> = sorted.iter().map(|s| s.xy[0]).collect();
+        assert_eq!(order, [4.0, 1.0, 3.0, 2.0, 0.0, 5.0]);
+    }
+
+    #[test]
+    fn bins_follow_gsplat_tile_ranges() {
+        // a splat at (16, 16) with radius 1 touches tiles x 0..2, y 0..2
+        let s = splat(1.0, 16.0, 16.0);
+        assert_eq!(tile_range(&s, 4, 4), (0, 2, 0, 2));
+        let bins = TileBins::build(&[s, splat(2.0, 24.0, 8.0)], 4, 4).expect("bins");
+        let list = |t: usize| bins.lists(t).flatten().copied().collect::<Vec<u32>>();
+        assert_eq!(list(0), [0]);
+        assert_eq!(list(1), [0, 1]);
+        assert_eq!(list(2), Vec::<u32>::new());
+        assert_eq!(list(5), [0]);
+        assert_eq!(bins.intersections(), 4 + 1);
+    }
+}
