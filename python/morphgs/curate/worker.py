@@ -44,6 +44,15 @@ def tmp_root(out_dir: Path) -> Path:
     return out_dir / ".tmp"
 
 
+def _to_uint8(rgb: np.ndarray) -> np.ndarray:
+    """Render.to_uint8's rule, round(clip(rgb, 0, 1) * 255) (float32, half to even), with one
+    scratch buffer instead of three temporaries."""
+    buf = np.clip(rgb, 0.0, 1.0)
+    buf *= np.float32(255.0)
+    np.rint(buf, out=buf)
+    return buf.astype(np.uint8)
+
+
 class PairWriter:
     """Writes frame chunks of one pair (PNG, or MP4 through imageio-ffmpeg) and depth EXRs."""
 
@@ -66,7 +75,7 @@ class PairWriter:
         """Write a chunk (a batched Render) whose first frame is number `start`."""
         from morphgs import _core
 
-        u8 = np.ascontiguousarray(frames.to_uint8())
+        u8 = _to_uint8(frames.rgb)
         idx = range(start, start + len(u8))
         if self.opts.video:
             for frame in u8:
