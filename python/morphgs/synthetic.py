@@ -8,7 +8,7 @@ The world is z-up with the ground plane at z = 0. The scene is a room corner abo
   right wall x = 4 (y in [1, 4]), each 3 m high, with a darker skirting band,
 * objects near the origin resting on the floor: a large striped sphere, a rotated box with a small
   glossy sphere on top, a cylinder and a cone,
-* a few percent of "floaters": loose, large, faint Gaussians in the air, as real captures have.
+* half a percent of "floaters": loose, large, faint Gaussians in the air, as real captures have.
 
 Everything lies inside [-4, 4] x [-4, 4] x [0, 3] (``EXTENT_MIN``, ``EXTENT_MAX``); the objects fill
 roughly [-1.6, 1.6] x [-1.6, 1.4] x [0, 1.5]. Surfaces are covered by flat anisotropic Gaussians
@@ -48,8 +48,8 @@ _SHARES = {
     "box": 0.12,
     "small_sphere": 0.04,
     "cylinder": 0.08,
-    "cone": 0.07,
-    "floaters": 0.03,
+    "cone": 0.095,
+    "floaters": 0.005,
 }
 
 
@@ -330,7 +330,7 @@ def scene(n_gaussians: int = 100_000, sh_degree: int = 3, seed: int = 0) -> Gaus
     f_means = (rng.uniform(EXTENT_MIN, EXTENT_MAX, (mf, 3)) * (0.9, 0.9, 0.8) + (0, 0, 0.3))
     f_log_scales = rng.normal(math.log(0.06), 0.5, (mf, 1)) + rng.normal(0, 0.3, (mf, 3))
     f_quats = rng.normal(size=(mf, 4))
-    f_alpha = rng.uniform(0.02, 0.25, mf)
+    f_alpha = rng.uniform(0.02, 0.12, mf)
     f_rgb = rng.uniform(0.3, 0.8, (mf, 1)) + rng.normal(0, 0.05, (mf, 3))
 
     means_all = np.concatenate([surf_means, f_means.astype(f32)])

@@ -285,15 +285,19 @@ pub(crate) fn blend_frame(
     alpha: &mut [f32],
 ) -> u64 {
     let (tiles_x, tiles_y) = (bins.tiles_x as usize, bins.tiles_y as usize);
-    // each tile initialises and fills its own output inside its work unit
-    let tiles: Vec<(TileOut, u64)> = (0..tiles_x * tiles_y)
+    // each tile initialises and fills its own output inside its work unit; tiles no Gaussian
+    // touches have none (they show the background)
+    let tiles: Vec<(Option<Box<TileOut>>, u64)> = (0..tiles_x * tiles_y)
         .into_par_iter()
         .map(|t| {
+            if bins.lists(t).all(|l| l.is_empty()) {
+                return (None, 0);
+            }
             let x0 = (t % tiles_x) as u32 * TILE;
             let y0 = (t / tiles_x) as u32 * TILE;
-            let mut out = TileOut::default();
+            let mut out = Box::<TileOut>::default();
             let evals = blend_tile(x0, y0, p, sorted, bins.lists(t), &mut out);
-            (out, evals)
+            (Some(out), evals)
         })
         .collect();
     let evals: u64 = tiles.iter().map(|t| t.1).sum();
@@ -308,10 +312,15 @@ pub(crate) fn blend_frame(
             let rows = depth.len() / w;
             for r in 0..rows {
                 for x in 0..w {
-                    let tile = &tiles[ty * tiles_x + x / LANES].0;
+                    let i = r * w + x;
+                    let Some(tile) = &tiles[ty * tiles_x + x / LANES].0 else {
+                        rgb[i * 3..i * 3 + 3].copy_from_slice(&bg);
+                        alpha[i] = 0.0;
+                        depth[i] = 0.0;
+                        continue;
+                    };
                     let l = x % LANES;
                     let t = tile.t[r][l].abs();
-                    let i = r * w + x;
                     for ch in 0..3 {
                         rgb[i * 3 + ch] = tile.c[ch][r][l] + t * bg[ch];
                     }
