@@ -218,6 +218,17 @@ def test_preview_writes_a_contact_sheet_and_animation(tmp_path: Path, scenes: li
     assert _image(out / "preview" / "contact_sheet.png").shape == (2 * (2 * 34 + 14) + 2, 3 * 50 + 2, 3)
     with Image.open(out / "preview" / "preview.gif") as gif:
         assert gif.n_frames == 3 and gif.size == (2 * 48 + 6, 2 * 34 + 2)
+    # MP4 animation: decode it with ffmpeg
+    import subprocess
+
+    import imageio_ffmpeg
+
+    from morphgs.curate import preview
+
+    _, mp4 = preview(out, out=tmp_path / "p", pairs=2, thumb_width=48, animation="mp4")
+    raw = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-v", "error", "-i", str(mp4), "-f", "rawvideo",
+                          "-pix_fmt", "rgb24", "-"], capture_output=True, check=True).stdout
+    assert len(raw) == 3 * (2 * 34 + 2) * (2 * 48 + 6) * 3
 
 
 def test_video_output_writes_playable_mp4s(tmp_path: Path, scenes: list[str]) -> None:
