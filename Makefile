@@ -4,7 +4,7 @@ SHELL := /bin/bash
 VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
-EXTRAS ?= test,reference,video
+EXTRAS ?= test,reference,video,ray,curate
 
 .PHONY: help
 help: ## list the targets
@@ -22,9 +22,9 @@ setup: $(VENV)/.deps ## create .venv with every dependency and build morphgs (re
 	VIRTUAL_ENV=$(abspath $(VENV)) PATH=$(abspath $(VENV))/bin:$$PATH maturin develop --release
 
 .PHONY: demo
-demo: setup ## the main job on the built-in sample scene
-	$(VENV)/bin/morphgs sample out/sample.ply --gaussians 200000
-	$(VENV)/bin/morphgs info out/sample.ply
+demo: setup ## the main job: curate clean/corrupted pairs from the built-in sample scenes into out/demo
+	$(VENV)/bin/morphgs curate --out out/demo
+	$(VENV)/bin/morphgs preview out/demo
 
 .PHONY: lint
 lint: ## rustfmt and clippy (warnings are errors)

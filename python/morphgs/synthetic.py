@@ -271,18 +271,37 @@ def scene(n_gaussians: int = 100_000, sh_degree: int = 3, seed: int = 0) -> Gaus
     rng = np.random.default_rng(seed)
     counts = _split(n)
     parts: list[_Part] = []
+    # The seed also varies the layout, so sample scenes of different seeds are different rooms:
+    # objects shift by up to 0.3 m, spheres change colours and size, walls change tint.
+    lay = np.random.default_rng([int(seed), 0x5EED])
+
+    def shift() -> tuple[float, float]:
+        dx, dy = lay.uniform(-0.3, 0.3, 2)
+        return float(dx), float(dy)
+
+    def tint(base: tuple[float, float, float]) -> tuple[float, float, float]:
+        t = np.clip(np.asarray(base) + lay.uniform(-0.08, 0.08, 3), 0.0, 1.0)
+        return (float(t[0]), float(t[1]), float(t[2]))
+
+    stripes = [(0.80, 0.15, 0.12), (0.15, 0.35, 0.80), (0.15, 0.60, 0.25), (0.55, 0.20, 0.65),
+               (0.90, 0.55, 0.10)]
+    stripe = stripes[int(lay.integers(len(stripes)))]
+    (sx, sy), (bx, by), (cx, cy), (kx, ky) = shift(), shift(), shift(), shift()
+    r_big = 0.6 * float(lay.uniform(0.85, 1.15))
+    yaw = 0.5 + float(lay.uniform(-0.4, 0.4))
+    walls = [tint(c) for c in ((0.80, 0.78, 0.72), (0.70, 0.76, 0.78), (0.78, 0.74, 0.70))]
     builders = {
         "floor": lambda m: _floor(rng, m),
-        "back_wall": lambda m: _wall(rng, m, (-4, 4, 0), (8, 0, 0), (0, 0, 3), (0.80, 0.78, 0.72), True),
-        "left_wall": lambda m: _wall(rng, m, (-4, -4, 0), (0, 0, 3), (0, 8, 0), (0.70, 0.76, 0.78), False),
-        "right_wall": lambda m: _wall(rng, m, (4, 1, 0), (0, 3, 0), (0, 0, 3), (0.78, 0.74, 0.70), False),
-        "sphere": lambda m: _sphere(rng, m, (0.9, 0.4, 0.6), 0.6,
-                                    ((0.80, 0.15, 0.12), (0.95, 0.90, 0.85)), 0.8),
-        "box": lambda m: _box(rng, m, (-0.9, 0.2), (0.9, 0.7, 0.8), 0.5),
-        "small_sphere": lambda m: _sphere(rng, m, (-0.9, 0.2, 1.05), 0.25,
+        "back_wall": lambda m: _wall(rng, m, (-4, 4, 0), (8, 0, 0), (0, 0, 3), walls[0], True),
+        "left_wall": lambda m: _wall(rng, m, (-4, -4, 0), (0, 0, 3), (0, 8, 0), walls[1], False),
+        "right_wall": lambda m: _wall(rng, m, (4, 1, 0), (0, 3, 0), (0, 0, 3), walls[2], False),
+        "sphere": lambda m: _sphere(rng, m, (0.9 + sx, 0.4 + sy, r_big), r_big,
+                                    (stripe, (0.95, 0.90, 0.85)), 0.8),
+        "box": lambda m: _box(rng, m, (-0.9 + bx, 0.2 + by), (0.9, 0.7, 0.8), yaw),
+        "small_sphere": lambda m: _sphere(rng, m, (-0.9 + bx, 0.2 + by, 1.05), 0.25,
                                           ((0.95, 0.78, 0.25), (0.85, 0.65, 0.15)), 1.0),
-        "cylinder": lambda m: _cylinder(rng, m, (0.3, -1.1), 0.3, 1.1),
-        "cone": lambda m: _cone(rng, m, (-1.1, -1.2), 0.4, 0.9),
+        "cylinder": lambda m: _cylinder(rng, m, (0.3 + cx, -1.1 + cy), 0.3, 1.1),
+        "cone": lambda m: _cone(rng, m, (-1.1 + kx, -1.2 + ky), 0.4, 0.9),
     }
     for name, build in builders.items():
         parts.append(build(counts[name]))
