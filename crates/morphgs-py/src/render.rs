@@ -281,16 +281,7 @@ fn _write_png_batch(
         .cast::<numpy::PyArrayDyn<u8>>()
         .map_err(|_| PyTypeError::new_err("PNG images must be uint8 arrays"))?
         .try_readonly()?;
-    let data = slice_of(&arr, "images")?;
-    let per = data.len() / f.max(1);
-    let frames: Vec<Frame<'_, u8>> = paths
-        .into_iter()
-        .enumerate()
-        .map(|(i, path)| Frame {
-            path,
-            data: &data[i * per..(i + 1) * per],
-        })
-        .collect();
+    let frames = split_frames(paths, slice_of(&arr, "images")?, f);
     detach(py, || image_out::write_png_batch(&frames, w, h, c))
 }
 
@@ -309,17 +300,21 @@ fn _write_exr_batch(
         .cast::<numpy::PyArrayDyn<f32>>()
         .map_err(|_| PyTypeError::new_err("EXR images must be float32 arrays"))?
         .try_readonly()?;
-    let data = slice_of(&arr, "images")?;
+    let frames = split_frames(paths, slice_of(&arr, "images")?, f);
+    detach(py, || image_out::write_exr_batch(&frames, w, h, c))
+}
+
+/// One frame per path over consecutive equal parts of `data`.
+fn split_frames<T>(paths: Vec<PathBuf>, data: &[T], f: usize) -> Vec<Frame<'_, T>> {
     let per = data.len() / f.max(1);
-    let frames: Vec<Frame<'_, f32>> = paths
+    paths
         .into_iter()
         .enumerate()
         .map(|(i, path)| Frame {
             path,
             data: &data[i * per..(i + 1) * per],
         })
-        .collect();
-    detach(py, || image_out::write_exr_batch(&frames, w, h, c))
+        .collect()
 }
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {

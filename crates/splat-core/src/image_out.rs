@@ -126,12 +126,9 @@ pub fn write_png_batch(
     height: u32,
     channels: usize,
 ) -> Result<()> {
-    frames
-        .par_iter()
-        .map(|f| write_png(&f.path, width, height, channels, f.data))
-        .collect::<Vec<_>>()
-        .into_iter()
-        .collect()
+    for_each_frame(frames, |f| {
+        write_png(&f.path, width, height, channels, f.data)
+    })
 }
 
 /// Write many float EXRs of one size in parallel.
@@ -141,9 +138,19 @@ pub fn write_exr_batch(
     height: u32,
     channels: usize,
 ) -> Result<()> {
+    for_each_frame(frames, |f| {
+        write_exr(&f.path, width, height, channels, f.data)
+    })
+}
+
+/// Run `write` on every frame in parallel; the first error in frame order wins.
+fn for_each_frame<T: Sync>(
+    frames: &[Frame<'_, T>],
+    write: impl Fn(&Frame<'_, T>) -> Result<()> + Sync + Send,
+) -> Result<()> {
     frames
         .par_iter()
-        .map(|f| write_exr(&f.path, width, height, channels, f.data))
+        .map(write)
         .collect::<Vec<_>>()
         .into_iter()
         .collect()
