@@ -208,6 +208,15 @@ impl Scene {
         self.gather(&idx)
     }
 
+    /// Remove the Gaussians at `rows` (sorted or not, in range), keeping the others in order.
+    pub fn drop_rows(&mut self, rows: &[usize]) {
+        let mut keep = vec![true; self.len()];
+        for &i in rows {
+            keep[i] = false;
+        }
+        self.retain(&keep);
+    }
+
     /// Keep the Gaussians whose `keep` flag is set, in order, compacting every array in place
     /// (no second copy of the scene).
     pub fn retain(&mut self, keep: &[bool]) {

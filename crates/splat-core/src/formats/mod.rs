@@ -119,11 +119,7 @@ pub(crate) fn finish(
                 ));
             }
             OnInvalid::Drop => {
-                let mut keep = vec![true; scene.len()];
-                for &i in &bad {
-                    keep[i] = false;
-                }
-                scene = scene.filter(&keep);
+                scene.drop_rows(&bad);
                 report.dropped = bad.len();
             }
         }

@@ -122,11 +122,7 @@ pub fn read_ply(path: &Path, on_invalid: OnInvalid) -> Result<(Scene, LoadReport
                 ));
             }
             OnInvalid::Drop => {
-                let mut keep = vec![true; scene.len()];
-                for &i in &bad {
-                    keep[i] = false;
-                }
-                scene.retain(&keep);
+                scene.drop_rows(&bad);
                 report.dropped = bad.len();
             }
         }
