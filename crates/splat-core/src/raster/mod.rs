@@ -16,6 +16,8 @@ use crate::error::{Error, Result};
 use crate::scene::SceneView;
 
 pub mod blend;
+#[cfg(target_arch = "x86_64")]
+mod blend_avx512;
 pub mod project;
 pub mod sh;
 pub mod sort;
