@@ -405,6 +405,29 @@ mod tests {
     }
 
     #[test]
+    fn avx512_intrinsics_kernel_gives_the_same_bits_as_the_avx2_one() {
+        if Simd::Avx512.resolve() != Simd::Avx512 {
+            return;
+        }
+        let s = scene(3000);
+        let [a, b] = [Simd::Avx2, Simd::Avx512].map(|simd| {
+            render(
+                &s,
+                &RenderOptions {
+                    simd,
+                    max_alpha: 0.999,
+                    ..Default::default()
+                },
+            )
+        });
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&a.0), bits(&b.0));
+        assert_eq!(bits(&a.1), bits(&b.1));
+        assert_eq!(bits(&a.2), bits(&b.2));
+        assert_eq!(a.3.evaluations, b.3.evaluations);
+    }
+
+    #[test]
     fn empty_scene_gives_the_background_and_bad_options_are_errors() {
         let opts = RenderOptions {
             background: [0.25, 0.5, 1.0],
