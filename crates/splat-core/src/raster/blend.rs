@@ -13,15 +13,16 @@ use super::project::{Splat, ALPHA_THRESHOLD};
 use super::sort::{TileBins, TILE};
 use super::Simd;
 
-const LANES: usize = TILE as usize;
-const T_MIN: f32 = 1e-4;
+pub(super) const LANES: usize = TILE as usize;
+pub(super) const T_MIN: f32 = 1e-4;
 
 /// Output of one tile: transmittance, colour and depth sums per pixel.
 #[derive(Clone)]
+#[repr(C, align(64))]
 pub(crate) struct TileOut {
-    t: [[f32; LANES]; LANES],
-    c: [[[f32; LANES]; LANES]; 3],
-    d: [[f32; LANES]; LANES],
+    pub(super) t: [[f32; LANES]; LANES],
+    pub(super) c: [[[f32; LANES]; LANES]; 3],
+    pub(super) d: [[f32; LANES]; LANES],
 }
 
 impl Default for TileOut {
@@ -88,11 +89,11 @@ fn exp_neg<const FMA: bool>(s: f32) -> f32 {
 }
 
 /// How many list entries ahead to prefetch splats (the lists jump through the sorted array).
-const PREFETCH_AHEAD: usize = 8;
+pub(super) const PREFETCH_AHEAD: usize = 8;
 
 /// Hint the CPU to load splat `i` (both cache lines it may span) into L1.
 #[inline(always)]
-fn prefetch(splats: &[Splat], i: usize) {
+pub(super) fn prefetch(splats: &[Splat], i: usize) {
     #[cfg(target_arch = "x86_64")]
     if let Some(s) = splats.get(i) {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
@@ -219,19 +220,6 @@ fn blend_tile_impl<'a, const FMA: bool>(
 }
 
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
-fn blend_tile_avx512<'a>(
-    x0: u32,
-    y0: u32,
-    p: &BlendParams,
-    splats: &[Splat],
-    lists: impl Iterator<Item = &'a [u32]>,
-    out: &mut TileOut,
-) -> u64 {
-    blend_tile_impl::<true>(x0, y0, p, splats, lists, out)
-}
-
-#[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 fn blend_tile_avx2<'a>(
     x0: u32,
@@ -266,7 +254,9 @@ fn blend_tile<'a>(
     match p.simd {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `Simd::resolve` only yields Avx512 when the CPU reports these features.
-        Simd::Avx512 => unsafe { blend_tile_avx512(x0, y0, p, splats, lists, out) },
+        Simd::Avx512 => unsafe {
+            super::blend_avx512::blend_tile_avx512(x0, y0, p, splats, lists, out)
+        },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `Simd::resolve` only yields Avx2 when the CPU reports AVX2 and FMA.
         Simd::Avx2 => unsafe { blend_tile_avx2(x0, y0, p, splats, lists, out) },

@@ -16,6 +16,8 @@ use crate::error::{Error, Result};
 use crate::scene::SceneView;
 
 pub mod blend;
+#[cfg(target_arch = "x86_64")]
+mod blend_avx512;
 pub mod project;
 pub mod sh;
 pub mod sort;
@@ -400,6 +402,29 @@ mod tests {
             assert!(err < 1e-4, "{}: max error {err}", simd.resolve().name());
             assert_eq!(got.3.evaluations, base.3.evaluations);
         }
+    }
+
+    #[test]
+    fn avx512_intrinsics_kernel_gives_the_same_bits_as_the_avx2_one() {
+        if Simd::Avx512.resolve() != Simd::Avx512 {
+            return;
+        }
+        let s = scene(3000);
+        let [a, b] = [Simd::Avx2, Simd::Avx512].map(|simd| {
+            render(
+                &s,
+                &RenderOptions {
+                    simd,
+                    max_alpha: 0.999,
+                    ..Default::default()
+                },
+            )
+        });
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&a.0), bits(&b.0));
+        assert_eq!(bits(&a.1), bits(&b.1));
+        assert_eq!(bits(&a.2), bits(&b.2));
+        assert_eq!(a.3.evaluations, b.3.evaluations);
     }
 
     #[test]
