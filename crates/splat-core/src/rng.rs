@@ -107,7 +107,7 @@ impl Stream {
 /// of the contract; hot loops use [`Stream`] directly, which gives the same bits).
 pub fn normal(seed: u64, op: u32, index: u64, draw: u32) -> f32 {
     let (a, b) = normal_pair(Stream::new(op_key(seed, op), index).word(u64::from(draw / 2)));
-    if draw % 2 == 0 {
+    if draw.is_multiple_of(2) {
         a
     } else {
         b

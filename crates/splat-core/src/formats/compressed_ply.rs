@@ -290,7 +290,8 @@ fn sh_table<'a>(
         ));
     }
     let count = t.element.properties.len();
-    let Some(degree) = (count % 3 == 0)
+    let Some(degree) = count
+        .is_multiple_of(3)
         .then(|| sh_degree_for_rest(count / 3))
         .flatten()
         .filter(|&d| d > 0)

@@ -34,7 +34,7 @@ fn f32_at(b: &[u8], off: usize) -> f32 {
 /// Why `bytes` are not a plausible `.splat`, or `None` when they are: a non-zero multiple of 32
 /// whose first records hold finite positions and finite, non-negative scales of sane magnitude.
 pub fn looks_like_splat(bytes: &[u8]) -> Option<String> {
-    if bytes.is_empty() || bytes.len() % RECORD_BYTES != 0 {
+    if bytes.is_empty() || !bytes.len().is_multiple_of(RECORD_BYTES) {
         return Some(format!(
             "its size ({} bytes) is not a non-zero multiple of 32",
             bytes.len()

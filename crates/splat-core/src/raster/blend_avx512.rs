@@ -8,7 +8,6 @@ use super::project::{Splat, ALPHA_THRESHOLD};
 /// (one mask per splat instead of a scalar square root and two branches per row), masked
 /// accumulations and a movemask test for finished rows.
 #[cfg(target_arch = "x86_64")]
-#[allow(clippy::incompatible_msrv)] // AVX-512 intrinsics and target feature: Rust 1.89
 #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
 pub(super) fn blend_tile_avx512<'a>(
     x0: u32,
