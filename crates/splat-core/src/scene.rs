@@ -147,6 +147,21 @@ impl<'a> SceneView<'a> {
 
 impl Scene {
     /// An empty scene of the given SH degree.
+    /// `n` Gaussians of the given SH degree with every stored value zero (decoders fill it in).
+    pub fn zeroed(n: usize, sh_degree: u8) -> Self {
+        let k = sh_rest_count(sh_degree);
+        Scene {
+            means: crate::mem::zeroed_f32(n * 3),
+            quats: crate::mem::zeroed_f32(n * 4),
+            log_scales: crate::mem::zeroed_f32(n * 3),
+            opacity_logits: crate::mem::zeroed_f32(n),
+            sh0: crate::mem::zeroed_f32(n * 3),
+            sh_rest: crate::mem::zeroed_f32(n * k * 3),
+            sh_degree,
+            extras: Vec::new(),
+        }
+    }
+
     pub fn empty(sh_degree: u8) -> Self {
         Scene {
             sh_degree,

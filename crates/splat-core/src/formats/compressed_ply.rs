@@ -206,16 +206,7 @@ pub fn decode(path: &Path, header: &Header, bytes: &[u8]) -> Result<Scene> {
     let degree = sh.as_ref().map_or(0, |s| s.1);
     let k = sh_rest_count(degree);
 
-    let mut s = Scene {
-        means: vec![0.0; n * 3],
-        quats: vec![0.0; n * 4],
-        log_scales: vec![0.0; n * 3],
-        opacity_logits: vec![0.0; n],
-        sh0: vec![0.0; n * 3],
-        sh_rest: vec![0.0; n * k * 3],
-        sh_degree: degree,
-        extras: Vec::new(),
-    };
+    let mut s = Scene::zeroed(n, degree);
     let vstride = vertex.stride;
     let rd = |b: &[u8], off: usize| -> u32 {
         let mut a = [0u8; 4];

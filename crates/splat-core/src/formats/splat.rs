@@ -62,16 +62,7 @@ pub fn looks_like_splat(bytes: &[u8]) -> Option<String> {
 /// Decode `.splat` bytes (a multiple of 32) into a scene.
 pub fn decode(bytes: &[u8]) -> Scene {
     let n = bytes.len() / RECORD_BYTES;
-    let mut s = Scene {
-        means: vec![0.0; n * 3],
-        quats: vec![0.0; n * 4],
-        log_scales: vec![0.0; n * 3],
-        opacity_logits: vec![0.0; n],
-        sh0: vec![0.0; n * 3],
-        sh_rest: Vec::new(),
-        sh_degree: 0,
-        extras: Vec::new(),
-    };
+    let mut s = Scene::zeroed(n, 0);
     let src = &bytes[..n * RECORD_BYTES];
     s.means
         .par_chunks_mut(3 * ROWS_PER_TASK)

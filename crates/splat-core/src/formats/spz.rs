@@ -389,16 +389,7 @@ fn decode_v4(data: &[u8], path: &Path) -> Result<Scene> {
 fn unpack(h: &Header, s: &[&[u8]]) -> Scene {
     let n = h.num_points as usize;
     let k = sh_rest_count(h.sh_degree);
-    let mut out = Scene {
-        means: vec![0.0; n * 3],
-        quats: vec![0.0; n * 4],
-        log_scales: vec![0.0; n * 3],
-        opacity_logits: vec![0.0; n],
-        sh0: vec![0.0; n * 3],
-        sh_rest: vec![0.0; n * k * 3],
-        sh_degree: h.sh_degree,
-        extras: Vec::new(),
-    };
+    let mut out = Scene::zeroed(n, h.sh_degree);
     let (pos, alpha, col, scl, rot, sh) = (s[0], s[1], s[2], s[3], s[4], s[5]);
     let inv = 1.0 / (1u32 << h.fractional_bits) as f32;
     let t = ROWS_PER_TASK;
