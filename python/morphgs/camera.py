@@ -7,9 +7,9 @@ A camera is intrinsics (fx, fy, cx, cy), an image size and a world-to-camera 4x4
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Literal, overload
+from typing import Any, Literal, overload
 
 import numpy as np
 import numpy.typing as npt
@@ -37,12 +37,12 @@ def _check_size(width: int, height: int) -> tuple[int, int]:
 
 
 def _check_intrinsics(fx: float, fy: float, cx: float, cy: float) -> tuple[float, float, float, float]:
-    vals = tuple(float(v) for v in (fx, fy, cx, cy))
+    vals = (float(fx), float(fy), float(cx), float(cy))
     if not all(math.isfinite(v) for v in vals):
         raise ValueError(f"camera intrinsics must be finite, got fx={fx} fy={fy} cx={cx} cy={cy}")
     if vals[0] <= 0 or vals[1] <= 0:
         raise ValueError(f"focal lengths must be positive, got fx={fx} fy={fy}")
-    return vals  # type: ignore[return-value]
+    return vals
 
 
 @dataclass(frozen=True)
@@ -293,12 +293,11 @@ class Cameras(Sequence[Camera]):
         }
 
     @classmethod
-    def from_dict(cls, d: dict[str, object]) -> Cameras:
+    def from_dict(cls, d: Mapping[str, Any]) -> Cameras:
         """Inverse of `to_dict`."""
         try:
-            return cls(world_to_camera=d["world_to_camera"], K=d["K"],  # type: ignore[arg-type]
-                       width=d["width"], height=d["height"],  # type: ignore[arg-type]
-                       near=d.get("near", 0.01), far=d.get("far", 1e10))  # type: ignore[arg-type]
+            return cls(world_to_camera=d["world_to_camera"], K=d["K"], width=d["width"],
+                       height=d["height"], near=d.get("near", 0.01), far=d.get("far", 1e10))
         except KeyError as e:
             raise ValueError(f"cameras dict lacks the field {e.args[0]!r}") from None
 
