@@ -264,6 +264,59 @@ fn blend_tile<'a>(
     }
 }
 
+/// The frame's output buffers, written tile by tile from parallel tasks.
+struct FrameOut {
+    rgb: *mut f32,
+    depth: *mut f32,
+    alpha: *mut f32,
+    width: usize,
+    height: usize,
+}
+
+// SAFETY: the pointers come from three `&mut [f32]` borrowed for the whole parallel pass, and
+// `FrameOut::tile` only writes the pixels of one tile, each tile from exactly one task.
+unsafe impl Sync for FrameOut {}
+
+impl FrameOut {
+    /// Write the final colour, depth and alpha of the tile at (x0, y0): colour plus the
+    /// background seen through the remaining transmittance, alpha = 1 - T, expected depth.
+    /// `tile` None means no Gaussian touches it (background, zero alpha and depth).
+    ///
+    /// # Safety
+    /// Each tile must be written by one call only, while no other access to the buffers runs.
+    unsafe fn tile(&self, x0: usize, y0: usize, tile: Option<&TileOut>, bg: [f32; 3]) {
+        let cols = LANES.min(self.width - x0);
+        for r in 0..LANES.min(self.height - y0) {
+            let i = (y0 + r) * self.width + x0;
+            // SAFETY: pixels i..i + cols lie in row y0 + r of the image, inside this tile.
+            let (rgb, depth, alpha) = unsafe {
+                (
+                    std::slice::from_raw_parts_mut(self.rgb.add(i * 3), cols * 3),
+                    std::slice::from_raw_parts_mut(self.depth.add(i), cols),
+                    std::slice::from_raw_parts_mut(self.alpha.add(i), cols),
+                )
+            };
+            let Some(tile) = tile else {
+                for px in rgb.chunks_exact_mut(3) {
+                    px.copy_from_slice(&bg);
+                }
+                depth.fill(0.0);
+                alpha.fill(0.0);
+                continue;
+            };
+            for l in 0..cols {
+                let t = tile.t[r][l].abs();
+                for ch in 0..3 {
+                    rgb[l * 3 + ch] = tile.c[ch][r][l] + t * bg[ch];
+                }
+                let a = 1.0 - t;
+                alpha[l] = a;
+                depth[l] = tile.d[r][l] / a.max(1e-10);
+            }
+        }
+    }
+}
+
 /// Blend every tile of a frame and write rgb (H,W,3), depth (H,W) and alpha (H,W).
 /// Returns the number of Gaussian-pixel evaluations.
 pub(crate) fn blend_frame(
@@ -275,52 +328,34 @@ pub(crate) fn blend_frame(
     alpha: &mut [f32],
 ) -> u64 {
     let (tiles_x, tiles_y) = (bins.tiles_x as usize, bins.tiles_y as usize);
-    // each tile initialises and fills its own output inside its work unit; tiles no Gaussian
-    // touches have none (they show the background)
-    let tiles: Vec<(Option<Box<TileOut>>, u64)> = (0..tiles_x * tiles_y)
+    let (width, height) = (p.width as usize, p.height as usize);
+    assert!(rgb.len() == width * height * 3 && depth.len() == width * height);
+    assert!(alpha.len() == width * height && tiles_x * LANES >= width);
+    assert!(tiles_y * LANES >= height);
+    let out = FrameOut {
+        rgb: rgb.as_mut_ptr(),
+        depth: depth.as_mut_ptr(),
+        alpha: alpha.as_mut_ptr(),
+        width,
+        height,
+    };
+    // each tile blends into its own stack buffer and writes its pixels of the image
+    (0..tiles_x * tiles_y)
         .into_par_iter()
         .map(|t| {
+            let (x0, y0) = ((t % tiles_x) * LANES, (t / tiles_x) * LANES);
             if bins.lists(t).all(|l| l.is_empty()) {
-                return (None, 0);
+                // SAFETY: tile t is written by this task only (see `FrameOut`).
+                unsafe { out.tile(x0, y0, None, p.background) };
+                return 0;
             }
-            let x0 = (t % tiles_x) as u32 * TILE;
-            let y0 = (t / tiles_x) as u32 * TILE;
-            let mut out = Box::<TileOut>::default();
-            let evals = blend_tile(x0, y0, p, sorted, bins.lists(t), &mut out);
-            (Some(out), evals)
+            let mut buf = TileOut::default();
+            let evals = blend_tile(x0 as u32, y0 as u32, p, sorted, bins.lists(t), &mut buf);
+            // SAFETY: as above
+            unsafe { out.tile(x0, y0, Some(&buf), p.background) };
+            evals
         })
-        .collect();
-    let evals: u64 = tiles.iter().map(|t| t.1).sum();
-    let w = p.width as usize;
-    let band = LANES * w;
-    let bg = p.background;
-    rgb.par_chunks_mut(band * 3)
-        .zip(depth.par_chunks_mut(band))
-        .zip(alpha.par_chunks_mut(band))
-        .enumerate()
-        .for_each(|(ty, ((rgb, depth), alpha))| {
-            let rows = depth.len() / w;
-            for r in 0..rows {
-                for x in 0..w {
-                    let i = r * w + x;
-                    let Some(tile) = &tiles[ty * tiles_x + x / LANES].0 else {
-                        rgb[i * 3..i * 3 + 3].copy_from_slice(&bg);
-                        alpha[i] = 0.0;
-                        depth[i] = 0.0;
-                        continue;
-                    };
-                    let l = x % LANES;
-                    let t = tile.t[r][l].abs();
-                    for ch in 0..3 {
-                        rgb[i * 3 + ch] = tile.c[ch][r][l] + t * bg[ch];
-                    }
-                    let a = 1.0 - t;
-                    alpha[i] = a;
-                    depth[i] = tile.d[r][l] / a.max(1e-10);
-                }
-            }
-        });
-    evals
+        .sum()
 }
 
 #[cfg(test)]
