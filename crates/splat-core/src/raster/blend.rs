@@ -63,28 +63,62 @@ fn select(m: bool, a: f32, b: f32) -> f32 {
     }
 }
 
-/// exp(-s) for s >= 0 (Cephes expf polynomial, relative error about 1e-7); s is clamped to 87.
-/// Slightly negative s (rounding, about -1e-6) still gives exp(-s); callers mask s < 0 anyway.
+/// 2^(j/16) for j = 0..15, correctly rounded to float32 (bit patterns).
+pub(super) const EXP2_16THS: [u32; 16] = [
+    0x3F80_0000,
+    0x3F85_AAC3,
+    0x3F8B_95C2,
+    0x3F91_C3D3,
+    0x3F98_37F0,
+    0x3F9E_F532,
+    0x3FA5_FED7,
+    0x3FAD_583F,
+    0x3FB5_04F3,
+    0x3FBD_08A4,
+    0x3FC5_672A,
+    0x3FCE_248C,
+    0x3FD7_44FD,
+    0x3FE0_CCDF,
+    0x3FEA_C0C7,
+    0x3FF5_257D,
+];
+/// sigma is clamped to this (also negative and NaN sigma, whose bit patterns compare larger):
+/// alpha = opacity e^-80 is far below 1/255, so such a lane never contributes.
+pub(super) const SIGMA_CLAMP: f32 = 80.0;
+/// 1.5 * 2^23: adding it rounds to an integer k, left in the low bits.
+pub(super) const EXP_MAGIC: f32 = 12_582_912.0;
+/// 16 / ln 2.
+pub(super) const EXP_K16: f32 = 16.0 * std::f32::consts::LOG2_E;
+/// ln 2 / 16 split in two (Cody-Waite): the high part has 9 significant bits, so k C_HI is exact.
+pub(super) const EXP_C_HI: f32 = 0.693_359_4 / 16.0; // 0.693359375 exactly
+pub(super) const EXP_C_LO: f32 = -2.121_944_4e-4 / 16.0;
+
+/// Unclamped alpha = exp(ln_op - sigma) = opacity e^-sigma (relative error about 1.5e-7), the
+/// same formula as the explicit SIMD kernels (which are checked to give the same bits).
+///
+/// With u = sigma - ln_op (0 <= u < 86, as opacities below 1/255 are culled), k = round(16 u /
+/// ln 2) and r = u - k ln2/16 (|r| <= ln2/32): e^-u = 2^(-k/16) e^-r, where 2^(-k/16) is a table
+/// entry times a power of two put straight into the exponent bits and e^-r a cubic.
+/// Negative (or NaN) sigma, which the reference skips, is clamped to 80 like a large one, so it
+/// gives an alpha below the threshold instead of needing its own test.
 #[inline(always)]
-fn exp_neg<const FMA: bool>(s: f32) -> f32 {
-    const LOG2E: f32 = std::f32::consts::LOG2_E;
-    // 1.5 * 2^23 + 127: adding it rounds to an integer and leaves n + 127 in the low bits
-    const MAGIC: f32 = 12_583_039.0;
-    const LN2_HI: f32 = 0.693_359_4;
-    const LN2_LO: f32 = -2.121_944_4e-4;
-    let x = -select(s < 87.0, s, 87.0);
-    let t = fmadd::<FMA>(x, LOG2E, MAGIC);
-    let n = t - MAGIC;
-    let scale = f32::from_bits(t.to_bits() << 23);
-    let r = fmadd::<FMA>(n, -LN2_HI, x);
-    let r = fmadd::<FMA>(n, -LN2_LO, r);
-    let mut p = 1.987_569_1e-4_f32;
-    p = fmadd::<FMA>(p, r, 1.398_199_9e-3);
-    p = fmadd::<FMA>(p, r, 8.333_452e-3);
-    p = fmadd::<FMA>(p, r, 4.166_579_6e-2);
-    p = fmadd::<FMA>(p, r, 1.666_666_5e-1);
-    p = fmadd::<FMA>(p, r, 0.5);
-    let y = fmadd::<FMA>(p, r * r, r) + 1.0;
+pub(super) fn opacity_exp<const FMA: bool>(sigma: f32, ln_op: f32) -> f32 {
+    let sigma = if sigma.to_bits() < SIGMA_CLAMP.to_bits() {
+        sigma
+    } else {
+        SIGMA_CLAMP
+    };
+    let u = sigma - ln_op;
+    let t = fmadd::<FMA>(-u, EXP_K16, EXP_MAGIC);
+    let k = t - EXP_MAGIC;
+    let r = fmadd::<FMA>(k, EXP_C_HI, u);
+    let r = fmadd::<FMA>(k, EXP_C_LO, r);
+    let mut y = fmadd::<FMA>(r, -1.0 / 6.0, 0.5);
+    y = fmadd::<FMA>(y, r, -1.0);
+    y = fmadd::<FMA>(y, r, 1.0);
+    // t's low bits hold k (k <= 0): table index k mod 16, power of two floor(k / 16)
+    let bits = t.to_bits();
+    let scale = f32::from_bits(EXP2_16THS[(bits & 15) as usize].wrapping_add((bits >> 4) << 23));
     y * scale
 }
 
@@ -154,7 +188,7 @@ fn blend_tile_impl<'a, const FMA: bool>(
             let hi = (my + ey - 0.5 - y0f).floor().clamp(-1.0, 15.0) as isize + 1;
             let hi = hi.max(0) as usize;
             let half_a = 0.5 * ca;
-            let op = s.opacity;
+            let ln_op = s.ln_opacity;
             let [cr, cg, cbl] = s.rgb;
             let z = s.depth;
             let (xl, xh) = (px[0], px[LANES - 1]);
@@ -187,13 +221,14 @@ fn blend_tile_impl<'a, const FMA: bool>(
                 for l in 0..LANES {
                     // sigma = 0.5 a dx^2 + b dx dy + 0.5 c dy^2
                     let sigma = fmadd::<FMA>(bdy, dxs[l], adx2[l]) + cdy2;
-                    let e = op * exp_neg::<FMA>(sigma);
+                    let e = opacity_exp::<FMA>(sigma, ln_op);
                     let alpha = select(e < max_alpha, e, max_alpha);
                     let t = trow[l];
-                    let valid = (sigma >= 0.0) & (alpha >= ALPHA_THRESHOLD) & (t > 0.0);
-                    let tn = t * (1.0 - alpha);
+                    let valid = (alpha >= ALPHA_THRESHOLD) & (t > 0.0);
+                    let wt = alpha * t;
+                    let tn = t - wt;
                     let contrib = valid & (tn > T_MIN);
-                    let w = select(contrib, alpha * t, 0.0);
+                    let w = select(contrib, wt, 0.0);
                     out.c[0][r][l] = fmadd::<FMA>(w, cr, out.c[0][r][l]);
                     out.c[1][r][l] = fmadd::<FMA>(w, cg, out.c[1][r][l]);
                     out.c[2][r][l] = fmadd::<FMA>(w, cbl, out.c[2][r][l]);
@@ -363,18 +398,34 @@ mod tests {
     use super::*;
 
     #[test]
-    fn polynomial_exp_matches_std_exp() {
-        for i in 0..20000 {
-            let s = i as f32 * 0.001;
-            let want = (-s).exp();
-            for got in [exp_neg::<true>(s), exp_neg::<false>(s)] {
-                assert!(
-                    (got - want).abs() <= 2e-7 * want,
-                    "exp(-{s}): {got} vs {want}"
-                );
+    fn opacity_exp_matches_float64() {
+        let mut worst = 0.0f64;
+        for ln_op in [0.0f32, -0.1, -1.0, -5.54] {
+            for i in 0..200_000 {
+                let sigma = i as f32 * 4e-4;
+                // the exponential of the float32 argument u = sigma - ln_op (rounding u costs
+                // up to |u| 6e-8 more, as rounding sigma itself does)
+                let want = (-((sigma - ln_op) as f64)).exp();
+                for got in [
+                    opacity_exp::<true>(sigma, ln_op),
+                    opacity_exp::<false>(sigma, ln_op),
+                ] {
+                    let rel = (got as f64 - want).abs() / want;
+                    worst = worst.max(rel);
+                    assert!(rel < 3e-7, "exp({ln_op} - {sigma}): {got} vs {want}");
+                }
             }
         }
-        assert!(exp_neg::<true>(1e9) < 1e-37);
-        assert_eq!(exp_neg::<true>(0.0), 1.0);
+        eprintln!("worst relative error {worst:.2e}");
+        assert_eq!(opacity_exp::<true>(0.0, 0.0), 1.0);
+        // negative, NaN and huge sigma give an alpha far below the threshold
+        for sigma in [-1e-9, -1.0, f32::NAN, 1e9, f32::INFINITY] {
+            assert!(opacity_exp::<true>(sigma, 0.0) < 1e-30, "{sigma}");
+        }
+        for j in 0..16 {
+            let v = f32::from_bits(EXP2_16THS[j]);
+            let exact = 2f64.powf(j as f64 / 16.0);
+            assert!((v as f64 - exact).abs() <= f32::EPSILON as f64 * 0.5 * exact);
+        }
     }
 }

@@ -22,8 +22,9 @@ pub struct Splat {
     pub xy: [f32; 2],
     /// Inverse 2D covariance (a, b, c): sigma = 0.5 (a dx^2 + c dy^2) + b dx dy.
     pub conic: [f32; 3],
-    /// Opacity (after the antialiasing compensation when enabled).
-    pub opacity: f32,
+    /// Natural log of the opacity (after the antialiasing compensation when enabled): the
+    /// blend computes alpha = exp(ln_opacity - sigma) in one exponential.
+    pub ln_opacity: f32,
     pub rgb: [f32; 3],
     /// Camera-space z.
     pub depth: f32,
@@ -97,6 +98,12 @@ impl Projector {
     /// Project Gaussian `i`; `None` when it is culled or holds non-finite values.
     #[inline]
     pub(crate) fn project(&self, scene: &SceneView<'_>, i: usize) -> Option<Splat> {
+        self.project_with_opacity(scene, i).map(|(s, _)| s)
+    }
+
+    /// [`Projector::project`], also returning the opacity itself.
+    #[inline(always)]
+    fn project_with_opacity(&self, scene: &SceneView<'_>, i: usize) -> Option<(Splat, f32)> {
         let mean = &scene.means[i * 3..i * 3 + 3];
         // camera-space centre in float64 (far-from-origin scenes keep their precision)
         let mut pc = [0.0f64; 3];
@@ -206,7 +213,8 @@ impl Projector {
         if opacity.is_nan() || opacity < ALPHA_THRESHOLD {
             return None;
         }
-        let extent = (2.0 * (opacity / ALPHA_THRESHOLD).ln()).sqrt().min(3.33);
+        let ln_over = (opacity / ALPHA_THRESHOLD).ln();
+        let extent = (2.0 * ln_over).sqrt().min(3.33);
         let radius = [(extent * c00.sqrt()).ceil(), (extent * c11.sqrt()).ceil()];
         if !(radius[0] > 0.0 && radius[1] > 0.0) {
             return None;
@@ -242,13 +250,13 @@ impl Projector {
         let splat = Splat {
             xy,
             conic,
-            opacity,
+            ln_opacity: opacity.ln(),
             rgb,
             depth: z,
             radius,
             ..Default::default()
         };
-        let level = (opacity / ALPHA_THRESHOLD).ln() * 1.0001 + 1e-4;
+        let level = ln_over * 1.0001 + 1e-4;
         let two_a_level = 2.0 * conic[0] * level;
         let conic_det = conic[0] * conic[2] - conic[1] * conic[1];
         let splat = Splat {
@@ -259,7 +267,7 @@ impl Projector {
             half_height: (2.0 * level * c11).sqrt(),
             ..splat
         };
-        splat_is_finite(&splat).then_some(splat)
+        splat_is_finite(&splat).then_some((splat, opacity))
     }
 }
 
@@ -289,7 +297,7 @@ fn splat_is_finite(s: &Splat) -> bool {
         .chain(&s.conic)
         .chain(&s.rgb)
         .chain(&s.radius)
-        .chain([&s.opacity, &s.depth, &s.two_a_level, &s.inv_a])
+        .chain([&s.ln_opacity, &s.depth, &s.two_a_level, &s.inv_a])
         .chain([&s.conic_det, &s.half_height])
         .all(|v| v.is_finite())
 }
@@ -340,19 +348,19 @@ pub fn project_all(
     scene.validate()?;
     let degree = opts.effective_sh_degree(scene.sh_degree)?;
     let proj = Projector::new(cam, opts, degree);
-    let splats: Vec<Option<Splat>> = (0..scene.len())
+    let splats: Vec<Option<(Splat, f32)>> = (0..scene.len())
         .into_par_iter()
         .with_min_len(PROJECT_CHUNK)
-        .map(|i| proj.project(scene, i))
+        .map(|i| proj.project_with_opacity(scene, i))
         .collect();
     let mut p = Projection::default();
     for s in splats {
-        let s = s.unwrap_or_default();
+        let (s, opacity) = s.unwrap_or_default();
         p.radii.extend([s.radius[0] as i32, s.radius[1] as i32]);
         p.means2d.extend(s.xy);
         p.depths.push(s.depth);
         p.conics.extend(s.conic);
-        p.opacities.push(s.opacity);
+        p.opacities.push(opacity);
         p.colors.extend(s.rgb);
     }
     Ok(p)
