@@ -254,9 +254,11 @@ fn blend_tile_impl<'a, const FMA: bool>(
     evals
 }
 
-#[cfg(target_arch = "x86_64")]
+/// The generic kernel compiled for AVX2 + FMA: the reference the explicit kernels are tested
+/// against bit for bit.
+#[cfg(all(test, target_arch = "x86_64"))]
 #[target_feature(enable = "avx2,fma")]
-fn blend_tile_avx2<'a>(
+pub(super) fn blend_tile_generic_fma<'a>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -294,7 +296,7 @@ fn blend_tile<'a>(
         },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `Simd::resolve` only yields Avx2 when the CPU reports AVX2 and FMA.
-        Simd::Avx2 => unsafe { blend_tile_avx2(x0, y0, p, splats, lists, out) },
+        Simd::Avx2 => unsafe { super::blend_avx2::blend_tile_avx2(x0, y0, p, splats, lists, out) },
         _ => blend_tile_scalar(x0, y0, p, splats, lists, out),
     }
 }

@@ -17,6 +17,8 @@ use crate::scene::SceneView;
 
 pub mod blend;
 #[cfg(target_arch = "x86_64")]
+mod blend_avx2;
+#[cfg(target_arch = "x86_64")]
 mod blend_avx512;
 pub mod project;
 pub mod sh;
@@ -402,6 +404,80 @@ mod tests {
             assert!(err < 1e-4, "{}: max error {err}", simd.resolve().name());
             assert_eq!(got.3.evaluations, base.3.evaluations);
         }
+    }
+
+    /// Every tile of a frame through each x86 kernel: the explicit AVX2 and AVX-512 kernels
+    /// must give the generic kernel's bits (|T|, colour and depth sums) and evaluation count.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn explicit_kernels_give_the_generic_kernels_bits_tile_by_tile() {
+        if Simd::Avx2.resolve() != Simd::Avx2 && Simd::Avx512.resolve() != Simd::Avx512 {
+            return;
+        }
+        let cam = camera();
+        let mut checked = 0;
+        for (n, max_alpha) in [(3000, 0.99), (20000, 0.999), (20000, 0.99)] {
+            let s = scene(n);
+            let opts = RenderOptions {
+                max_alpha,
+                ..Default::default()
+            };
+            let proj = project::Projector::new(&cam, &opts, 0);
+            let sorted = sort::sort_by_depth(&project::project_visible(&s.view(), &proj));
+            let (tx, ty) = cam.tiles();
+            let bins = sort::TileBins::build(&sorted, tx, ty).expect("bins");
+            let p = blend::BlendParams {
+                width: cam.width,
+                height: cam.height,
+                max_alpha,
+                background: [0.0; 3],
+                simd: Simd::Auto,
+            };
+            for t in 0..(tx * ty) as usize {
+                let (x0, y0) = ((t as u32 % tx) * 16, (t as u32 / tx) * 16);
+                let mut want = blend::TileOut::default();
+                // SAFETY: AVX2 and FMA are present (checked above; AVX-512 implies both).
+                let we = unsafe {
+                    blend::blend_tile_generic_fma(x0, y0, &p, &sorted, bins.lists(t), &mut want)
+                };
+                let mut got = Vec::new();
+                if Simd::Avx2.resolve() == Simd::Avx2 {
+                    let mut o = blend::TileOut::default();
+                    // SAFETY: AVX2 and FMA are present.
+                    let e = unsafe {
+                        blend_avx2::blend_tile_avx2(x0, y0, &p, &sorted, bins.lists(t), &mut o)
+                    };
+                    got.push(("avx2", o, e));
+                }
+                if Simd::Avx512.resolve() == Simd::Avx512 {
+                    let mut o = blend::TileOut::default();
+                    // SAFETY: the AVX-512 features are present.
+                    let e = unsafe {
+                        blend_avx512::blend_tile_avx512(x0, y0, &p, &sorted, bins.lists(t), &mut o)
+                    };
+                    got.push(("avx512", o, e));
+                }
+                for (name, o, e) in got {
+                    assert_eq!(e, we, "{name} evaluations, tile {t}");
+                    for r in 0..16 {
+                        for l in 0..16 {
+                            if x0 + l as u32 >= cam.width || y0 + r as u32 >= cam.height {
+                                continue;
+                            }
+                            let bits = |v: f32| v.to_bits();
+                            let ctx = format!("{name} tile {t} pixel ({l}, {r})");
+                            assert_eq!(bits(o.t[r][l].abs()), bits(want.t[r][l].abs()), "{ctx}");
+                            assert_eq!(bits(o.d[r][l]), bits(want.d[r][l]), "{ctx}");
+                            for ch in 0..3 {
+                                assert_eq!(bits(o.c[ch][r][l]), bits(want.c[ch][r][l]), "{ctx}");
+                            }
+                        }
+                    }
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked > 50);
     }
 
     #[test]

@@ -1,0 +1,284 @@
+//! The AVX2 + FMA blend kernel, written with `core::arch` intrinsics: the organisation of the
+//! AVX-512 kernel (see `blend_avx512.rs`) with each 16-pixel row handled as two 8-lane halves
+//! and lane masks held in vectors instead of mask registers. Same formulas and operation order
+//! as `blend_tile_impl::<true>`, so the same image bits (tested).
+use super::blend::{
+    prefetch, BlendParams, TileOut, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16, EXP_MAGIC, LANES,
+    PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
+};
+use super::project::{Splat, ALPHA_THRESHOLD};
+
+/// Splats per phase-1 batch.
+const CHUNK: usize = 16;
+/// Lanes of one AVX2 vector: a row is two halves.
+const HALF: usize = 8;
+
+/// Phase-1 results for one splat of a batch (see the AVX-512 kernel).
+#[derive(Clone, Copy, Default)]
+#[repr(C, align(64))]
+struct Slot {
+    bdy: [f32; LANES],
+    cdy2: [f32; LANES],
+    dx: [f32; LANES],
+    adx2: [f32; LANES],
+    splat: Splat,
+}
+
+/// Blend one tile with AVX2 and FMA; returns the number of Gaussian-pixel evaluations (16 per
+/// row evaluated while the row has live pixels, as the generic kernel counts them).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+pub(super) fn blend_tile_avx2<'a>(
+    x0: u32,
+    y0: u32,
+    p: &BlendParams,
+    splats: &[Splat],
+    lists: impl Iterator<Item = &'a [u32]>,
+    out: &mut TileOut,
+) -> u64 {
+    use std::arch::x86_64::*;
+
+    // live lanes per row as 16 bits (low half: bits 0-7); rows and lanes outside the image
+    // start done
+    let mut live = [0u32; LANES];
+    let mut alive: u32 = 0;
+    let cols = p.width.saturating_sub(x0).min(LANES as u32);
+    for (r, row) in live.iter_mut().enumerate() {
+        if y0 + (r as u32) < p.height && cols > 0 {
+            *row = (1u32 << cols) - 1;
+            alive |= 1 << r;
+        }
+    }
+    let lane_f = _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0);
+    let eight = _mm256_set1_ps(8.0);
+    let half = _mm256_set1_ps(0.5);
+    // pixel centres (x0 + l) + 0.5 and (y0 + r) + 0.5 of both halves, rounded as in the
+    // generic kernel (x0 + l is exact)
+    let x0v = _mm256_set1_ps(x0 as f32);
+    let px = [
+        _mm256_add_ps(_mm256_add_ps(x0v, lane_f), half),
+        _mm256_add_ps(_mm256_add_ps(x0v, _mm256_add_ps(lane_f, eight)), half),
+    ];
+    let y0f = y0 as f32;
+    let y0v = _mm256_set1_ps(y0f);
+    let py = [
+        _mm256_add_ps(_mm256_add_ps(y0v, lane_f), half),
+        _mm256_add_ps(_mm256_add_ps(y0v, _mm256_add_ps(lane_f, eight)), half),
+    ];
+    let (xl, xh) = ((x0 as f32) + 0.5, ((x0 + LANES as u32 - 1) as f32) + 0.5);
+    let (v_xl, v_xh) = (_mm256_set1_ps(xl), _mm256_set1_ps(xh));
+    let zero = _mm256_setzero_ps();
+    let one = _mm256_set1_ps(1.0);
+    let max_alpha = _mm256_set1_ps(p.max_alpha);
+    let thr = _mm256_set1_ps(ALPHA_THRESHOLD);
+    let t_min = _mm256_set1_ps(T_MIN);
+    let clamp = _mm256_set1_epi32(SIGMA_CLAMP.to_bits() as i32);
+    let magic = _mm256_set1_ps(EXP_MAGIC);
+    let k16 = _mm256_set1_ps(EXP_K16);
+    let (c_hi, c_lo) = (_mm256_set1_ps(EXP_C_HI), _mm256_set1_ps(EXP_C_LO));
+    let sixth = _mm256_set1_ps(-1.0 / 6.0);
+    let minus_one = _mm256_set1_ps(-1.0);
+    // SAFETY: the table holds 16 u32.
+    let (tab_lo, tab_hi) = unsafe {
+        (
+            _mm256_loadu_si256(EXP2_16THS.as_ptr() as *const _),
+            _mm256_loadu_si256(EXP2_16THS.as_ptr().add(HALF) as *const _),
+        )
+    };
+    // lane l of a half holds bit l: turns an 8-bit live mask into lane masks
+    let lane_bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+    let mut evals = 0u64;
+    let mut slots = [Slot::default(); CHUNK];
+    let t_ptr = out.t.as_mut_ptr() as *mut f32;
+    let c0_ptr = out.c[0].as_mut_ptr() as *mut f32;
+    let c1_ptr = out.c[1].as_mut_ptr() as *mut f32;
+    let c2_ptr = out.c[2].as_mut_ptr() as *mut f32;
+    let d_ptr = out.d.as_mut_ptr() as *mut f32;
+    for list in lists {
+        for (c, chunk) in list.chunks(CHUNK).enumerate() {
+            // phase 1, branch-free per splat: the rows it reaches and its exponent's terms
+            let mut masks = [0u32; CHUNK];
+            for (k, &gi) in chunk.iter().enumerate() {
+                if let Some(&ahead) = list.get(c * CHUNK + k + PREFETCH_AHEAD) {
+                    prefetch(splats, ahead as usize);
+                }
+                let s = &splats[gi as usize];
+                let (mx, my) = (s.xy[0], s.xy[1]);
+                let [ca, cb, cc] = s.conic;
+                let ey = s.half_height;
+                let lo = (my - ey - 0.5 - y0f).ceil().clamp(0.0, 16.0) as u32;
+                let hi = (my + ey - 0.5 - y0f).floor().clamp(-1.0, 15.0) as i32 + 1;
+                let hi = hi.max(0) as u32;
+                let range = ((1u32 << hi) - 1) & !((1u32 << lo) - 1);
+                let v_mx = _mm256_set1_ps(mx);
+                let slot = &mut slots[k];
+                slot.splat = *s;
+                let mut ok = 0u32;
+                for h in 0..2 {
+                    // the contour test of 8 rows at once (see the AVX-512 kernel)
+                    let dy = _mm256_sub_ps(_mm256_set1_ps(my), py[h]);
+                    let bdy = _mm256_mul_ps(_mm256_set1_ps(cb), dy);
+                    let dy2 = _mm256_mul_ps(dy, dy);
+                    let disc = _mm256_sub_ps(
+                        _mm256_set1_ps(s.two_a_level),
+                        _mm256_mul_ps(dy2, _mm256_set1_ps(s.conic_det)),
+                    );
+                    let sq = _mm256_sqrt_ps(disc);
+                    let inv_a = _mm256_set1_ps(s.inv_a);
+                    let left = _mm256_sub_ps(v_mx, _mm256_mul_ps(_mm256_sub_ps(sq, bdy), inv_a));
+                    let right = _mm256_add_ps(v_mx, _mm256_mul_ps(_mm256_add_ps(sq, bdy), inv_a));
+                    let m = _mm256_and_ps(
+                        _mm256_cmp_ps::<_CMP_GE_OQ>(disc, zero),
+                        _mm256_and_ps(
+                            _mm256_cmp_ps::<_CMP_NGT_UQ>(left, v_xh),
+                            _mm256_cmp_ps::<_CMP_NLT_UQ>(right, v_xl),
+                        ),
+                    );
+                    ok |= (_mm256_movemask_ps(m) as u32) << (h * HALF);
+                    let cdy2 = _mm256_mul_ps(_mm256_mul_ps(_mm256_set1_ps(0.5 * cc), dy), dy);
+                    // per-lane terms of this half of the columns
+                    let dx = _mm256_sub_ps(v_mx, px[h]);
+                    let adx2 = _mm256_mul_ps(_mm256_mul_ps(_mm256_set1_ps(0.5 * ca), dx), dx);
+                    // SAFETY: each array holds 16 floats, 32-byte aligned at h * 8.
+                    unsafe {
+                        _mm256_store_ps(slot.bdy.as_mut_ptr().add(h * HALF), bdy);
+                        _mm256_store_ps(slot.cdy2.as_mut_ptr().add(h * HALF), cdy2);
+                        _mm256_store_ps(slot.dx.as_mut_ptr().add(h * HALF), dx);
+                        _mm256_store_ps(slot.adx2.as_mut_ptr().add(h * HALF), adx2);
+                    }
+                }
+                masks[k] = range & alive & ok;
+            }
+            // phase 2, row by row and half by half, state in registers
+            // SAFETY: `masks` holds CHUNK = 16 u32.
+            let (m_lo, m_hi) = unsafe {
+                (
+                    _mm256_loadu_si256(masks.as_ptr() as *const _),
+                    _mm256_loadu_si256(masks.as_ptr().add(HALF) as *const _),
+                )
+            };
+            let mut todo = masks.iter().fold(0, |a, &m| a | m);
+            while todo != 0 {
+                let r = todo.trailing_zeros() as usize;
+                todo &= todo - 1;
+                // the batch's splats that reach row r, as bits of their batch index
+                let bit = _mm256_set1_epi32(1 << r);
+                let hit = |m| {
+                    let z = _mm256_cmpeq_epi32(_mm256_and_si256(m, bit), _mm256_setzero_si256());
+                    !(_mm256_movemask_ps(_mm256_castsi256_ps(z)) as u32) & 0xFF
+                };
+                let ks_row = hit(m_lo) | hit(m_hi) << HALF;
+                // bits of the splats evaluated while each half had live lanes
+                let mut counted = 0u32;
+                let mut row_live = 0u32;
+                for h in 0..2 {
+                    let o = r * LANES + h * HALF;
+                    // SAFETY: r < 16, h < 2: o..o + 8 lies inside each 256-float array.
+                    let (tp, c0p, c1p, c2p, dp) = unsafe {
+                        (
+                            t_ptr.add(o),
+                            c0_ptr.add(o),
+                            c1_ptr.add(o),
+                            c2_ptr.add(o),
+                            d_ptr.add(o),
+                        )
+                    };
+                    // SAFETY: see above
+                    let (mut t, mut c0, mut c1, mut c2, mut d) = unsafe {
+                        (
+                            _mm256_loadu_ps(tp),
+                            _mm256_loadu_ps(c0p),
+                            _mm256_loadu_ps(c1p),
+                            _mm256_loadu_ps(c2p),
+                            _mm256_loadu_ps(dp),
+                        )
+                    };
+                    let lbits = (live[r] >> (h * HALF)) & 0xFF;
+                    let mut lv = _mm256_castsi256_ps(_mm256_cmpeq_epi32(
+                        _mm256_and_si256(_mm256_set1_epi32(lbits as i32), lane_bits),
+                        lane_bits,
+                    ));
+                    let mut lv_any = lbits != 0;
+                    let mut ks = ks_row;
+                    while ks != 0 {
+                        let k = ks.trailing_zeros() as usize;
+                        ks &= ks - 1;
+                        let slot = &slots[k];
+                        let s = &slot.splat;
+                        let q = h * HALF;
+                        // SAFETY: both arrays hold 16 floats, 32-byte aligned at q.
+                        let (dx, adx2) = unsafe {
+                            (
+                                _mm256_load_ps(slot.dx.as_ptr().add(q)),
+                                _mm256_load_ps(slot.adx2.as_ptr().add(q)),
+                            )
+                        };
+                        let sigma = _mm256_add_ps(
+                            _mm256_fmadd_ps(_mm256_set1_ps(slot.bdy[r]), dx, adx2),
+                            _mm256_set1_ps(slot.cdy2[r]),
+                        );
+                        // alpha = exp(ln_op - sigma), exactly as blend::opacity_exp::<true>
+                        let sg = _mm256_castsi256_ps(_mm256_min_epu32(
+                            _mm256_castps_si256(sigma),
+                            clamp,
+                        ));
+                        let u = _mm256_sub_ps(sg, _mm256_set1_ps(s.ln_opacity));
+                        let tk = _mm256_fnmadd_ps(u, k16, magic);
+                        let kf = _mm256_sub_ps(tk, magic);
+                        let rr = _mm256_fmadd_ps(kf, c_hi, u);
+                        let rr = _mm256_fmadd_ps(kf, c_lo, rr);
+                        let y = _mm256_fmadd_ps(rr, sixth, half);
+                        let y = _mm256_fmadd_ps(y, rr, minus_one);
+                        let y = _mm256_fmadd_ps(y, rr, one);
+                        let ti = _mm256_castps_si256(tk);
+                        // 16-entry table: bit 3 of the index picks the upper 8 entries
+                        let tab = _mm256_blendv_ps(
+                            _mm256_castsi256_ps(_mm256_permutevar8x32_epi32(tab_lo, ti)),
+                            _mm256_castsi256_ps(_mm256_permutevar8x32_epi32(tab_hi, ti)),
+                            _mm256_castsi256_ps(_mm256_slli_epi32::<28>(ti)),
+                        );
+                        let scale = _mm256_add_epi32(
+                            _mm256_castps_si256(tab),
+                            _mm256_slli_epi32::<23>(_mm256_srli_epi32::<4>(ti)),
+                        );
+                        let ev = _mm256_mul_ps(y, _mm256_castsi256_ps(scale));
+                        let alpha = _mm256_min_ps(ev, max_alpha);
+                        let valid = _mm256_and_ps(lv, _mm256_cmp_ps::<_CMP_GE_OQ>(alpha, thr));
+                        let w = _mm256_mul_ps(alpha, t);
+                        let tn = _mm256_sub_ps(t, w);
+                        let contrib = _mm256_and_ps(valid, _mm256_cmp_ps::<_CMP_GT_OQ>(tn, t_min));
+                        // w = 0 where a lane does not contribute: c + 0 col = c exactly
+                        let wc = _mm256_and_ps(w, contrib);
+                        c0 = _mm256_fmadd_ps(wc, _mm256_set1_ps(s.rgb[0]), c0);
+                        c1 = _mm256_fmadd_ps(wc, _mm256_set1_ps(s.rgb[1]), c1);
+                        c2 = _mm256_fmadd_ps(wc, _mm256_set1_ps(s.rgb[2]), c2);
+                        d = _mm256_fmadd_ps(wc, _mm256_set1_ps(s.depth), d);
+                        t = _mm256_blendv_ps(t, tn, contrib);
+                        counted |= (lv_any as u32) << k;
+                        // valid lanes that do not contribute stop
+                        lv = _mm256_or_ps(_mm256_andnot_ps(valid, lv), contrib);
+                        lv_any = _mm256_movemask_ps(lv) != 0;
+                    }
+                    // SAFETY: see above
+                    unsafe {
+                        _mm256_storeu_ps(tp, t);
+                        _mm256_storeu_ps(c0p, c0);
+                        _mm256_storeu_ps(c1p, c1);
+                        _mm256_storeu_ps(c2p, c2);
+                        _mm256_storeu_ps(dp, d);
+                    }
+                    row_live |= (_mm256_movemask_ps(lv) as u32) << (h * HALF);
+                }
+                evals += LANES as u64 * counted.count_ones() as u64;
+                live[r] = row_live;
+                if row_live == 0 {
+                    alive &= !(1 << r);
+                }
+            }
+            if alive == 0 {
+                return evals;
+            }
+        }
+    }
+    evals
+}
