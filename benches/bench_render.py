@@ -7,6 +7,8 @@ second), the 1 -> N thread speed-up and the ratio against gsplat's torch referen
     python benches/bench_render.py            # full run (< 3 minutes on 2 cores)
     python benches/bench_render.py --quick    # tiny smoke run
 
+The garden frame is also rendered with the lower blend kernels (MORPHGS_SIMD=avx2, scalar).
+
 Thread counts are fixed per process (RAYON_NUM_THREADS), so each configuration runs in a
 subprocess.
 """
@@ -48,8 +50,8 @@ def _worker(args: argparse.Namespace) -> None:
     print(json.dumps({"n": len(scene), "wall": walls, "cpu": cpus, "stats": stats[best]}))
 
 
-def run(grid: int, width: int, height: int, threads: int, repeat: int) -> dict:
-    env = dict(os.environ, RAYON_NUM_THREADS=str(threads))
+def run(grid: int, width: int, height: int, threads: int, repeat: int, simd: str = "auto") -> dict:
+    env = dict(os.environ, RAYON_NUM_THREADS=str(threads), MORPHGS_SIMD=simd)
     env.pop("MORPHGS_NUM_THREADS", None)
     out = subprocess.run(
         [sys.executable, __file__, "--worker", "--grid", str(grid), "--width", str(width),
@@ -133,6 +135,12 @@ def main() -> None:
             print(f"{'':<26} speed-up 1 -> {ncpu} threads: {t1 / tn:.2f}x "
                   f"(Gaussians: {results[1]['n']:,}, visible: {results[1]['stats']['visible']:,}, "
                   f"kernel: {results[1]['stats']['simd']})")
+        if grid == 1:
+            # the lower kernels on the same frame (MORPHGS_SIMD picks them)
+            for simd in ("avx2", "scalar"):
+                res = run(grid, w, h, ncpu, rep, simd)
+                if res["stats"]["simd"] != results[ncpu]["stats"]["simd"]:
+                    print(row(f"  {res['stats']['simd']} kernel", ncpu, res), flush=True)
     reference_ratio(args.quick)
 
 

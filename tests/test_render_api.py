@@ -51,6 +51,35 @@ def test_single_camera_gives_hw_images_and_cameras_give_frames() -> None:
     assert {"project_s", "sort_s", "bin_s", "blend_s", "simd", "threads"} <= set(r.stats)
 
 
+def test_morphgs_simd_picks_the_blend_kernel_and_the_fast_kernels_agree_bit_for_bit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # a dense scene (early termination) at a size with partial tiles
+    scene, cam = scene_of(n=4000, degree=2), camera(83, 61)
+    results = {}
+    for level in ["scalar", "avx2", "avx512", "auto"]:
+        monkeypatch.setenv("MORPHGS_SIMD", level)
+        results[level] = r = morphgs.render(scene, cam)
+        assert r.stats["evaluations"] > 0
+    best = results["auto"].stats["simd"]
+    assert results["scalar"].stats["simd"] == "scalar"
+    # a level the CPU lacks falls back to the best one below it
+    assert results["avx512"].stats["simd"] == best
+    for level in ["avx2", "avx512"]:
+        if results[level].stats["simd"] == "scalar":
+            continue
+        # the explicit AVX2 and AVX-512 kernels give the same bits and count the same work
+        for field in ("rgb", "depth", "alpha"):
+            np.testing.assert_array_equal(getattr(results[level], field),
+                                          getattr(results["auto"], field))
+        assert results[level].stats["evaluations"] == results["auto"].stats["evaluations"]
+    # the plain kernel rounds without FMA: last-bit differences only
+    np.testing.assert_allclose(results["scalar"].rgb, results["auto"].rgb, atol=1e-5)
+    monkeypatch.setenv("MORPHGS_SIMD", "sse9")
+    with pytest.raises(ValueError, match="MORPHGS_SIMD"):
+        morphgs.render(scene, cam)
+
+
 def test_render_many_equals_separate_renders() -> None:
     a, b = scene_of(seed=1), scene_of(seed=2, degree=0)
     cams = [camera(), camera(64, 48)]

@@ -56,19 +56,32 @@ fn cameras_from(
         .collect()
 }
 
+/// The blend kernel: the best the CPU has, or a lower one named by `MORPHGS_SIMD` (`avx512`,
+/// `avx2`, `scalar`; for benchmarks and for checking a result on another kernel).
+fn simd_from_env() -> PyResult<raster::Simd> {
+    match std::env::var("MORPHGS_SIMD") {
+        Err(_) => Ok(raster::Simd::Auto),
+        Ok(v) => raster::Simd::parse(&v).ok_or_else(|| {
+            PyValueError::new_err(format!(
+                "MORPHGS_SIMD={v:?} is not a blend kernel: use auto, avx512, avx2 or scalar"
+            ))
+        }),
+    }
+}
+
 fn options(
     background: [f32; 3],
     max_alpha: f32,
     sh_degree: Option<u8>,
     antialiased: bool,
-) -> RenderOptions {
-    RenderOptions {
+) -> PyResult<RenderOptions> {
+    Ok(RenderOptions {
         background,
         max_alpha,
         sh_degree,
         antialiased,
-        ..Default::default()
-    }
+        simd: simd_from_env()?,
+    })
 }
 
 fn stats_dict<'py>(py: Python<'py>, s: &RenderStats) -> PyResult<Bound<'py, PyDict>> {
@@ -82,7 +95,7 @@ fn stats_dict<'py>(py: Python<'py>, s: &RenderStats) -> PyResult<Bound<'py, PyDi
     d.set_item("sort_s", s.sort_s)?;
     d.set_item("bin_s", s.bin_s)?;
     d.set_item("blend_s", s.blend_s)?;
-    d.set_item("simd", raster::Simd::Auto.resolve().name())?;
+    d.set_item("simd", simd_from_env()?.resolve().name())?;
     d.set_item("threads", py.detach(pool::num_threads))?;
     Ok(d)
 }
@@ -132,7 +145,7 @@ fn _render<'py>(
         .iter()
         .map(SceneBorrow::view)
         .collect::<PyResult<Vec<_>>>()?;
-    let opts = options(background, max_alpha, sh_degree, antialiased);
+    let opts = options(background, max_alpha, sh_degree, antialiased)?;
     let out = detach(py, || raster::render_batch(&views, &cams, &opts))?;
     let (s, f, h, w) = (views.len(), cams.len(), height as usize, width as usize);
     let bad = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
@@ -184,7 +197,7 @@ fn _project<'py>(
     .map_err(crate::errors::CoreError)?;
     let b = scene.borrow(py)?;
     let view = b.view()?;
-    let opts = options([0.0; 3], 0.99, sh_degree, antialiased);
+    let opts = options([0.0; 3], 0.99, sh_degree, antialiased)?;
     let p = detach(py, || raster::project_all(&view, &cam, &opts))?;
     let n = p.depths.len();
     let bad = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());

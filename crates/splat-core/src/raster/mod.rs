@@ -60,6 +60,17 @@ impl Simd {
         }
     }
 
+    /// Parse a level name as `name` prints it (`avx2` also accepted), case-insensitively.
+    pub fn parse(s: &str) -> Option<Simd> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "auto" | "" => Some(Simd::Auto),
+            "avx512" => Some(Simd::Avx512),
+            "avx2" | "avx2+fma" => Some(Simd::Avx2),
+            "scalar" => Some(Simd::Scalar),
+            _ => None,
+        }
+    }
+
     pub fn name(self) -> &'static str {
         match self {
             Simd::Auto => "auto",
