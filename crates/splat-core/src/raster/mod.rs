@@ -230,6 +230,7 @@ pub fn render_into(
         simd: opts.simd.resolve(),
     };
     stats.evaluations = blend::blend_frame(&sorted, &bins, &params, rgb, depth, alpha);
+    sort::recycle(sorted);
     let t4 = Instant::now();
     stats.project_s = (t1 - t0).as_secs_f64();
     stats.sort_s = (t2 - t1).as_secs_f64();

@@ -22,46 +22,85 @@ const RADIX: usize = 1 << RADIX_BITS;
 /// projection chunks in order (chunk c, local position j: payload c << PROJECT_CHUNK_BITS | j,
 /// which orders like the Gaussian index), so no concatenated copy is needed.
 pub(crate) fn sort_by_depth(parts: &[Vec<Splat>]) -> Vec<Splat> {
-    // (depth bits, payload); positive floats order like their bit patterns
-    let mut keys: Vec<(u32, u32)> = Vec::with_capacity(parts.iter().map(Vec::len).sum());
-    for (c, part) in parts.iter().enumerate() {
-        let base = (c as u32) << PROJECT_CHUNK_BITS;
-        keys.extend(
-            part.iter()
+    let n: usize = parts.iter().map(Vec::len).sum();
+    let passes = 32u32.div_ceil(RADIX_BITS) as usize;
+    // (depth bits, payload), positive floats ordering like their bit patterns, and the
+    // histograms of every digit, in one parallel pass over the chunks
+    let per_part: Vec<(Vec<(u32, u32)>, Vec<u32>)> = parts
+        .par_iter()
+        .enumerate()
+        .map(|(c, part)| {
+            let base = (c as u32) << PROJECT_CHUNK_BITS;
+            let mut hist = vec![0u32; RADIX * passes];
+            let keys = part
+                .iter()
                 .enumerate()
-                .map(|(j, s)| (s.depth.to_bits(), base | j as u32)),
-        );
-    }
-    let n = keys.len();
-    let mut tmp = vec![(0u32, 0u32); n];
-    let max_key = keys.iter().map(|k| k.0).max().unwrap_or(0);
-    let mut shift = 0;
-    while shift < 32 && (max_key >> shift) != 0 {
-        let mut hist = vec![0usize; RADIX];
-        for k in &keys {
-            hist[((k.0 >> shift) as usize) & (RADIX - 1)] += 1;
+                .map(|(j, s)| {
+                    let key = s.depth.to_bits();
+                    for (pass, h) in hist.chunks_exact_mut(RADIX).enumerate() {
+                        h[((key >> (pass as u32 * RADIX_BITS)) as usize) & (RADIX - 1)] += 1;
+                    }
+                    (key, base | j as u32)
+                })
+                .collect();
+            (keys, hist)
+        })
+        .collect();
+    let mut keys = Vec::with_capacity(n);
+    let mut hist = vec![0usize; RADIX * passes];
+    for (k, h) in &per_part {
+        keys.extend_from_slice(k);
+        for (a, &b) in hist.iter_mut().zip(h) {
+            *a += b as usize;
         }
+    }
+    drop(per_part);
+    let mut tmp = vec![(0u32, 0u32); n];
+    for (pass, h) in hist.chunks_exact_mut(RADIX).enumerate() {
+        // a digit all keys share needs no pass (the exponent bits of depths of one scale)
+        if h.contains(&n) {
+            continue;
+        }
+        let shift = pass as u32 * RADIX_BITS;
         let mut sum = 0;
-        for h in hist.iter_mut() {
-            let c = *h;
-            *h = sum;
-            sum += c;
+        for c in h.iter_mut() {
+            let v = *c;
+            *c = sum;
+            sum += v;
         }
         for k in &keys {
             let b = ((k.0 >> shift) as usize) & (RADIX - 1);
-            tmp[hist[b]] = *k;
-            hist[b] += 1;
+            tmp[h[b]] = *k;
+            h[b] += 1;
         }
         std::mem::swap(&mut keys, &mut tmp);
-        shift += RADIX_BITS;
     }
+    let mut sorted = SORTED.take();
+    sorted.clear();
     keys.par_iter()
         .with_min_len(BIN_CHUNK)
         .map(|&(_, i)| {
             parts[(i >> PROJECT_CHUNK_BITS) as usize]
                 [(i & ((1 << PROJECT_CHUNK_BITS) - 1)) as usize]
         })
-        .collect()
+        .collect_into_vec(&mut sorted);
+    sorted
+}
+
+/// Largest sorted-splat buffer a thread keeps for its next frame (32 MiB: 524,288 splats).
+const KEEP_BYTES: usize = 32 << 20;
+
+thread_local! {
+    /// The sorted-splat buffer of this thread's last frame, kept (up to `KEEP_BYTES`) so the
+    /// next frame writes into memory already mapped instead of paying a page fault per 4 KiB.
+    static SORTED: std::cell::Cell<Vec<Splat>> = const { std::cell::Cell::new(Vec::new()) };
+}
+
+/// Hand a frame's sorted splats back for reuse by the next frame on this thread.
+pub(crate) fn recycle(sorted: Vec<Splat>) {
+    if sorted.capacity() * std::mem::size_of::<Splat>() <= KEEP_BYTES {
+        SORTED.set(sorted);
+    }
 }
 
 /// Tiles touched by a splat's box: [x0, x1) x [y0, y1), as gsplat's `isect_tiles`.
@@ -190,6 +229,45 @@ mod tests {
         let sorted = sort_by_depth(&[s]);
         let order: Vec<f32> = sorted.iter().map(|s| s.xy[0]).collect();
         assert_eq!(order, [4.0, 1.0, 3.0, 2.0, 0.0, 5.0]);
+    }
+
+    #[test]
+    fn sort_matches_a_stable_sort_across_chunks_and_depth_scales() {
+        // three projection chunks, depths from one narrow range (digits shared by every key
+        // skip their pass) and from a wide one, with many ties
+        let mut h = 7u64;
+        let mut next = || {
+            h = h.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+            (h >> 33) as u32
+        };
+        for wide in [false, true] {
+            let parts: Vec<Vec<Splat>> = [5000, 0, 3000]
+                .iter()
+                .map(|&n| {
+                    (0..n)
+                        .map(|_| {
+                            let d = if wide {
+                                f32::from_bits(0x3000_0000 + next() % 0x1800_0000)
+                            } else {
+                                2.0 + (next() % 64) as f32 / 64.0
+                            };
+                            splat(d, next() as f32, 0.0)
+                        })
+                        .collect()
+                })
+                .collect();
+            let mut want: Vec<(u32, usize, usize)> = Vec::new();
+            for (c, p) in parts.iter().enumerate() {
+                want.extend(p.iter().enumerate().map(|(j, s)| (s.depth.to_bits(), c, j)));
+            }
+            want.sort(); // (depth, chunk, position): depth order, ties by Gaussian index
+            let got = sort_by_depth(&parts);
+            assert_eq!(got.len(), want.len());
+            for (g, &(_, c, j)) in got.iter().zip(&want) {
+                assert_eq!(g, &parts[c][j]);
+            }
+            recycle(got);
+        }
     }
 
     #[test]
