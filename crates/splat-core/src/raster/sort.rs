@@ -87,8 +87,8 @@ pub(crate) fn sort_by_depth(parts: &[Vec<Splat>]) -> Vec<Splat> {
     sorted
 }
 
-/// Largest sorted-splat buffer a thread keeps for its next frame (32 MiB: 524,288 splats).
-const KEEP_BYTES: usize = 32 << 20;
+/// Largest sorted-splat buffer a thread keeps for its next frame (64 MiB: 1,048,576 splats).
+const KEEP_BYTES: usize = 64 << 20;
 
 thread_local! {
     /// The sorted-splat buffer of this thread's last frame, kept (up to `KEEP_BYTES`) so the
