@@ -75,8 +75,7 @@ pub(crate) fn sort_by_depth(parts: &[Vec<Splat>]) -> Vec<Splat> {
         }
         std::mem::swap(&mut keys, &mut tmp);
     }
-    let mut sorted = SORTED.take();
-    sorted.clear();
+    let mut sorted = sorted_buffer();
     keys.par_iter()
         .with_min_len(BIN_CHUNK)
         .map(|&(_, i)| {
@@ -87,19 +86,35 @@ pub(crate) fn sort_by_depth(parts: &[Vec<Splat>]) -> Vec<Splat> {
     sorted
 }
 
-/// Largest sorted-splat buffer a thread keeps for its next frame (64 MiB: 1,048,576 splats).
-const KEEP_BYTES: usize = 64 << 20;
+/// Sorted-splat buffers kept between frames, in bytes of capacity (2M splats).
+const KEEP_BYTES: usize = 128 << 20;
 
-thread_local! {
-    /// The sorted-splat buffer of this thread's last frame, kept (up to `KEEP_BYTES`) so the
-    /// next frame writes into memory already mapped instead of paying a page fault per 4 KiB.
-    static SORTED: std::cell::Cell<Vec<Splat>> = const { std::cell::Cell::new(Vec::new()) };
+/// Sorted-splat buffers of finished frames, reused by the next ones so a frame writes into
+/// memory already mapped instead of paying a page fault per 4 KiB (on the test VMs the faults
+/// on a fresh buffer cost more than filling it). Only ever `try_lock`ed: a busy or poisoned
+/// lock, or one a `fork` left locked in a child, just means a fresh buffer.
+static SORTED_POOL: std::sync::Mutex<Vec<Vec<Splat>>> = std::sync::Mutex::new(Vec::new());
+
+/// An empty buffer for a frame's sorted splats, from the pool when it has one.
+fn sorted_buffer() -> Vec<Splat> {
+    let mut v = match SORTED_POOL.try_lock() {
+        Ok(mut pool) => pool.pop().unwrap_or_default(),
+        Err(_) => Vec::new(),
+    };
+    v.clear();
+    v
 }
 
-/// Hand a frame's sorted splats back for reuse by the next frame on this thread.
+/// Hand a frame's sorted splats back to the pool (kept while the pool holds at most
+/// `KEEP_BYTES` of capacity).
 pub(crate) fn recycle(sorted: Vec<Splat>) {
-    if sorted.capacity() * std::mem::size_of::<Splat>() <= KEEP_BYTES {
-        SORTED.set(sorted);
+    if let Ok(mut pool) = SORTED_POOL.try_lock() {
+        let held: usize = pool.iter().map(Vec::capacity).sum();
+        if (held + sorted.capacity()) * std::mem::size_of::<Splat>() <= KEEP_BYTES {
+            // largest last: the next frame most likely needs as many
+            pool.push(sorted);
+            pool.sort_by_key(Vec::capacity);
+        }
     }
 }
 
