@@ -122,6 +122,40 @@ pub(super) fn opacity_exp<const FMA: bool>(sigma: f32, ln_op: f32) -> f32 {
     y * scale
 }
 
+/// Tile rows `lo..hi` (each in 0..=16) that a splat's 1/255 contour can reach, from its
+/// centre row `my` and half-height `ey`, for the tile whose top pixel row is `y0f`.
+#[inline(always)]
+pub(super) fn row_span(my: f32, ey: f32, y0f: f32) -> (u32, u32) {
+    let lo = (my - ey - 0.5 - y0f).ceil().clamp(0.0, 16.0) as u32;
+    let hi = (my + ey - 0.5 - y0f).floor().clamp(-1.0, 15.0) as i32 + 1;
+    (lo, hi.max(0) as u32)
+}
+
+/// The same rows as a bit mask (bit r: row r).
+#[inline(always)]
+pub(super) fn row_mask(my: f32, ey: f32, y0f: f32) -> u32 {
+    let (lo, hi) = row_span(my, ey, y0f);
+    ((1u32 << hi) - 1) & !((1u32 << lo) - 1)
+}
+
+/// Splats per phase-1 batch of the explicit SIMD kernels.
+#[cfg(target_arch = "x86_64")]
+pub(super) const CHUNK: usize = 16;
+
+/// Phase-1 results for one splat of a batch of the explicit SIMD kernels.
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy, Default)]
+#[repr(C, align(64))]
+pub(super) struct Slot {
+    /// b dy and 0.5 c dy^2 per row
+    pub bdy: [f32; LANES],
+    pub cdy2: [f32; LANES],
+    /// dx and 0.5 a dx^2 per lane
+    pub dx: [f32; LANES],
+    pub adx2: [f32; LANES],
+    pub splat: Splat,
+}
+
 /// How many list entries ahead to prefetch splats (the lists jump through the sorted array).
 pub(super) const PREFETCH_AHEAD: usize = 8;
 
@@ -184,9 +218,8 @@ fn blend_tile_impl<'a, const FMA: bool>(
             // the tile's columns, are skipped: there every lane's alpha is below 1/255.
             let (two_a_level, det, inv_a) = (s.two_a_level, s.conic_det, s.inv_a);
             let ey = s.half_height;
-            let lo = (my - ey - 0.5 - y0f).ceil().clamp(0.0, 16.0) as usize;
-            let hi = (my + ey - 0.5 - y0f).floor().clamp(-1.0, 15.0) as isize + 1;
-            let hi = hi.max(0) as usize;
+            let (lo, hi) = row_span(my, ey, y0f);
+            let (lo, hi) = (lo as usize, hi as usize);
             let half_a = 0.5 * ca;
             let ln_op = s.ln_opacity;
             let [cr, cg, cbl] = s.rgb;

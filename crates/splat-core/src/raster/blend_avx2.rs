@@ -3,26 +3,13 @@
 //! and lane masks held in vectors instead of mask registers. Same formulas and operation order
 //! as `blend_tile_impl::<true>`, so the same image bits (tested).
 use super::blend::{
-    prefetch, BlendParams, TileOut, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16, EXP_MAGIC, LANES,
-    PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
+    prefetch, row_mask, BlendParams, Slot, TileOut, CHUNK, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16,
+    EXP_MAGIC, LANES, PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
 };
 use super::project::{Splat, ALPHA_THRESHOLD};
 
-/// Splats per phase-1 batch.
-const CHUNK: usize = 16;
 /// Lanes of one AVX2 vector: a row is two halves.
 const HALF: usize = 8;
-
-/// Phase-1 results for one splat of a batch (see the AVX-512 kernel).
-#[derive(Clone, Copy, Default)]
-#[repr(C, align(64))]
-struct Slot {
-    bdy: [f32; LANES],
-    cdy2: [f32; LANES],
-    dx: [f32; LANES],
-    adx2: [f32; LANES],
-    splat: Splat,
-}
 
 /// Blend one tile with AVX2 and FMA; returns the number of Gaussian-pixel evaluations (16 per
 /// row evaluated while the row has live pixels, as the generic kernel counts them).
@@ -106,10 +93,7 @@ pub(super) fn blend_tile_avx2<'a>(
                 let (mx, my) = (s.xy[0], s.xy[1]);
                 let [ca, cb, cc] = s.conic;
                 let ey = s.half_height;
-                let lo = (my - ey - 0.5 - y0f).ceil().clamp(0.0, 16.0) as u32;
-                let hi = (my + ey - 0.5 - y0f).floor().clamp(-1.0, 15.0) as i32 + 1;
-                let hi = hi.max(0) as u32;
-                let range = ((1u32 << hi) - 1) & !((1u32 << lo) - 1);
+                let range = row_mask(my, ey, y0f);
                 let v_mx = _mm256_set1_ps(mx);
                 let slot = &mut slots[k];
                 slot.splat = *s;

@@ -1,26 +1,10 @@
 //! The AVX-512 blend kernel, written with `core::arch` intrinsics (see `blend.rs` for the
 //! generic kernel it mirrors operation for operation, so both give the same bits).
 use super::blend::{
-    prefetch, BlendParams, TileOut, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16, EXP_MAGIC, LANES,
-    PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
+    prefetch, row_mask, BlendParams, Slot, TileOut, CHUNK, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16,
+    EXP_MAGIC, LANES, PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
 };
 use super::project::{Splat, ALPHA_THRESHOLD};
-
-/// Splats per phase-1 batch (see `blend_tile_avx512`).
-const CHUNK: usize = 16;
-
-/// Phase-1 results for one splat of a batch.
-#[derive(Clone, Copy, Default)]
-#[repr(C, align(64))]
-struct Slot {
-    /// b dy and 0.5 c dy^2 per row
-    bdy: [f32; LANES],
-    cdy2: [f32; LANES],
-    /// dx and 0.5 a dx^2 per lane
-    dx: [f32; LANES],
-    adx2: [f32; LANES],
-    splat: Splat,
-}
 
 /// Explicit AVX-512 kernel: the same formulas and operation order as `blend_tile_impl::<true>`,
 /// so the same image bits, organised for the CPU rather than per splat. The tile's list is taken
@@ -110,10 +94,7 @@ pub(super) fn blend_tile_avx512<'a>(
                 let (mx, my) = (s.xy[0], s.xy[1]);
                 let [ca, cb, cc] = s.conic;
                 let ey = s.half_height;
-                let lo = (my - ey - 0.5 - y0f).ceil().clamp(0.0, 16.0) as u32;
-                let hi = (my + ey - 0.5 - y0f).floor().clamp(-1.0, 15.0) as i32 + 1;
-                let hi = hi.max(0) as u32;
-                let range = ((1u32 << hi) - 1) & !((1u32 << lo) - 1);
+                let range = row_mask(my, ey, y0f);
                 // the contour test of every row at once: disc = 2 a level - dy^2 det >= 0 and
                 // the contour's dx range [(-b dy - sq) / a, (-b dy + sq) / a] reaches the tile
                 let v_mx = _mm512_set1_ps(mx);
