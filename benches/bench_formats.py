@@ -27,7 +27,7 @@ import morphgs
 
 C0 = 0.28209479177387814
 REPO = Path(__file__).resolve().parents[1]
-FIXTURES = Path(os.environ.get("MORPHGS_FIXTURES", REPO.parent / "shared" / "fixtures"))
+FIXTURES = Path(os.environ.get("MORPHGS_FIXTURES", REPO / "tests" / "fixtures"))
 
 _PLY_TYPES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4",
               "uint": "u4", "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1",

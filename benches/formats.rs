@@ -1,5 +1,5 @@
 //! Decode throughput of the compressed formats: the real SuperSplat capture
-//! (playcanvas_engine_guitar.compressed.ply, from MORPHGS_FIXTURES or ../shared/fixtures) and a
+//! (playcanvas_engine_guitar.compressed.ply, from MORPHGS_FIXTURES or tests/fixtures) and a
 //! generated 100k-splat SH-3 .spz (v3 gzip), decoded from memory.
 use std::hint::black_box;
 use std::io::Write;
@@ -12,7 +12,7 @@ use splat_core::scene::{normalize_quats, sh_rest_count, Scene};
 
 fn fixtures() -> PathBuf {
     std::env::var_os("MORPHGS_FIXTURES").map_or_else(
-        || Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures"),
+        || Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures"),
         PathBuf::from,
     )
 }

@@ -1,5 +1,5 @@
 //! Criterion benchmarks of the CPU rasterizer on gsplat's profiling scene (the Mip-NeRF 360
-//! garden points of ../shared/fixtures/gsplat_test_garden.npz, Gaussians built as gsplat's
+//! garden points of tests/fixtures/gsplat_test_garden.npz, Gaussians built as gsplat's
 //! `load_test_data` does: crop to [-2,2]^3, scales uniform in [1e-4, 0.02], random unit
 //! quaternions, opacities uniform in (0,1); `grid` 5 tiles 5x5 copies offset by 4 in x and y).
 //!
@@ -78,9 +78,7 @@ impl Rng {
 fn garden(grid: i32) -> (Scene, Vec<Camera>) {
     let dir = std::env::var_os("MORPHGS_FIXTURES")
         .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures")
-        });
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures"));
     let bytes = std::fs::read(dir.join("gsplat_test_garden.npz")).expect("garden npz");
     let means = f32s(&npz_array(&bytes, "means3d").2);
     let colors = npz_array(&bytes, "colors").2;

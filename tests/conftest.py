@@ -1,4 +1,4 @@
-"""Shared fixtures. Real scene files come from ../shared/fixtures (see its ATTRIBUTION.md)."""
+"""Shared fixtures. Real scene files come from tests/fixtures in this repository (see its ATTRIBUTION.md)."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-FIXTURES = Path(os.environ.get("MORPHGS_FIXTURES", REPO.parent / "shared" / "fixtures"))
+FIXTURES = Path(os.environ.get("MORPHGS_FIXTURES", REPO / "tests" / "fixtures"))
 
 
 @pytest.fixture(scope="session")
 def fixtures_dir() -> Path:
     if not FIXTURES.is_dir():
-        pytest.fail(f"shared fixtures not found at {FIXTURES} (set MORPHGS_FIXTURES)")
+        pytest.fail(f"fixtures not found at {FIXTURES} (they ship in tests/fixtures; MORPHGS_FIXTURES overrides)")
     return FIXTURES

@@ -1,6 +1,6 @@
 """Reading .splat, .spz (v2/v3/v4/raw) and SuperSplat compressed PLY files written by other tools.
 
-Fixtures: ../shared/fixtures (see its ATTRIBUTION.md): metalsplatter_train3.{ply,splat,spz} are
+Fixtures: tests/fixtures (see its ATTRIBUTION.md): metalsplatter_train3.{ply,splat,spz} are
 the same three real splats in three formats; splat-transform_minimal* are four splats in every
 .splat/.spz variant; playcanvas_engine_*.compressed.ply are SuperSplat files.
 """

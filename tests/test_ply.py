@@ -1,6 +1,6 @@
 """PLY reading and writing against an independent reader (plyfile), across encodings and types.
 
-Fixtures: metalsplatter_train3.ply and splatapult_test.ply from ../shared/fixtures (ATTRIBUTION.md).
+Fixtures: metalsplatter_train3.ply and splatapult_test.ply from tests/fixtures (ATTRIBUTION.md).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 (SPEC §4), within SPEC tolerances: projection radii +-1 and rtol = atol = 1e-4; images mean
 absolute error <= 1e-5 and 99.9th percentile <= 1e-3.
 
-Fixtures: ../shared/fixtures (see its ATTRIBUTION.md). The garden images are compared on a
+Fixtures: tests/fixtures (see its ATTRIBUTION.md). The garden images are compared on a
 176x112 window of each full-resolution (648x420) view, so the float64 reference stays quick.
 """
 
