@@ -18,7 +18,7 @@ from PIL import Image
 import morphgs
 from morphgs import synthetic
 from morphgs.cli import main
-from morphgs.curate import load_manifest, scene_split
+from morphgs.curation import load_manifest, scene_split
 
 SMALL = ["--frames", "3", "--size", "48x32", "--no-progress"]
 
@@ -205,7 +205,7 @@ def test_difix_export_has_what_difix3d_paired_dataset_reads(tmp_path: Path, scen
             assert "/corrupted/" in sample["image"] and "/clean/" in sample["target_image"]
             assert sample["ref_image"] != sample["target_image"]
     rel = tmp_path / "rel.json"
-    from morphgs.curate import export_difix
+    from morphgs.curation import export_difix
     export_difix(out, rel, relative=True)
     entry = next(iter(json.loads(rel.read_text())["train"].values()))
     assert not Path(entry["image"]).is_absolute() and (tmp_path / entry["image"]).is_file()
@@ -224,7 +224,7 @@ def test_preview_writes_a_contact_sheet_and_animation(tmp_path: Path, scenes: li
 
     import imageio_ffmpeg
 
-    from morphgs.curate import preview
+    from morphgs.curation import preview
 
     _, mp4 = preview(out, out=tmp_path / "p", pairs=2, thumb_width=48, animation="mp4")
     raw = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-v", "error", "-i", str(mp4), "-f", "rawvideo",
@@ -233,7 +233,7 @@ def test_preview_writes_a_contact_sheet_and_animation(tmp_path: Path, scenes: li
 
 
 def test_video_output_writes_playable_mp4s(tmp_path: Path, scenes: list[str]) -> None:
-    from morphgs.curate.preview import _frames
+    from morphgs.curation.preview import _frames
 
     out = tmp_path / "ds"
     s = morphgs.curate(scenes[:1], out, configs=["blur2d"], pairs_per_scene=1, frames=4, resolution=(48, 32),

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from morphgs.cli import main
-from morphgs.curate import builtin_sources, discover, pair_seed, scene_split
-from morphgs.curate import manifest
-from morphgs.curate.plan import ConfigSpec, make_plan
+from morphgs.curation import builtin_sources, discover, pair_seed, scene_split
+from morphgs.curation import manifest
+from morphgs.curation.plan import ConfigSpec, make_plan
 
 CFG_A = ConfigSpec("a", "blur2d", {"sigma": 1.0})
 CFG_B = ConfigSpec("b", "blur2d", {"sigma": 2.0})
@@ -148,7 +148,7 @@ def test_cli_rejects_a_bad_config_name(tmp_path: Path, capsys: pytest.CaptureFix
 
 
 def test_inria_cameras_json_is_read_as_camera_to_world(tmp_path: Path) -> None:
-    from morphgs.curate.sources import read_inria_cameras
+    from morphgs.curation.sources import read_inria_cameras
 
     # camera at (0,-5,0) looking along +y, z up: c2w rotation columns right (1,0,0), down (0,0,-1), fwd (0,1,0)
     cam = {"id": 0, "img_name": "b", "width": 80, "height": 60, "position": [0, -5, 0],
@@ -165,7 +165,7 @@ def test_stale_temporaries_of_dead_processes_are_removed(tmp_path: Path) -> None
     import subprocess
     import sys
 
-    from morphgs.curate.runner import _clean_stale_tmp
+    from morphgs.curation.runner import _clean_stale_tmp
 
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
                           text=True, check=True)
@@ -186,7 +186,7 @@ def test_stale_temporaries_of_dead_processes_are_removed(tmp_path: Path) -> None
 
 
 def test_plain_progress_without_tqdm_reports_rate_and_eta(capsys: pytest.CaptureFixture[str]) -> None:
-    from morphgs.curate.runner import _PlainProgress
+    from morphgs.curation.runner import _PlainProgress
 
     bar = _PlainProgress(4, True)
     bar.update(1)

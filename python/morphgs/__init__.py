@@ -23,9 +23,10 @@ from morphgs._core import (
 from morphgs.camera import Camera, Cameras
 from morphgs.pair import Pair, render_pair
 from morphgs import trajectory
-# `morphgs.curate(...)` is the function; its package stays importable as `from morphgs.curate import ...`.
-from morphgs.curate import curate
-from morphgs.render import Render, render, render_many
+# `morphgs.curate` and `morphgs.render` are the functions; their modules are `morphgs.curation` and
+# `morphgs.rendering`.
+from morphgs.curation import curate
+from morphgs.rendering import Render, render, render_many
 from morphgs import synthetic
 from morphgs.perturb import PerturbConfig, perturb
 

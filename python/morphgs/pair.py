@@ -97,7 +97,7 @@ def iter_pair_chunks(
 def _render_both(scene: Any, corrupted_scene: Any, corruption: Corruption, cameras: Cameras,
                  **render_options: Any) -> tuple[Any, Any]:
     from morphgs._core import gaussian_blur
-    from morphgs.render import Render, render_many
+    from morphgs.rendering import Render, render_many
 
     if corruption.kind == "blur2d":
         (clean,) = render_many([scene], cameras, **render_options)
@@ -160,7 +160,7 @@ def render_pair(
         seed: perturbation seed.
         background: RGB background in [0, 1].
         blur_sigma: Gaussian sigma in pixels for "blur2d".
-        max_alpha, sh_degree, antialiased: render options (see morphgs.render).
+        max_alpha, sh_degree, antialiased: render options (see morphgs.rendering.render).
 
     Returns:
         Pair.

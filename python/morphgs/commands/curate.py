@@ -68,7 +68,7 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from morphgs.curate import curate
+    from morphgs.curation import curate
 
     try:
         summary = curate(

@@ -18,7 +18,7 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from morphgs.curate import export_difix
+    from morphgs.curation import export_difix
 
     counts = export_difix(args.dataset, args.out, prompt=args.prompt, relative=args.relative,
                           configs=args.configs, ref_offset=args.ref_offset)

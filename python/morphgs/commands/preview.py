@@ -19,7 +19,7 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from morphgs.curate import preview
+    from morphgs.curation import preview
 
     sheet, anim = preview(args.dataset, out=args.out, pairs=args.pairs, columns=args.columns,
                           thumb_width=args.width, animation="mp4" if args.mp4 else "gif", fps=args.fps)

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from morphgs._core import MorphgsError
-from morphgs.curate import manifest
+from morphgs.curation import manifest
 
 __all__ = ["export_difix"]
 

@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from morphgs.curate import manifest
-from morphgs.curate.plan import ConfigSpec, PairJob, TrajectoryOptions, make_plan, parse_config
-from morphgs.curate.sources import BUILTIN_GAUSSIANS, SceneSource, builtin_sources, discover
-from morphgs.curate.worker import OutputOptions, make_pair, tmp_root
+from morphgs.curation import manifest
+from morphgs.curation.plan import ConfigSpec, PairJob, TrajectoryOptions, make_plan, parse_config
+from morphgs.curation.sources import BUILTIN_GAUSSIANS, SceneSource, builtin_sources, discover
+from morphgs.curation.worker import OutputOptions, make_pair, tmp_root
 
 __all__ = ["CurateSummary", "curate"]
 
@@ -183,7 +183,7 @@ def curate(
     """Curate clean/corrupted training pairs from 3DGS scenes (SPEC §5; docs/curation.md).
 
     Args:
-        scenes: scene files or folders (see morphgs.curate.sources); none = built-in samples.
+        scenes: scene files or folders (see morphgs.curation.sources); none = built-in samples.
         out: dataset folder (created; reruns resume in it).
         configs: corruption per pair set: preset names, "NAME@SCALE", "blur2d[@SIGMA]", JSON
             files, or ConfigSpec.

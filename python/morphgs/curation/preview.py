@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from morphgs._core import MorphgsError
-from morphgs.curate import manifest
+from morphgs.curation import manifest
 
 __all__ = ["preview"]
 

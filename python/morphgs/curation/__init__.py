@@ -7,12 +7,12 @@ seeds, resume and scale-out.
 
 from __future__ import annotations
 
-from morphgs.curate.difix import export_difix
-from morphgs.curate.manifest import load as load_manifest
-from morphgs.curate.plan import ConfigSpec, PairJob, pair_seed, parse_config, scene_split
-from morphgs.curate.preview import preview
-from morphgs.curate.runner import CurateSummary, curate
-from morphgs.curate.sources import SceneSource, builtin_sources, discover
+from morphgs.curation.difix import export_difix
+from morphgs.curation.manifest import load as load_manifest
+from morphgs.curation.plan import ConfigSpec, PairJob, pair_seed, parse_config, scene_split
+from morphgs.curation.preview import preview
+from morphgs.curation.runner import CurateSummary, curate
+from morphgs.curation.sources import SceneSource, builtin_sources, discover
 
 __all__ = [
     "ConfigSpec",

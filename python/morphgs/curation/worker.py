@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from morphgs.camera import Cameras
-from morphgs.curate.plan import PairJob, TrajectoryOptions, job_cameras
+from morphgs.curation.plan import PairJob, TrajectoryOptions, job_cameras
 from morphgs.pair import Corruption, iter_pair_chunks
 
 __all__ = ["OutputOptions", "PairWriter", "make_pair", "tmp_root"]

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from morphgs.camera import Cameras
-from morphgs.curate.sources import SceneSource
+from morphgs.curation.sources import SceneSource
 
 __all__ = ["ConfigSpec", "PairJob", "TrajectoryOptions", "job_cameras", "make_plan", "pair_seed",
            "parse_config", "scene_split"]
