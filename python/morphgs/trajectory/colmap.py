@@ -18,7 +18,7 @@ import numpy as np
 
 from morphgs._core import MorphgsError, MorphgsWarning
 from morphgs.camera import Camera, Cameras
-from morphgs.trajectory._common import DEFAULT_RESOLUTION, check_resolution, stack_resized
+from morphgs.trajectory._common import check_resolution, stack_resized
 from morphgs.trajectory._rotations import quat_to_matrix
 
 __all__ = ["from_colmap", "find_colmap_model"]
@@ -162,7 +162,7 @@ def find_colmap_model(folder: str | os.PathLike[str]) -> Path | None:
 def from_colmap(
     folder: str | os.PathLike[str],
     *,
-    resolution: Sequence[int] | None = DEFAULT_RESOLUTION,
+    resolution: Sequence[int] | None = None,
     sort: bool = True,
 ) -> Cameras:
     """Cameras from a COLMAP sparse model (binary preferred when both forms exist).

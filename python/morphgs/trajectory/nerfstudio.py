@@ -19,7 +19,6 @@ import numpy as np
 from morphgs._core import MorphgsError
 from morphgs.camera import Camera, Cameras
 from morphgs.trajectory._common import (
-    DEFAULT_RESOLUTION,
     as_4x4,
     check_resolution,
     similarity_apply,
@@ -80,7 +79,7 @@ def _intrinsics(frame: dict[str, Any], meta: dict[str, Any], path: Path, i: int)
 def from_transforms_json(
     path: str | os.PathLike[str],
     *,
-    resolution: Sequence[int] | None = DEFAULT_RESOLUTION,
+    resolution: Sequence[int] | None = None,
     frame: Literal["colmap", "file"] = "colmap",
     dataparser_transforms: str | os.PathLike[str] | None = None,
     sort: bool = True,
