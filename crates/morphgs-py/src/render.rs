@@ -1,5 +1,5 @@
 //! Rendering natives: `_render` (S scenes x F cameras), `_project` (one view, for tests and
-//! inspection) and the PNG / EXR writers. The Python API lives in `morphgs/render.py`.
+//! inspection) and the PNG / EXR writers. The Python API lives in `morphgs/rendering.py`.
 use std::path::PathBuf;
 
 use numpy::ndarray::{Array1, Array2, Array4, Array5};
@@ -317,6 +317,37 @@ fn _write_exr_batch(
     detach(py, || image_out::write_exr_batch(&frames, w, h, c))
 }
 
+/// Read OpenEXR files (in parallel) as float32 arrays: (H,W) for one channel, (H,W,C) otherwise.
+/// Raises SceneFormatError naming the file for a malformed one, and refuses images of more than
+/// `max_values` samples before decoding them.
+#[pyfunction]
+#[pyo3(signature = (paths, max_values = 1usize << 30))]
+fn _read_exr_batch<'py>(
+    py: Python<'py>,
+    paths: Vec<PathBuf>,
+    max_values: usize,
+) -> PyResult<Vec<Bound<'py, PyAny>>> {
+    let images = detach(py, || image_out::read_exr_batch(&paths, max_values))?;
+    images
+        .into_iter()
+        .map(|im| {
+            let (h, w, c) = (im.height as usize, im.width as usize, im.channels);
+            let arr = Array1::from_vec(im.data);
+            Ok(if c == 1 {
+                arr.into_shape_with_order((h, w))
+                    .map_err(|e| PyValueError::new_err(e.to_string()))?
+                    .into_pyarray(py)
+                    .into_any()
+            } else {
+                arr.into_shape_with_order((h, w, c))
+                    .map_err(|e| PyValueError::new_err(e.to_string()))?
+                    .into_pyarray(py)
+                    .into_any()
+            })
+        })
+        .collect()
+}
+
 /// One frame per path over consecutive equal parts of `data`.
 fn split_frames<T>(paths: Vec<PathBuf>, data: &[T], f: usize) -> Vec<Frame<'_, T>> {
     let per = data.len() / f.max(1);
@@ -337,5 +368,6 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_write_exr, m)?)?;
     m.add_function(wrap_pyfunction!(_write_png_batch, m)?)?;
     m.add_function(wrap_pyfunction!(_write_exr_batch, m)?)?;
+    m.add_function(wrap_pyfunction!(_read_exr_batch, m)?)?;
     Ok(())
 }

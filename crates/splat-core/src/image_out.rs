@@ -112,6 +112,100 @@ pub fn write_exr(
     atomic_write(path, |w| w.write_all(&bytes))
 }
 
+/// A float image read back from an OpenEXR file: interleaved samples, row-major.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FloatImage {
+    pub width: u32,
+    pub height: u32,
+    pub channels: usize,
+    pub data: Vec<f32>,
+}
+
+/// Read the first layer of an OpenEXR file as float32 (half and uint samples are converted).
+/// Channels come back in the order `write_exr` names them ("Y"; "R","G","B"["A"]; "C0", ...);
+/// other names come back in the file's (alphabetical) order. Sizes are checked against
+/// `max_pixels` before the pixels are decoded, so a lying header cannot ask for a huge buffer.
+pub fn read_exr(path: &Path, max_pixels: usize) -> Result<FloatImage> {
+    use exr::prelude::{read, ReadChannels, ReadLayers};
+    let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| exr_error(path, e))?;
+    let header = meta
+        .headers
+        .first()
+        .ok_or_else(|| Error::format(path, "an EXR file with no layer"))?;
+    let size = header.layer_size;
+    let pixels = size
+        .0
+        .saturating_mul(size.1)
+        .saturating_mul(header.channels.list.len());
+    if size.0 == 0 || size.1 == 0 || pixels > max_pixels {
+        return Err(Error::format(
+            path,
+            format!(
+                "EXR layer of {}x{} with {} channels is empty or larger than the {max_pixels}-value limit",
+                size.0,
+                size.1,
+                header.channels.list.len()
+            ),
+        ));
+    }
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_file(path)
+        .map_err(|e| exr_error(path, e))?;
+    let layer = image.layer_data;
+    let (w, h) = (layer.size.0, layer.size.1);
+    let mut list: Vec<(String, Vec<f32>)> = layer
+        .channel_data
+        .list
+        .iter()
+        .map(|c| (c.name.to_string(), c.sample_data.values_as_f32().collect()))
+        .collect();
+    let rank = |n: &str| match n {
+        "R" => 0,
+        "G" => 1,
+        "B" => 2,
+        "A" => 3,
+        _ => 4,
+    };
+    list.sort_by_key(|(n, _)| rank(n)); // stable: other names keep the file's order
+    let channels = list.len();
+    let mut data = vec![0f32; w * h * channels];
+    for (c, (_, plane)) in list.iter().enumerate() {
+        if plane.len() != w * h {
+            return Err(Error::format(
+                path,
+                "an EXR channel with the wrong number of samples",
+            ));
+        }
+        for (i, v) in plane.iter().enumerate() {
+            data[i * channels + c] = *v;
+        }
+    }
+    let as_u32 = |v: usize| u32::try_from(v).map_err(|_| Error::format(path, "EXR too large"));
+    Ok(FloatImage {
+        width: as_u32(w)?,
+        height: as_u32(h)?,
+        channels,
+        data,
+    })
+}
+
+fn exr_error(path: &Path, e: exr::error::Error) -> Error {
+    match e {
+        exr::error::Error::Io(io) => Error::io(path, io),
+        other => Error::format(path, format!("not a readable OpenEXR file: {other}")),
+    }
+}
+
+/// Read many EXRs in parallel; the first error in file order wins.
+pub fn read_exr_batch(paths: &[PathBuf], max_pixels: usize) -> Result<Vec<FloatImage>> {
+    paths.par_iter().map(|p| read_exr(p, max_pixels)).collect()
+}
+
 /// One frame to write: path and interleaved samples.
 pub struct Frame<'a, T> {
     pub path: PathBuf,
@@ -187,5 +281,30 @@ mod tests {
         let vals: Vec<f32> = ch.sample_data.values_as_f32().collect();
         assert_eq!(vals, depth);
         assert!(write_png(&p, 4, 3, 3, &rgb[..5]).is_err());
+        let back = read_exr(&e, 1 << 20).expect("read_exr");
+        assert_eq!((back.width, back.height, back.channels), (4, 3, 1));
+        assert_eq!(back.data, depth);
+    }
+
+    #[test]
+    fn read_exr_restores_rgba_order_and_refuses_bad_files() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let rgba: Vec<f32> = (0..2 * 2 * 4).map(|v| v as f32).collect();
+        let e = dir.path().join("c.exr");
+        write_exr(&e, 2, 2, 4, &rgba).expect("exr");
+        let back = read_exr(&e, 1 << 20).expect("read");
+        assert_eq!(back.channels, 4);
+        assert_eq!(back.data, rgba);
+        assert!(read_exr(&e, 8).is_err()); // 16 values over the limit
+        let junk = dir.path().join("junk.exr");
+        std::fs::write(&junk, b"not an exr at all").expect("write");
+        assert!(matches!(
+            read_exr(&junk, 1 << 20),
+            Err(Error::Format { .. })
+        ));
+        assert!(matches!(
+            read_exr(&dir.path().join("missing.exr"), 1 << 20),
+            Err(Error::Io { .. })
+        ));
     }
 }
