@@ -28,6 +28,7 @@ from morphgs import trajectory
 from morphgs.curation import curate
 from morphgs.rendering import Render, render, render_many
 from morphgs import synthetic
+from morphgs import exports
 from morphgs.perturb import PerturbConfig, perturb
 
 __all__ = [
@@ -42,6 +43,7 @@ __all__ = [
     "SceneFormatError",
     "__version__",
     "curate",
+    "exports",
     "gaussian_blur",
     "load",
     "num_threads",
