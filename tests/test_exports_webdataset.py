@@ -139,3 +139,20 @@ def test_shard_size_parsing() -> None:
     for bad in ("512", "12 parsecs", "0MB", "2.5samples", "MB"):
         with pytest.raises(ValueError, match="shard size"):
             exports.parse_shard_size(bad)
+
+
+def test_float16_depth_is_smaller_within_half_precision_and_refuses_what_it_cannot_hold(
+        curated_frames: Path, tmp_path: Path) -> None:
+    out = tmp_path / "h"
+    assert main(["export", "webdataset", str(curated_frames), str(out), "--depth-float16", "--no-progress"]) == 0
+    assert json.loads((out / "index.json").read_text())["depth_dtype"] == "float16"
+    recs = {exports.sample_key(p): r for p, r in load_manifest(curated_frames).items()}
+    for key, s in _read(out, "train").items():
+        d = np.load(io.BytesIO(s["depth.npz"]))
+        exact = media.read_depth(curated_frames / recs[key]["paths"]["clean_depth"])
+        assert d["clean"].dtype == np.float16
+        np.testing.assert_allclose(d["clean"].astype(np.float32), exact, rtol=2.0**-11, atol=0)
+    far = np.full((1, 2, 2), 7e4, np.float32)
+    with pytest.raises(exports.ExportError, match="past float16's 65504"):
+        exports.wds.depth_npz(far, far, dtype="float16")
+    assert np.load(io.BytesIO(exports.wds.depth_npz(far, far)))["clean"][0, 0, 0] == np.float32(7e4)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import sys
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -196,7 +197,17 @@ def encoded_size(width: int, height: int) -> tuple[int, int]:
     return width + width % 2, height + height % 2
 
 
-def check_trainer_shapes(entries: Sequence[PairEntry], *, trainer: str, stacklevel: int = 3) -> list[str]:
+def _caller_level() -> int:
+    """The `stacklevel` that makes a warning raised in this package point at the first caller
+    outside it (the user's line), however many morphgs frames are in between."""
+    pkg = str(Path(__file__).resolve().parents[1])
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(pkg):
+        frame, level = frame.f_back, level + 1  # type: ignore[assignment]
+    return level
+
+
+def check_trainer_shapes(entries: Sequence[PairEntry], *, trainer: str) -> list[str]:
     """Warn (`MorphgsWarning`, at most one per rule) about pairs the video trainers would trim or crop.
 
     Wan-based trainers encode 4k+1 frames (1 + 4 per latent frame; DiffSynth's `LoadVideo` drops the
@@ -211,7 +222,8 @@ def check_trainer_shapes(entries: Sequence[PairEntry], *, trainer: str, stacklev
     if frames:
         n = sum(1 for e in entries if (e.frames - 1) % 4 != 0)
         msgs.append(f"{n} of {len(entries)} pairs have {', '.join(map(str, frames))} frames, not 4k+1 "
-                    f"(e.g. 17, 49, 81): {trainer} keeps only 4k+1 frames (curate with --frames 49)")
+                    f"(e.g. 17, 49, 81): the Wan VAE behind {trainer} takes 4k+1 frames and the rest are dropped "
+                    "(curate with --frames 49)")
     sizes = sorted({encoded_size(e.width, e.height) for e in entries
                     if any(v % 16 for v in encoded_size(e.width, e.height))})
     if sizes:
@@ -219,6 +231,7 @@ def check_trainer_shapes(entries: Sequence[PairEntry], *, trainer: str, stacklev
         txt = ", ".join(f"{w}x{h}" for w, h in sizes)
         msgs.append(f"{n} of {len(entries)} pairs are {txt}, not divisible by 16: {trainer} crops or "
                     "resizes them (curate with --size 832x480)")
+    level = _caller_level()
     for m in msgs:
-        warnings.warn(m, MorphgsWarning, stacklevel=stacklevel)
+        warnings.warn(m, MorphgsWarning, stacklevel=level)
     return msgs

@@ -69,7 +69,7 @@ def _run(fmt: str, layout: _Layout, dataset: str | os.PathLike[str], out: str | 
          write_metadata: Callable[[Path, Sequence[PairEntry]], None]) -> ExportSummary:
     t0 = time.perf_counter()
     root, entries = load_pairs(dataset, configs=configs)
-    msgs = check_trainer_shapes(entries, trainer=layout.trainer, stacklevel=4)
+    msgs = check_trainer_shapes(entries, trainer=layout.trainer)
     with staged_dir(out, root, overwrite=overwrite) as tmp:
         _write_clips(tmp, entries, layout, fps=fps, crf=crf, workers=workers, show_progress=show_progress)
         write_metadata(tmp, entries)

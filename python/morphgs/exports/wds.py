@@ -2,7 +2,8 @@
 
 A sample is the tar members sharing the pair's key (WebDataset groups members by the name up to the
 first dot): `KEY.clean.mp4`, `KEY.corrupted.mp4`, `KEY.json` (cameras, the manifest record) and, for
-pairs curated with --depth, `KEY.depth.npz` (float32 arrays `clean` and `corrupted`, (F, H, W)).
+pairs curated with --depth, `KEY.depth.npz` (arrays `clean` and `corrupted`, (F, H, W), float32 or
+float16).
 Shards hold one split each (`train-000000.tar`, ..., `test-000000.tar`) and are written in key order
 with fixed member metadata, so the same curated folder gives the same shard bytes on every run.
 """
@@ -60,16 +61,30 @@ def parse_shard_size(text: str) -> tuple[int | None, int | None]:
     return size, None
 
 
-def depth_npz(clean: np.ndarray, corrupted: np.ndarray) -> bytes:
-    """An .npz (what `np.load` reads) of two float32 depth stacks, deflate-compressed, with fixed zip
-    timestamps (numpy's own savez stamps the current time, so its bytes change run to run)."""
+def depth_npz(clean: np.ndarray, corrupted: np.ndarray, *, dtype: str = "float32") -> bytes:
+    """An .npz (what `np.load` reads) of two depth stacks with fixed zip timestamps (numpy's own
+    savez stamps the current time, so its bytes change run to run).
+
+    float32 is stored as is: rendered depth barely compresses (deflate saves 18 % of a 49-frame
+    832x480 stack for 3.3 s of CPU). float16 (ArtiFixer's choice; relative error <= 2^-11) is
+    deflated at level 1: 4.4x smaller than float32 in about 1 s.
+
+    Raises:
+        ExportError: an unknown dtype, or a float16 export of depths float16 cannot hold (> 65504).
+    """
+    if dtype not in ("float32", "float16"):
+        raise ExportError(f"depth dtype must be float32 or float16, got {dtype!r}")
     buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+    method = zipfile.ZIP_STORED if dtype == "float32" else zipfile.ZIP_DEFLATED
+    with zipfile.ZipFile(buf, "w", compression=method, compresslevel=1) as zf:
         for name, arr in (("clean", clean), ("corrupted", corrupted)):
+            peak = float(np.max(np.abs(arr[np.isfinite(arr)]), initial=0.0))
+            if dtype == "float16" and peak > 65504:
+                raise ExportError(f"{name} depth reaches {peak:.6g}, past float16's 65504; export depth as float32")
+            npy = io.BytesIO()
+            np.lib.format.write_array(npy, np.ascontiguousarray(arr, dtype=dtype), allow_pickle=False)
             info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_DEFLATED
-            with zf.open(info, "w", force_zip64=True) as f:
-                np.lib.format.write_array(f, np.ascontiguousarray(arr, dtype=np.float32), allow_pickle=False)
+            zf.writestr(info, npy.getbuffer(), compress_type=method, compresslevel=1)
     return buf.getvalue()
 
 
@@ -148,6 +163,7 @@ def export_webdataset(
     shard_bytes: int | None = DEFAULT_SHARD_BYTES,
     shard_samples: int | None = None,
     depth: bool | None = None,
+    depth_dtype: str = "float32",
     fps: float = 16,
     crf: int = 18,
     workers: int | None = None,
@@ -165,6 +181,7 @@ def export_webdataset(
         shard_bytes: start a new shard before one passes this many bytes (None: no byte limit).
         shard_samples: at most this many samples per shard (None: no count limit).
         depth: include `depth.npz` (None: when every pair has depth maps).
+        depth_dtype: "float32" (exact, stored uncompressed) or "float16" (4.4x smaller, deflated).
         fps, crf: H.264 frame rate and quality of the MP4s encoded from frames.
         workers: clips encoded at once (the native thread count by default).
         progress: a progress bar on stderr.
@@ -176,6 +193,8 @@ def export_webdataset(
         FileNotFoundError, ExportError: see `load_pairs` and `staged_dir`; depth asked for but missing;
         a shard size below 1.
     """
+    if depth_dtype not in ("float32", "float16"):
+        raise ExportError(f"depth dtype must be float32 or float16, got {depth_dtype!r}")
     if (shard_bytes is not None and shard_bytes < 1) or (shard_samples is not None and shard_samples < 1):
         raise ExportError(f"shard size must be at least 1, got {shard_bytes} bytes, {shard_samples} samples")
     t0 = time.perf_counter()
@@ -186,7 +205,7 @@ def export_webdataset(
         missing = next(e for e in entries if not e.has_depth)
         raise ExportError(f"{root}: depth asked for, but pair {missing.pair_id} has no depth maps "
                           "(curate with --depth)")
-    msgs = check_trainer_shapes(entries, trainer="Wan-style video training", stacklevel=3)
+    msgs = check_trainer_shapes(entries, trainer="Wan-style video training")
     parts = ["clean.mp4", "corrupted.mp4", "json"] + (["depth.npz"] if depth else [])
 
     with staged_dir(out, root, overwrite=overwrite) as tmp:
@@ -197,7 +216,11 @@ def export_webdataset(
             if part == "json":
                 return _sample_json(e, fps)
             if part == "depth.npz":
-                return depth_npz(media.read_depth(e.depth_paths("clean")), media.read_depth(e.depth_paths("corrupted")))
+                try:
+                    return depth_npz(media.read_depth(e.depth_paths("clean")),
+                                     media.read_depth(e.depth_paths("corrupted")), dtype=depth_dtype)
+                except ExportError as err:
+                    raise ExportError(f"pair {e.pair_id}: {err}") from None
             side = part.split(".")[0]
             path = clip_to_mp4(e, side, work / f"{e.key}.{part}", fps=fps, crf=crf)
             data = path.read_bytes()
@@ -225,10 +248,11 @@ def export_webdataset(
                        "pattern": _pattern(sp, len(writers[sp].shards))}
                   for sp in SPLITS if writers[sp].shards}
         write_json(tmp / "index.json", {"format": "webdataset", "members": parts, "splits": splits,
+                                        "depth_dtype": depth_dtype if depth else None,
                                         "shards": shards,
                                         "shard_size": {"bytes": shard_bytes, "samples": shard_samples}})
         counts = write_export_json(tmp, fmt="webdataset", source=root, entries=entries, warnings=msgs,
                                    options={"shard_bytes": shard_bytes, "shard_samples": shard_samples,
-                                            "depth": depth, "fps": fps, "crf": crf})
+                                            "depth": depth, "depth_dtype": depth_dtype, "fps": fps, "crf": crf})
     return ExportSummary("webdataset", Path(out), counts, msgs,
                          {"shards": shards, "seconds": time.perf_counter() - t0})
