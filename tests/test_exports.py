@@ -209,3 +209,12 @@ def test_config_filter_and_captions_file(curated_frames: Path, tmp_path: Path) -
     assert set(texts.values()) == {"remove degradation"}
     with pytest.raises(exports.ExportError, match="no finished pairs of config blur2d"):
         exports.export("videox-fun", curated_frames, tmp_path / "w", configs=["blur2d"], **Q)
+
+
+def test_keys_are_safe_names_and_stay_unique() -> None:
+    from morphgs.exports.source import _unique_keys
+
+    assert exports.sample_key("garden.v2/morphological@2.0/0003") == "garden-v2_morphological-2-0_0003"
+    keys = _unique_keys(["a.b/c/0000", "a-b/c/0000", "x/c/0000"])
+    assert keys["x/c/0000"] == "x_c_0000"
+    assert len(set(keys.values())) == 3 and keys["a.b/c/0000"].startswith("a-b_c_0000-")

@@ -68,8 +68,7 @@ def _options(args: argparse.Namespace) -> dict[str, Any]:
     opts: dict[str, Any] = {"overwrite": args.overwrite, "configs": args.configs}
     if args.prompt is not None:
         opts["prompt"] = args.prompt
-    if args.format != "difix":
-        opts["progress"] = not args.no_progress
+    opts["progress"] = not args.no_progress
     for dest in ("fps", "crf", "workers", "reference_frame", "depth", "depth_dtype", "relative", "ref_offset"):
         if getattr(args, dest) is not None:
             opts[dest] = getattr(args, dest)

@@ -62,17 +62,20 @@ def export_difix(
     prompt: str = DEFAULT_PROMPT,
     relative: bool = False,
     ref_offset: int | None = None,
+    progress: bool = True,
 ) -> ExportSummary:
     """Difix3D's `data.json` in the folder `out` (the logic of `morphgs export-difix`): one entry per
     frame, the corrupted frame as `image`, the clean one as `target_image`, a clean frame half a clip
     away as `ref_image`. Paths point into the curated folder: absolute, or relative to `out` with
-    `relative`. Pairs curated with --video cannot be exported (Difix3D reads frames).
+    `relative`. Pairs curated with --video cannot be exported (Difix3D reads frames). `progress` is
+    accepted like the other formats' and has nothing to show (data.json is written at once).
 
     Raises:
         FileNotFoundError, ExportError: see `load_pairs` and `staged_dir`; pairs written as video.
     """
     from morphgs.curation.difix import export_difix as write_data_json
 
+    del progress
     root, entries = load_pairs(dataset, configs=configs)
     final = Path(out).absolute()
     with staged_dir(final, root, overwrite=overwrite) as tmp:

@@ -25,7 +25,7 @@ def check_out(out: Path, source: Path, *, overwrite: bool) -> None:
     Raises:
         ExportError: naming OUT and what is wrong.
     """
-    if _inside(source, out):
+    if _inside(source.resolve(), out.resolve()):
         raise ExportError(f"{out}: the export folder would hold (or be) the curated folder {source}")
     if out.is_symlink() or (out.exists() and not out.is_dir()):
         raise ExportError(f"{out}: exists and is not a folder; give a folder path for the export")
