@@ -7,6 +7,7 @@ time (`workers=1`) to show what encoding clips side by side buys.
 
     python benches/bench_export.py            # 4 pairs, 49 frames 832x480 (a few minutes on 2 cores)
     python benches/bench_export.py --quick    # smoke check: 2 pairs of 9 frames 224x128
+    python benches/bench_export.py --cases diffsynth --repeat 3   # some rows, several times
 """
 
 from __future__ import annotations
@@ -55,6 +56,8 @@ def main() -> None:
     ap.add_argument("--size", default="832x480")
     ap.add_argument("--pairs-per-scene", type=int, default=2, help="pairs of each of the 2 built-in scenes")
     ap.add_argument("--threads", type=int, default=2, help="MORPHGS_NUM_THREADS (2 = the target machine)")
+    ap.add_argument("--cases", default="", help="only the rows whose label contains this text")
+    ap.add_argument("--repeat", type=int, default=1, help="time each row this many times (one line each)")
     args = ap.parse_args()
     if args.quick:
         args.frames, args.size, args.pairs_per_scene = 9, "224x128", 1
@@ -74,13 +77,16 @@ def main() -> None:
               f"{time.perf_counter() - t0:.1f} s, not timed), {morphgs.num_threads()} threads, "
               f"{os.cpu_count()} CPUs")
         print(f"  {'format':<34}{'wall s/pair':>12}{'CPU s/pair':>12}{'MB/pair':>10}")
-        for label, fmt, opts in CASES:
-            out = work / "out"
-            c0, t0 = _cpu(), time.perf_counter()
-            exports.export(fmt, data, out, **opts, progress=False)
-            wall, cpu = time.perf_counter() - t0, _cpu() - c0
-            print(f"  {label:<34}{wall / n:>12.2f}{cpu / n:>12.2f}{_mb(out) / n:>10.1f}")
-            shutil.rmtree(out)
+        for _ in range(args.repeat):
+            for label, fmt, opts in CASES:
+                if args.cases not in label:
+                    continue
+                out = work / "out"
+                c0, t0 = _cpu(), time.perf_counter()
+                exports.export(fmt, data, out, **opts, progress=False)
+                wall, cpu = time.perf_counter() - t0, _cpu() - c0
+                print(f"  {label:<34}{wall / n:>12.2f}{cpu / n:>12.2f}{_mb(out) / n:>10.1f}", flush=True)
+                shutil.rmtree(out)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
