@@ -69,10 +69,8 @@ pub fn load(path: &Path, opts: LoadOptions) -> Result<(Scene, LoadReport)> {
         if sog::zip_has_meta(&bytes, path) {
             return sog::read_zip(&bytes, path, opts.on_invalid);
         }
-        if let Err(e) = zip::Zip::open(&bytes, path) {
-            // a damaged archive: say what is wrong with it
-            return Err(e);
-        }
+        // a damaged archive: say what is wrong with it
+        zip::Zip::open(&bytes, path)?;
         return Err(unrecognised(
             path,
             magic,

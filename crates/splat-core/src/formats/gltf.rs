@@ -760,7 +760,7 @@ pub fn encode_glb(scene: &SceneView<'_>, generator: &str) -> Result<Vec<u8>> {
         let off = bin.len();
         let len = bytes.len();
         bin.extend_from_slice(&bytes);
-        while bin.len() % 4 != 0 {
+        while !bin.len().is_multiple_of(4) {
             bin.push(0);
         }
         let i = views.len();
@@ -884,7 +884,7 @@ pub fn encode_glb(scene: &SceneView<'_>, generator: &str) -> Result<Vec<u8>> {
     });
     let mut json_bytes = serde_json::to_vec(&doc)
         .map_err(|e| Error::InvalidArgument(format!("cannot encode glTF JSON: {e}")))?;
-    while json_bytes.len() % 4 != 0 {
+    while !json_bytes.len().is_multiple_of(4) {
         json_bytes.push(b' ');
     }
     let total = 12 + 8 + json_bytes.len() + 8 + bin.len();
