@@ -22,8 +22,10 @@
 //! positive scale; rotating higher SH bands is not supported and is refused). Sparse accessors,
 //! `KHR_gaussian_splatting` compression extensions and other required extensions are refused
 //! with a clear error rather than misread.
+use std::borrow::Cow;
 use std::path::{Component, Path, PathBuf};
 
+use rayon::prelude::*;
 use serde_json::{json, Value};
 
 use super::{check_finite, finish, flip_axes, logit_unit, sigmoid, to_u8, unit_quat};
@@ -169,7 +171,11 @@ fn check_required(doc: &Value, path: &Path) -> Result<()> {
     Ok(())
 }
 
-fn load_buffers(doc: &Value, glb_bin: Option<&[u8]>, path: &Path) -> Result<Vec<Vec<u8>>> {
+fn load_buffers<'a>(
+    doc: &Value,
+    glb_bin: Option<&'a [u8]>,
+    path: &Path,
+) -> Result<Vec<Cow<'a, [u8]>>> {
     let Some(list) = doc.get("buffers").and_then(Value::as_array) else {
         return Ok(Vec::new());
     };
@@ -185,13 +191,15 @@ fn load_buffers(doc: &Value, glb_bin: Option<&[u8]>, path: &Path) -> Result<Vec<
                 let bin = glb_bin
                     .filter(|_| i == 0)
                     .ok_or_else(|| gerr(path, &at, "has no uri and there is no GLB BIN chunk"))?;
-                bin.to_vec()
+                Cow::Borrowed(bin)
             }
             Some(uri) if uri.starts_with("data:") => {
                 let (_, b64) = uri
                     .split_once(";base64,")
                     .ok_or_else(|| gerr(path, &at, "data URI is not base64"))?;
-                base64(b64).ok_or_else(|| gerr(path, &at, "data URI holds invalid base64"))?
+                Cow::Owned(
+                    base64(b64).ok_or_else(|| gerr(path, &at, "data URI holds invalid base64"))?,
+                )
             }
             Some(uri) => {
                 let rel = Path::new(uri);
@@ -206,7 +214,7 @@ fn load_buffers(doc: &Value, glb_bin: Option<&[u8]>, path: &Path) -> Result<Vec<
                     ));
                 }
                 let p: PathBuf = path.parent().unwrap_or(Path::new(".")).join(rel);
-                std::fs::read(&p).map_err(|e| Error::io(&p, e))?
+                Cow::Owned(std::fs::read(&p).map_err(|e| Error::io(&p, e))?)
             }
         };
         if (data.len() as u64) < len {
@@ -273,7 +281,7 @@ const IDENTITY: Mat4 = [
 struct Doc<'a> {
     v: &'a Value,
     path: &'a Path,
-    buffers: Vec<Vec<u8>>,
+    buffers: Vec<Cow<'a, [u8]>>,
 }
 
 impl<'a> Doc<'a> {
@@ -496,6 +504,16 @@ impl<'a> Doc<'a> {
         }
         let base = (bv_off + a_off) as usize;
         let data = &buf[base..(bv_off + need) as usize];
+        if ct == 5126 && stride == elem {
+            // tightly packed floats: the common case, converted in parallel
+            return Ok(data
+                .par_chunks(4 * 4096)
+                .flat_map_iter(|c| {
+                    c.chunks_exact(4)
+                        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                })
+                .collect());
+        }
         let mut out = Vec::with_capacity(count as usize * comps);
         for i in 0..count as usize {
             let e = &data[i * stride as usize..];
@@ -622,26 +640,27 @@ impl<'a> Doc<'a> {
             q.copy_from_slice(&[r[3], r[0], r[1], r[2]]);
         }
         s.log_scales = scale
-            .iter()
+            .par_iter()
             .map(|&v| v.max(f32::MIN_POSITIVE).ln())
             .collect();
-        s.opacity_logits = opacity.iter().map(|&a| logit_unit(a)).collect();
-        let mut j = 0;
-        for band in &bands {
-            for coef in band {
-                if coef.len() != n * 3 {
-                    return Err(gerr(
-                        p,
-                        &format!("{at}.attributes"),
-                        "an SH attribute's count differs from POSITION's",
-                    ));
-                }
-                for i in 0..n {
-                    s.sh_rest[(i * k + j) * 3..(i * k + j) * 3 + 3]
-                        .copy_from_slice(&coef[i * 3..i * 3 + 3]);
-                }
-                j += 1;
-            }
+        s.opacity_logits = opacity.par_iter().map(|&a| logit_unit(a)).collect();
+        let coefs: Vec<&Vec<f32>> = bands.iter().flatten().collect();
+        if coefs.iter().any(|c| c.len() != n * 3) {
+            return Err(gerr(
+                p,
+                &format!("{at}.attributes"),
+                "an SH attribute's count differs from POSITION's",
+            ));
+        }
+        if k > 0 {
+            s.sh_rest
+                .par_chunks_mut(3 * k)
+                .enumerate()
+                .for_each(|(i, row)| {
+                    for (j, c) in coefs.iter().enumerate() {
+                        row[j * 3..j * 3 + 3].copy_from_slice(&c[i * 3..i * 3 + 3]);
+                    }
+                });
         }
         Ok(s)
     }

@@ -15,6 +15,8 @@
 //! SceneSplat data loaders cast to) are read on the same 0-255 scale.
 use std::path::{Path, PathBuf};
 
+use rayon::prelude::*;
+
 use super::{finish, logit_unit, npy};
 use crate::error::{Error, Result};
 use crate::ply::{LoadReport, OnInvalid};
@@ -105,11 +107,11 @@ pub fn read(dir: &Path, on_invalid: OnInvalid) -> Result<(Scene, LoadReport)> {
     let mut s = Scene::zeroed(n, 0);
     s.means = coord.values;
     s.quats = quat.values;
-    s.sh0 = color.values.iter().map(|&c| color_to_dc(c)).collect();
-    s.opacity_logits = opacity.values.iter().map(|&a| logit_unit(a)).collect();
+    s.sh0 = color.values.par_iter().map(|&c| color_to_dc(c)).collect();
+    s.opacity_logits = opacity.values.par_iter().map(|&a| logit_unit(a)).collect();
     s.log_scales = scale
         .values
-        .iter()
+        .par_iter()
         .map(|&v| {
             if v == 0.0 {
                 f32::MIN_POSITIVE.ln()
