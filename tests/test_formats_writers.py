@@ -4,6 +4,7 @@ writer by name, and the .spz extension records and v1 layout of nianticlabs/spz.
 from __future__ import annotations
 
 import gzip
+import os
 import struct
 import subprocess
 import sys
@@ -171,3 +172,18 @@ def test_convert_cli_to_every_writer(fixtures_dir: Path, tmp_path: Path) -> None
         assert r.returncode == 0, r.stderr
         assert "31,658 Gaussians" in r.stdout
         assert len(morphgs.load(tmp_path / name)) == 31658
+
+
+def test_writers_give_the_same_bytes_on_one_thread(fixtures_dir: Path, tmp_path: Path) -> None:
+    src = fixtures_dir / "marcelpadilla_spot_10k.splat"
+    names = ["t.compressed.ply", "t.glb", "t.spz"]
+    code = ("import sys, morphgs; s = morphgs.load(sys.argv[1]); "
+            "[morphgs.save(s, f'{sys.argv[2]}/{n}', spz_version=4) for n in sys.argv[3:]]")
+    one = tmp_path / "one"
+    one.mkdir()
+    env = {**os.environ, "RAYON_NUM_THREADS": "1"}
+    subprocess.run([sys.executable, "-c", code, str(src), str(one), *names], check=True, env=env)
+    scene = morphgs.load(src)
+    for n in names:
+        morphgs.save(scene, tmp_path / n, spz_version=4)
+        assert (tmp_path / n).read_bytes() == (one / n).read_bytes(), n
