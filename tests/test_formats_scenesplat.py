@@ -104,3 +104,13 @@ def test_malformed_scenesplat_folders(fixtures_dir: Path, tmp_path: Path) -> Non
 def test_a_folder_that_is_no_scene(tmp_path: Path) -> None:
     with pytest.raises(IsADirectoryError, match="neither a SceneSplat"):
         morphgs.load(tmp_path)
+
+
+def test_curation_discovers_scene_folders(fixtures_dir: Path, tmp_path: Path) -> None:
+    from morphgs.curation.sources import discover
+
+    folder = tmp_path / "scene0000_00"
+    _preprocess_gs(morphgs.load(fixtures_dir / "metalsplatter_train3.ply"), folder)
+    sources, problems = discover([folder, fixtures_dir / "playcanvas_engine_playbot_lod6"])
+    assert problems == []
+    assert [s.path for s in sources] == [str(folder), str(fixtures_dir / "playcanvas_engine_playbot_lod6")]
