@@ -16,10 +16,13 @@ from morphgs._core import (
     gaussian_blur,
     load,
     num_threads,
+    save_compressed_ply,
+    save_glb,
     save_ply,
     save_splat,
     save_spz,
 )
+from morphgs.saving import save
 from morphgs.camera import Camera, Cameras
 from morphgs.pair import Pair, render_pair
 from morphgs import trajectory
@@ -51,6 +54,9 @@ __all__ = [
     "render",
     "render_many",
     "render_pair",
+    "save",
+    "save_compressed_ply",
+    "save_glb",
     "save_ply",
     "save_splat",
     "save_spz",
