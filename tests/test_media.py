@@ -78,6 +78,9 @@ def test_depth_exr_folder_reads_back_bit_exact(tmp_path: Path) -> None:
     (tmp_path / "depth").mkdir()
     _core._write_exr_batch([tmp_path / "depth" / f"{i:05d}.depth.exr" for i in range(3)], d)
     np.testing.assert_array_equal(media.read_depth(tmp_path / "depth"), d)
+    # alpha maps beside the depth maps (Render.save writes both) are not depth
+    _core._write_exr_batch([tmp_path / "depth" / f"{i:05d}.alpha.exr" for i in range(3)], d * 0 + 1)
+    np.testing.assert_array_equal(media.read_depth(tmp_path / "depth"), d)
 
 
 @pytest.mark.parametrize("case", ["empty", "unreadable", "sizes", "past_end", "not_video", "bad_video", "rgb_depth"])

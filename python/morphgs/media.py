@@ -196,11 +196,15 @@ def _read_video(p: Path, start: int, count: int | None) -> np.ndarray:
 
 def read_depth(paths: Sequence[str | os.PathLike[str]] | str | os.PathLike[str]) -> np.ndarray:
     """Single-channel float32 EXR depth maps as (F, H, W): a list of files, or a folder whose
-    `*.exr` files are read in name order. Files are decoded in parallel (Rust)."""
+    `*.depth.exr` files (as `morphgs curate --depth` and `Render.save` write them beside
+    `*.alpha.exr` maps) are read in name order — or all its `*.exr` files when none is named
+    `.depth.exr`. Files are decoded in parallel (Rust)."""
     from morphgs import _core
 
     if isinstance(paths, (str, os.PathLike)):
         files = frame_paths(paths, suffixes=(".exr",))
+        named = [f for f in files if f.name.lower().endswith(".depth.exr")]
+        files = named or files
     else:
         files = [Path(p) for p in paths]
     for f in files:
