@@ -58,7 +58,7 @@ fn cameras_from(
 
 /// The blend kernel: the best the CPU has, or a lower one named by `MORPHGS_SIMD` (`avx512`,
 /// `avx2`, `scalar`; for benchmarks and for checking a result on another kernel).
-fn simd_from_env() -> PyResult<raster::Simd> {
+pub(crate) fn simd_from_env() -> PyResult<raster::Simd> {
     match std::env::var("MORPHGS_SIMD") {
         Err(_) => Ok(raster::Simd::Auto),
         Ok(v) => raster::Simd::parse(&v).ok_or_else(|| {
