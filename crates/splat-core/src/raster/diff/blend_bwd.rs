@@ -291,6 +291,32 @@ pub(crate) fn bwd_tile<'a>(
 ) -> u64 {
     match p.simd {
         #[cfg(target_arch = "x86_64")]
+        // SAFETY: `Simd::resolve` only yields Avx512 when the CPU reports these features.
+        Simd::Avx512 => unsafe {
+            super::blend_bwd_avx512::bwd_tile_avx512(x0, y0, p, splats, lists, pix, sink)
+        },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `Simd::resolve` only yields Avx2 when the CPU reports AVX2 and FMA.
+        Simd::Avx2 => unsafe {
+            super::blend_bwd_avx2::bwd_tile_avx2(x0, y0, p, splats, lists, pix, sink)
+        },
+        _ => bwd_tile_scalar(x0, y0, p, splats, lists, pix, sink),
+    }
+}
+
+/// The generic kernel of the same rounding as `p.simd`'s (with FMA for the AVX kernels):
+/// the same results as [`bwd_tile`], one pair at a time (it can record contributions).
+pub(crate) fn bwd_tile_generic<'a>(
+    x0: u32,
+    y0: u32,
+    p: &BlendParams,
+    splats: &[Splat],
+    lists: impl Iterator<Item = &'a [u32]>,
+    pix: &PixIn,
+    sink: &mut impl SlotSink,
+) -> u64 {
+    match p.simd {
+        #[cfg(target_arch = "x86_64")]
         // SAFETY: `Simd::resolve` only yields Avx512 / Avx2 when the CPU has AVX2 and FMA.
         Simd::Avx512 | Simd::Avx2 => unsafe {
             bwd_tile_generic_fma(x0, y0, p, splats, lists, pix, sink)

@@ -33,9 +33,15 @@ use crate::error::{Error, Result};
 use crate::scene::SceneView;
 
 mod blend_bwd;
+#[cfg(target_arch = "x86_64")]
+mod blend_bwd_avx2;
+#[cfg(target_arch = "x86_64")]
+mod blend_bwd_avx512;
 mod densify;
 mod gauss_bwd;
 mod sh_bwd;
+#[cfg(test)]
+mod tests;
 
 pub use densify::DensifyStats;
 
@@ -214,8 +220,15 @@ pub struct Workspace {
     /// Tile range (x0, x1, y0, y1) of each sorted splat.
     rects: Vec<[u16; 4]>,
     tiles: Vec<TileOut>,
+    /// First visible rank of each projection chunk: visible Gaussians in index order are
+    /// `parts` concatenated, rank = part_off[c] + j.
+    part_off: Vec<usize>,
+    /// Visible rank of each sorted splat.
+    rank: Vec<u32>,
     band_start: Vec<u32>,
     slots: Vec<[f32; slot::LEN]>,
+    /// Summed slots per visible Gaussian, by visible rank (index order, so the per-Gaussian
+    /// pass reads and writes every buffer in order).
     acc: Vec<[f32; slot::LEN]>,
 }
 
@@ -278,6 +291,21 @@ impl Workspace {
             &mut self.ids,
         );
         stats.visible = self.sorted.len() as u64;
+        self.part_off.clear();
+        let mut off = 0;
+        for part in &self.parts {
+            self.part_off.push(off);
+            off += part.len();
+        }
+        let part_off = &self.part_off;
+        self.keys
+            .par_iter()
+            .with_min_len(4096)
+            .map(|&(_, payload)| {
+                let c = (payload >> project::PROJECT_CHUNK_BITS) as usize;
+                (part_off[c] + (payload & ((1 << project::PROJECT_CHUNK_BITS) - 1)) as usize) as u32
+            })
+            .collect_into_vec(&mut self.rank);
         if let Some(c) = colors {
             self.sorted
                 .par_iter_mut()
@@ -453,13 +481,15 @@ impl Workspace {
             v.reset(n);
         }
         let scatter = Scatter::new(out, view, densify, k, (sv.cam.width, sv.cam.height));
-        self.sorted
-            .par_chunks(GAUSS_CHUNK)
-            .zip(self.ids.par_chunks(GAUSS_CHUNK))
-            .zip(self.acc.par_chunks(GAUSS_CHUNK))
-            .for_each(|((ss, ids), accs)| {
-                for ((s, &i), acc) in ss.iter().zip(ids).zip(accs) {
-                    let g = gauss_bwd::gauss_backward(&ctx, i as usize, s, acc);
+        let (acc, part_off) = (&self.acc, &self.part_off);
+        self.parts
+            .par_iter()
+            .zip(self.part_ids.par_iter())
+            .enumerate()
+            .for_each(|(c, (ss, ids))| {
+                let accs = &acc[part_off[c]..part_off[c] + ss.len()];
+                for ((s, &i), a) in ss.iter().zip(ids).zip(accs) {
+                    let g = gauss_bwd::gauss_backward(&ctx, i as usize, s, a);
                     // SAFETY: every Gaussian index occurs once among the visible splats.
                     unsafe { scatter.put(i as usize, s, &g, sv.degree) };
                 }
@@ -511,7 +541,7 @@ impl Workspace {
             let (x0, y0) = ((t % tiles_x) * LANES, (t / tiles_x) * LANES);
             rec.x0 = x0 as u32;
             rec.y0 = y0 as u32;
-            blend_bwd::bwd_tile(
+            blend_bwd::bwd_tile_generic(
                 x0 as u32,
                 y0 as u32,
                 &sv.blend,
@@ -634,21 +664,24 @@ impl Workspace {
     /// Add each visible splat's slots of rows [r0, r1) to its running sums, in row-major
     /// tile order.
     fn reduce_band(&mut self, r0: u32, r1: u32) {
-        let (slots, rects, starts) = (&self.slots, &self.rects, &self.band_start);
-        self.acc
-            .par_chunks_mut(GAUSS_CHUNK)
-            .enumerate()
-            .for_each(|(c, accs)| {
-                for (j, acc) in accs.iter_mut().enumerate() {
-                    let p = c * GAUSS_CHUNK + j;
+        let (slots, rects, starts, rank) = (&self.slots, &self.rects, &self.band_start, &self.rank);
+        let acc = AccWriter(self.acc.as_mut_ptr());
+        let acc = &acc;
+        (0..rects.len().div_ceil(GAUSS_CHUNK))
+            .into_par_iter()
+            .for_each(|c| {
+                for p in c * GAUSS_CHUNK..((c + 1) * GAUSS_CHUNK).min(rects.len()) {
                     let rc = rects[p];
                     let rows = (rc[3] as u32)
                         .min(r1)
                         .saturating_sub((rc[2] as u32).max(r0));
                     let len = (rows * (rc[1] as u32 - rc[0] as u32)) as usize;
                     let start = starts[p] as usize;
+                    // SAFETY: `rank` is a permutation of 0..visible (one rank per splat), so
+                    // this task alone touches entry rank[p], which is in bounds.
+                    let a = unsafe { &mut *acc.0.add(rank[p] as usize) };
                     for s in &slots[start..start + len] {
-                        for (a, v) in acc.iter_mut().zip(s) {
+                        for (a, v) in a.iter_mut().zip(s) {
                             *a += v;
                         }
                     }
@@ -656,6 +689,12 @@ impl Workspace {
             });
     }
 }
+
+/// The running sums, written at each splat's rank from parallel tasks.
+struct AccWriter(*mut [f32; slot::LEN]);
+
+// SAFETY: see `reduce_band`: each entry is written by one task.
+unsafe impl Sync for AccWriter {}
 
 /// Visible Gaussians per per-Gaussian work unit (fixed, independent of the thread count).
 const GAUSS_CHUNK: usize = 2048;
