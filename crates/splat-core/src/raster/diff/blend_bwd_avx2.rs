@@ -75,7 +75,7 @@ fn hsum12(v: &[[__m256; 2]; 12]) -> [f32; slot::LEN] {
 /// Replay one tile's list with AVX2 + FMA and emit every entry's slot.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-pub(super) fn bwd_tile_avx2<'a, S: SlotSink>(
+pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -157,6 +157,7 @@ pub(super) fn bwd_tile_avx2<'a, S: SlotSink>(
             }
             if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
                 prefetch(splats, ahead as usize);
+                sink.prefetch(ahead);
             }
             let s = &splats[gi as usize];
             let (mx, my) = (s.xy[0], s.xy[1]);
@@ -286,10 +287,14 @@ pub(super) fn bwd_tile_avx2<'a, S: SlotSink>(
                     a[4][h] = _mm256_blendv_ps(a[4][h], _mm256_add_ps(a[4][h], uu), m2);
                     a[5][h] = _mm256_blendv_ps(a[5][h], _mm256_fmadd_ps(uu, dyv, a[5][h]), m2);
                     a[6][h] = _mm256_blendv_ps(a[6][h], _mm256_fmadd_ps(uu, dy2v, a[6][h]), m2);
-                    let ax = _mm256_and_ps(_mm256_mul_ps(uu, _mm256_add_ps(adx[h], bdy)), abs_mask);
-                    let ay = _mm256_and_ps(_mm256_mul_ps(uu, _mm256_add_ps(bdx[h], cdy)), abs_mask);
-                    a[7][h] = _mm256_blendv_ps(a[7][h], _mm256_add_ps(a[7][h], ax), m2);
-                    a[8][h] = _mm256_blendv_ps(a[8][h], _mm256_add_ps(a[8][h], ay), m2);
+                    if ABS {
+                        let ax =
+                            _mm256_and_ps(_mm256_mul_ps(uu, _mm256_add_ps(adx[h], bdy)), abs_mask);
+                        let ay =
+                            _mm256_and_ps(_mm256_mul_ps(uu, _mm256_add_ps(bdx[h], cdy)), abs_mask);
+                        a[7][h] = _mm256_blendv_ps(a[7][h], _mm256_add_ps(a[7][h], ax), m2);
+                        a[8][h] = _mm256_blendv_ps(a[8][h], _mm256_add_ps(a[8][h], ay), m2);
+                    }
                     // SAFETY: see above
                     unsafe {
                         _mm256_store_ps(t_ptr.add(o), _mm256_blendv_ps(t, tn, contrib));

@@ -78,7 +78,7 @@ fn hsum12(v: &[__m512; 12]) -> [f32; slot::LEN] {
 /// Replay one tile's list with AVX-512 and emit every entry's slot (see the generic kernel).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
-pub(super) fn bwd_tile_avx512<'a, S: SlotSink>(
+pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -150,6 +150,7 @@ pub(super) fn bwd_tile_avx512<'a, S: SlotSink>(
             }
             if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
                 prefetch(splats, ahead as usize);
+                sink.prefetch(ahead);
             }
             let s = &splats[gi as usize];
             let (mx, my) = (s.xy[0], s.xy[1]);
@@ -251,12 +252,16 @@ pub(super) fn bwd_tile_avx512<'a, S: SlotSink>(
                 acc[4] = _mm512_mask_add_ps(acc[4], unclamped, acc[4], uu);
                 acc[5] = _mm512_mask3_fmadd_ps(uu, _mm512_set1_ps(dy_r.0[r]), acc[5], unclamped);
                 acc[6] = _mm512_mask3_fmadd_ps(uu, _mm512_set1_ps(dy2_r.0[r]), acc[6], unclamped);
-                let ax = _mm512_mul_ps(uu, _mm512_add_ps(adx, _mm512_set1_ps(bdy_r.0[r])));
-                let ay = _mm512_mul_ps(uu, _mm512_add_ps(bdx, _mm512_set1_ps(cdy_r.0[r])));
-                let ax = _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(ax), abs_mask));
-                let ay = _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(ay), abs_mask));
-                acc[7] = _mm512_mask_add_ps(acc[7], unclamped, acc[7], ax);
-                acc[8] = _mm512_mask_add_ps(acc[8], unclamped, acc[8], ay);
+                if ABS {
+                    let ax = _mm512_mul_ps(uu, _mm512_add_ps(adx, _mm512_set1_ps(bdy_r.0[r])));
+                    let ay = _mm512_mul_ps(uu, _mm512_add_ps(bdx, _mm512_set1_ps(cdy_r.0[r])));
+                    let ax =
+                        _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(ax), abs_mask));
+                    let ay =
+                        _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(ay), abs_mask));
+                    acc[7] = _mm512_mask_add_ps(acc[7], unclamped, acc[7], ax);
+                    acc[8] = _mm512_mask_add_ps(acc[8], unclamped, acc[8], ay);
+                }
                 // SAFETY: see above
                 unsafe {
                     _mm512_store_ps(t_ptr.add(o), _mm512_mask_mov_ps(t, contrib, tn));

@@ -242,10 +242,10 @@ fn explicit_kernels_give_the_generic_kernels_slots_tile_by_tile() {
     }
     let mut checked = 0;
     let mut nonzero = 0;
-    for (n, max_alpha, w, h, aa) in [
-        (3000, 0.99, 100, 70, false),
-        (20000, 0.999, 100, 70, false),
-        (8000, 0.99, 61, 45, true),
+    for (n, max_alpha, w, h, aa, abs) in [
+        (3000, 0.99, 100, 70, false, true),
+        (20000, 0.999, 100, 70, false, false),
+        (8000, 0.99, 61, 45, true, true),
     ] {
         let s = scene(n, 3, n as u64);
         let cam = camera(w, h);
@@ -283,19 +283,19 @@ fn explicit_kernels_give_the_generic_kernels_slots_tile_by_tile() {
                 &mut pix,
             );
             let lists = || ws.bins.lists(t);
+            // the kernel instance for this absgrad setting
+            macro_rules! call {
+                ($($f:ident)::+, $out:expr) => {
+                    if abs {
+                        $($f)::+::<true, _>(x0 as u32, y0 as u32, &sv.blend, &ws.sorted, lists(), &pix, $out)
+                    } else {
+                        $($f)::+::<false, _>(x0 as u32, y0 as u32, &sv.blend, &ws.sorted, lists(), &pix, $out)
+                    }
+                };
+            }
             let mut want = VecSink::default();
             // SAFETY: AVX2 and FMA are present (checked above; AVX-512 implies both).
-            let we = unsafe {
-                blend_bwd::bwd_tile_generic_fma(
-                    x0 as u32,
-                    y0 as u32,
-                    &sv.blend,
-                    &ws.sorted,
-                    lists(),
-                    &pix,
-                    &mut want,
-                )
-            };
+            let we = unsafe { call!(blend_bwd::bwd_tile_generic_fma, &mut want) };
             nonzero += want
                 .0
                 .iter()
@@ -305,33 +305,13 @@ fn explicit_kernels_give_the_generic_kernels_slots_tile_by_tile() {
             if Simd::Avx2.resolve() == Simd::Avx2 {
                 let mut o = VecSink::default();
                 // SAFETY: AVX2 and FMA are present.
-                let e = unsafe {
-                    blend_bwd_avx2::bwd_tile_avx2(
-                        x0 as u32,
-                        y0 as u32,
-                        &sv.blend,
-                        &ws.sorted,
-                        lists(),
-                        &pix,
-                        &mut o,
-                    )
-                };
+                let e = unsafe { call!(blend_bwd_avx2::bwd_tile_avx2, &mut o) };
                 got.push(("avx2", o, e));
             }
             if Simd::Avx512.resolve() == Simd::Avx512 {
                 let mut o = VecSink::default();
                 // SAFETY: the AVX-512 features are present.
-                let e = unsafe {
-                    blend_bwd_avx512::bwd_tile_avx512(
-                        x0 as u32,
-                        y0 as u32,
-                        &sv.blend,
-                        &ws.sorted,
-                        lists(),
-                        &pix,
-                        &mut o,
-                    )
-                };
+                let e = unsafe { call!(blend_bwd_avx512::bwd_tile_avx512, &mut o) };
                 got.push(("avx512", o, e));
             }
             for (name, o, e) in got {
