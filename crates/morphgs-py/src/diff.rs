@@ -36,8 +36,14 @@ fn slice<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
     a: &'a numpy::PyReadonlyArray<'_, T, D>,
     name: &str,
 ) -> PyResult<&'a [T]> {
+    // as_slice also accepts Fortran order, whose memory order is not the row-major layout
+    if !a.is_c_contiguous() {
+        return Err(PyValueError::new_err(format!(
+            "{name} must be a C-contiguous array"
+        )));
+    }
     a.as_slice()
-        .map_err(|_| PyValueError::new_err(format!("{name} must be a C-contiguous float32 array")))
+        .map_err(|_| PyValueError::new_err(format!("{name} must be a C-contiguous array")))
 }
 
 impl Params<'_> {
@@ -290,7 +296,7 @@ impl PyDiffRasterizer {
         let d = PyDict::new(py);
         let bad = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
         let put2 = |name: &str, v: Vec<f32>, cols: usize| -> PyResult<()> {
-            let rows = if cols == 0 { 0 } else { v.len() / cols };
+            let rows = v.len().checked_div(cols).unwrap_or(0);
             d.set_item(
                 name,
                 Array2::from_shape_vec((rows, cols), v)

@@ -22,6 +22,12 @@ fn slice_of<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
     a: &'a numpy::PyReadonlyArray<'_, T, D>,
     name: &str,
 ) -> PyResult<&'a [T]> {
+    // as_slice also accepts Fortran order, whose memory order is not the row-major layout
+    if !a.is_c_contiguous() {
+        return Err(PyValueError::new_err(format!(
+            "{name} must be C-contiguous"
+        )));
+    }
     a.as_slice()
         .map_err(|_| PyValueError::new_err(format!("{name} must be C-contiguous")))
 }

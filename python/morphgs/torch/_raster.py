@@ -73,7 +73,9 @@ class _Rasterize(torch.autograd.Function):
         for c in range(setup.viewmats.shape[0]):
             r = _take()
             setup.rasterizers.append(r)
-            bg = (0.0, 0.0, 0.0) if backgrounds is None else tuple(float(v) for v in backgrounds[c])
+            bg = (0.0, 0.0, 0.0)
+            if backgrounds is not None:
+                bg = (float(backgrounds[c, 0]), float(backgrounds[c, 1]), float(backgrounds[c, 2]))
             rgb, depth, alpha, _ = r.forward(
                 *setup.arrays, setup.viewmats[c], setup.Ks[c], setup.width, setup.height,
                 near=setup.near, far=setup.far, background=bg, max_alpha=setup.max_alpha,

@@ -180,6 +180,9 @@ struct BinChunk {
     offsets: Vec<u32>,
     /// Positions in the sorted splat array.
     items: Vec<u32>,
+    /// With the splat map (for the backward): each splat's entries in `items`, splat by splat
+    /// (the chunk's order), each splat's tiles in row-major order.
+    entry_of: Vec<u32>,
 }
 
 /// Per-tile lists of sorted splat positions.
@@ -194,12 +197,19 @@ impl TileBins {
     /// Bucket depth-sorted splats by tile.
     pub(crate) fn build(sorted: &[Splat], tiles_x: u32, tiles_y: u32) -> Result<Self> {
         let mut bins = TileBins::default();
-        bins.rebuild(sorted, tiles_x, tiles_y)?;
+        bins.rebuild(sorted, tiles_x, tiles_y, false)?;
         Ok(bins)
     }
 
-    /// [`TileBins::build`] reusing this value's buffers (an optimiser loop bins every step).
-    pub(crate) fn rebuild(&mut self, sorted: &[Splat], tiles_x: u32, tiles_y: u32) -> Result<()> {
+    /// [`TileBins::build`] reusing this value's buffers (an optimiser loop bins every step);
+    /// `splat_map` also records where each splat's entries are ([`TileBins::entries_of`]).
+    pub(crate) fn rebuild(
+        &mut self,
+        sorted: &[Splat],
+        tiles_x: u32,
+        tiles_y: u32,
+        splat_map: bool,
+    ) -> Result<()> {
         let n_tiles = (tiles_x * tiles_y) as usize;
         self.tiles_x = tiles_x;
         self.tiles_y = tiles_y;
@@ -240,6 +250,11 @@ impl TileBins {
                 let items = &mut chunk.items;
                 items.clear();
                 items.resize(total as usize, 0);
+                let entry_of = &mut chunk.entry_of;
+                entry_of.clear();
+                if splat_map {
+                    entry_of.reserve(total as usize);
+                }
                 for (j, s) in part.iter().enumerate() {
                     let (x0, x1, y0, y1) = tile_range(s, tiles_x, tiles_y);
                     for ty in y0..y1 {
@@ -247,12 +262,37 @@ impl TileBins {
                         for tx in x0..x1 {
                             let cur = &mut cursor[row + tx as usize];
                             items[*cur as usize] = (base + j) as u32;
+                            if splat_map {
+                                entry_of.push(*cur);
+                            }
                             *cur += 1;
                         }
                     }
                 }
                 Ok(())
             })
+    }
+
+    /// Sorted splats per binning chunk: splat p is binned by chunk p / BIN_CHUNK.
+    pub(crate) const CHUNK: usize = BIN_CHUNK;
+
+    /// Number of binning chunks.
+    pub(crate) fn n_chunks(&self) -> usize {
+        self.chunks.len()
+    }
+
+    /// Chunk c's entries before tile t's (its list is entries [start(c, t), start(c, t + 1))).
+    #[inline]
+    pub(crate) fn start(&self, c: usize, t: usize) -> u32 {
+        self.chunks[c].offsets[t]
+    }
+
+    /// With the splat map: chunk c's entry indices of all its splats' tiles (splat-major, each
+    /// splat's tiles row-major); splat j of the chunk starts at the sum of the earlier splats'
+    /// tile counts.
+    #[inline]
+    pub(crate) fn entries_of(&self, c: usize) -> &[u32] {
+        &self.chunks[c].entry_of
     }
 
     /// Number of entries in tile `t`'s list.
@@ -276,7 +316,7 @@ impl TileBins {
     pub(crate) fn bytes(&self) -> usize {
         self.chunks
             .iter()
-            .map(|c| (c.offsets.capacity() + c.items.capacity()) * 4)
+            .map(|c| (c.offsets.capacity() + c.items.capacity() + c.entry_of.capacity()) * 4)
             .sum()
     }
 

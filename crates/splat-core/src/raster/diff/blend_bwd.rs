@@ -38,7 +38,8 @@ impl Default for PixIn {
     }
 }
 
-/// Where a tile kernel puts the slot of list entry `pos` (a sorted-splat position).
+/// Where a tile kernel puts the slot of list entry `pos` (a sorted-splat position). Kernels
+/// call `put` exactly once per entry of the tile's list, in list order.
 pub(crate) trait SlotSink {
     fn put(&mut self, pos: u32, vals: &[f32; slot::LEN]);
     /// Called for every (pixel, Gaussian) pair that contributes, in blend order, when
@@ -46,9 +47,6 @@ pub(crate) trait SlotSink {
     /// whether alpha was clamped at max_alpha.
     const RECORD: bool = false;
     fn contrib(&mut self, _r: usize, _l: usize, _pos: u32, _clamped: bool) {}
-    /// A hint that entry `pos`'s slot will be written soon.
-    #[inline(always)]
-    fn prefetch(&self, _pos: u32) {}
 }
 
 #[inline(always)]
@@ -154,7 +152,6 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
             }
             if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
                 prefetch(splats, ahead as usize);
-                sink.prefetch(ahead);
             }
             let s = &splats[gi as usize];
             let (mx, my) = (s.xy[0], s.xy[1]);

@@ -150,7 +150,6 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
             }
             if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
                 prefetch(splats, ahead as usize);
-                sink.prefetch(ahead);
             }
             let s = &splats[gi as usize];
             let (mx, my) = (s.xy[0], s.xy[1]);

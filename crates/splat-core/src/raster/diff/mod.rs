@@ -223,13 +223,18 @@ pub struct Workspace {
     bins: TileBins,
     /// Tile range (x0, x1, y0, y1) of each sorted splat.
     rects: Vec<[u16; 4]>,
+    /// Where each sorted splat's entries start in its binning chunk's splat map.
+    first: Vec<u32>,
     tiles: Vec<TileOut>,
     /// First visible rank of each projection chunk: visible Gaussians in index order are
     /// `parts` concatenated, rank = part_off[c] + j.
     part_off: Vec<usize>,
     /// Sorted position of each visible rank (the inverse of the depth order).
     pos: Vec<u32>,
-    band_start: Vec<u32>,
+    /// Per binning chunk, for the current band: its first slot and its first entry.
+    band_base: Vec<usize>,
+    band_lo: Vec<u32>,
+    /// The band's slots, in tile-list order (chunk by chunk, tile by tile).
     slots: Vec<[f32; slot::LEN]>,
     /// Summed slots per sorted splat.
     acc: Vec<[f32; slot::LEN]>,
@@ -319,7 +324,7 @@ impl Workspace {
         }
         let t2 = Instant::now();
         let (tiles_x, tiles_y) = cam.tiles();
-        self.bins.rebuild(&self.sorted, tiles_x, tiles_y)?;
+        self.bins.rebuild(&self.sorted, tiles_x, tiles_y, true)?;
         stats.intersections = self.bins.intersections();
         self.sorted
             .par_iter()
@@ -329,6 +334,15 @@ impl Workspace {
                 [x0 as u16, x1 as u16, y0 as u16, y1 as u16]
             })
             .collect_into_vec(&mut self.rects);
+        self.first.clear();
+        let mut sum = 0u32;
+        for (p, rc) in self.rects.iter().enumerate() {
+            if p % TileBins::CHUNK == 0 {
+                sum = 0;
+            }
+            self.first.push(sum);
+            sum += (rc[1] - rc[0]) as u32 * (rc[3] - rc[2]) as u32;
+        }
         let t3 = Instant::now();
         let blend = BlendParams {
             width: cam.width,
@@ -450,7 +464,7 @@ impl Workspace {
         let mut v_bg = [0.0f64; 3];
         for &(r0, r1) in &bands {
             let t0 = Instant::now();
-            let total = self.band_starts(r0, r1);
+            let total = self.band_layout(r0, r1);
             stats.slot_bytes = stats.slot_bytes.max(total as u64 * SLOT_BYTES as u64);
             self.slots.clear();
             self.slots.resize(total, [0.0; slot::LEN]);
@@ -554,7 +568,10 @@ impl Workspace {
                 .sum::<usize>()
             + v(self.keys.capacity() + self.tmp.capacity(), 8)
             + v(
-                self.ids.capacity() + self.pos.capacity() + self.band_start.capacity(),
+                self.ids.capacity()
+                    + self.pos.capacity()
+                    + self.first.capacity()
+                    + self.band_lo.capacity(),
                 4,
             )
             + v(self.rects.capacity(), 8)
@@ -632,20 +649,19 @@ impl Workspace {
         bands
     }
 
-    /// Each visible splat's first slot in the band of tile rows [r0, r1); returns the band's
-    /// number of slots.
-    fn band_starts(&mut self, r0: u32, r1: u32) -> usize {
-        let count = |rc: &[u16; 4]| -> usize {
-            let (x0, x1, y0, y1) = (rc[0] as u32, rc[1] as u32, rc[2] as u32, rc[3] as u32);
-            let rows = y1.min(r1).saturating_sub(y0.max(r0));
-            (rows * (x1 - x0)) as usize
-        };
-        self.band_start.clear();
-        self.band_start.reserve(self.rects.len());
+    /// The band of tile rows [r0, r1)'s slot layout: chunk c's entries of those rows are one
+    /// contiguous run of its list entries, put at `band_base[c]`. Returns the band's slots.
+    fn band_layout(&mut self, r0: u32, r1: u32) -> usize {
+        let tx = self.bins.tiles_x as usize;
+        self.band_base.clear();
+        self.band_lo.clear();
         let mut sum = 0usize;
-        for rc in &self.rects {
-            self.band_start.push(sum as u32);
-            sum += count(rc);
+        for c in 0..self.bins.n_chunks() {
+            let lo = self.bins.start(c, r0 as usize * tx);
+            let hi = self.bins.start(c, r1 as usize * tx);
+            self.band_base.push(sum);
+            self.band_lo.push(lo);
+            sum += (hi - lo) as usize;
         }
         sum
     }
@@ -665,7 +681,7 @@ impl Workspace {
             len: self.slots.len(),
         };
         let (sorted, bins, tiles) = (&self.sorted, &self.bins, &self.tiles);
-        let (rects, starts) = (&self.rects, &self.band_start);
+        let (band_base, band_lo) = (&self.band_base, &self.band_lo);
         let (width, height) = (sv.cam.width as usize, sv.cam.height as usize);
         let expected = sv.opts.depth == DepthKind::Expected;
         let per_tile: Vec<(u64, [f64; 3])> = (r0 as usize * tiles_x..r1 as usize * tiles_x)
@@ -689,11 +705,13 @@ impl Workspace {
                 }
                 let mut out = TileSink {
                     w: &sink,
-                    rects,
-                    starts,
-                    r0,
-                    tx: (t % tiles_x) as u32,
-                    ty: (t / tiles_x) as u32,
+                    bins,
+                    band_base,
+                    band_lo,
+                    t,
+                    chunk: 0,
+                    next: 0,
+                    end: 0,
                 };
                 let evals = blend_bwd::bwd_tile(
                     x0 as u32,
@@ -705,6 +723,7 @@ impl Workspace {
                     &mut out,
                     sv.opts.absgrad,
                 );
+                out.finish();
                 (evals, bg)
             })
             .collect();
@@ -720,9 +739,10 @@ impl Workspace {
     }
 
     /// Add each visible splat's slots of rows [r0, r1) to its running sums, in row-major
-    /// tile order.
+    /// tile order (gathered through the binning's splat map).
     fn reduce_band(&mut self, r0: u32, r1: u32) {
-        let (slots, rects, starts) = (&self.slots, &self.rects, &self.band_start);
+        let (slots, rects, first, bins) = (&self.slots, &self.rects, &self.first, &self.bins);
+        let (band_base, band_lo) = (&self.band_base, &self.band_lo);
         self.acc
             .par_chunks_mut(GAUSS_CHUNK)
             .enumerate()
@@ -730,13 +750,20 @@ impl Workspace {
                 for (j, acc) in accs.iter_mut().enumerate() {
                     let p = c * GAUSS_CHUNK + j;
                     let rc = rects[p];
-                    let rows = (rc[3] as u32)
-                        .min(r1)
-                        .saturating_sub((rc[2] as u32).max(r0));
-                    let len = (rows * (rc[1] as u32 - rc[0] as u32)) as usize;
-                    let start = starts[p] as usize;
+                    let (y0, w) = (rc[2] as u32, (rc[1] - rc[0]) as u32);
+                    let row0 = y0.max(r0);
+                    let row1 = (rc[3] as u32).min(r1);
+                    if row1 <= row0 {
+                        continue;
+                    }
+                    let bc = p / TileBins::CHUNK;
+                    let f = first[p] as usize;
+                    let map = &bins.entries_of(bc)
+                        [f + ((row0 - y0) * w) as usize..f + ((row1 - y0) * w) as usize];
+                    let (base, lo) = (band_base[bc], band_lo[bc]);
                     let mut a = *acc;
-                    for s in &slots[start..start + len] {
+                    for &e in map {
+                        let s = &slots[base + (e - lo) as usize];
                         for (a, v) in a.iter_mut().zip(s) {
                             *a += v;
                         }
@@ -791,52 +818,58 @@ struct SlotWriter {
 // `TileSink::put`), and nothing reads the buffer during the tile pass.
 unsafe impl Sync for SlotWriter {}
 
+/// Puts one tile's slots in list order: chunk c's entries of tile t go to consecutive slots
+/// from band_base[c] + start(c, t) - band_lo[c].
 struct TileSink<'a> {
     w: &'a SlotWriter,
-    rects: &'a [[u16; 4]],
-    starts: &'a [u32],
-    r0: u32,
-    tx: u32,
-    ty: u32,
+    bins: &'a TileBins,
+    band_base: &'a [usize],
+    band_lo: &'a [u32],
+    t: usize,
+    /// The next chunk to start, and the current chunk's next and end slots.
+    chunk: usize,
+    next: usize,
+    end: usize,
 }
 
 impl TileSink<'_> {
-    /// Slot index of entry `pos` (a splat of this tile): its tiles of the band, row-major.
-    #[inline(always)]
-    fn index(&self, pos: u32) -> usize {
-        let rc = self.rects[pos as usize];
-        let (x0, x1, y0) = (rc[0] as u32, rc[1] as u32, rc[2] as u32);
-        let row0 = y0.max(self.r0);
-        self.starts[pos as usize] as usize
-            + ((self.ty - row0) * (x1 - x0) + (self.tx - x0)) as usize
+    /// Every entry was put (the kernels' contract).
+    fn finish(&mut self) {
+        while self.next == self.end && self.chunk < self.bins.n_chunks() {
+            self.advance();
+        }
+        assert!(
+            self.next == self.end,
+            "a kernel left entries of tile {} without a slot",
+            self.t
+        );
+    }
+
+    fn advance(&mut self) {
+        let c = self.chunk;
+        let (s0, s1) = (self.bins.start(c, self.t), self.bins.start(c, self.t + 1));
+        self.next = self.band_base[c] + (s0 - self.band_lo[c]) as usize;
+        self.end = self.next + (s1 - s0) as usize;
+        self.chunk += 1;
     }
 }
 
 impl blend_bwd::SlotSink for TileSink<'_> {
-    #[inline(always)]
-    fn prefetch(&self, pos: u32) {
-        #[cfg(target_arch = "x86_64")]
-        {
-            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_ET0};
-            let i = self.index(pos);
-            if i < self.w.len {
-                // SAFETY: prefetching never faults; both addresses lie inside slot i.
-                unsafe {
-                    let p = self.w.base.add(i) as *const i8;
-                    _mm_prefetch::<_MM_HINT_ET0>(p);
-                    _mm_prefetch::<_MM_HINT_ET0>(p.add(SLOT_BYTES - 1));
-                }
-            }
-        }
-    }
-
     #[inline]
-    fn put(&mut self, pos: u32, vals: &[f32; slot::LEN]) {
-        let i = self.index(pos);
+    fn put(&mut self, _pos: u32, vals: &[f32; slot::LEN]) {
+        while self.next == self.end {
+            assert!(
+                self.chunk < self.bins.n_chunks(),
+                "more slots than list entries"
+            );
+            self.advance();
+        }
+        let i = self.next;
         assert!(i < self.w.len, "slot index out of range");
-        // SAFETY: i is in bounds (checked) and belongs to this (tile, splat) pair only: splat
-        // pos's slots of the band are its tiles of rows [row0, r1) in row-major order.
+        // SAFETY: i is in bounds (checked) and belongs to this tile's entries only: chunk c's
+        // entries of tile t are [start(c, t), start(c, t + 1)), a run no other tile shares.
         unsafe { *self.w.base.add(i) = *vals };
+        self.next += 1;
     }
 }
 
