@@ -506,7 +506,7 @@ impl Workspace {
                 for (j, ((s, &i), &p)) in ss.iter().zip(ids).zip(pos).enumerate() {
                     // the sums lie in depth order: fetch ahead (a cache miss each otherwise)
                     if let Some(&ahead) = pos.get(j + ACC_PREFETCH) {
-                        prefetch_acc(acc, ahead as usize);
+                        prefetch_slot(acc, ahead as usize);
                     }
                     let g = gauss_bwd::gauss_backward(&ctx, i as usize, s, &acc[p as usize]);
                     // SAFETY: every Gaussian index occurs once among the visible splats.
@@ -743,24 +743,36 @@ impl Workspace {
     fn reduce_band(&mut self, r0: u32, r1: u32) {
         let (slots, rects, first, bins) = (&self.slots, &self.rects, &self.first, &self.bins);
         let (band_base, band_lo) = (&self.band_base, &self.band_lo);
+        // splat p's slots of the band, as (band offset, its entries in the splat map)
+        let entries = |p: usize| -> (usize, u32, &[u32]) {
+            let rc = rects[p];
+            let (y0, w) = (rc[2] as u32, (rc[1] - rc[0]) as u32);
+            let row0 = y0.max(r0);
+            let row1 = (rc[3] as u32).min(r1);
+            let bc = p / TileBins::CHUNK;
+            if row1 <= row0 {
+                return (0, 0, &[]);
+            }
+            let f = first[p] as usize;
+            let map = &bins.entries_of(bc)
+                [f + ((row0 - y0) * w) as usize..f + ((row1 - y0) * w) as usize];
+            (band_base[bc], band_lo[bc], map)
+        };
+        let n = rects.len();
         self.acc
             .par_chunks_mut(GAUSS_CHUNK)
             .enumerate()
             .for_each(|(c, accs)| {
                 for (j, acc) in accs.iter_mut().enumerate() {
                     let p = c * GAUSS_CHUNK + j;
-                    let rc = rects[p];
-                    let (y0, w) = (rc[2] as u32, (rc[1] - rc[0]) as u32);
-                    let row0 = y0.max(r0);
-                    let row1 = (rc[3] as u32).min(r1);
-                    if row1 <= row0 {
-                        continue;
+                    // the slots lie scattered over the tiles' runs: fetch a few splats ahead
+                    if p + REDUCE_PREFETCH < n {
+                        let (base, lo, map) = entries(p + REDUCE_PREFETCH);
+                        for &e in map {
+                            prefetch_slot(slots, base + (e - lo) as usize);
+                        }
                     }
-                    let bc = p / TileBins::CHUNK;
-                    let f = first[p] as usize;
-                    let map = &bins.entries_of(bc)
-                        [f + ((row0 - y0) * w) as usize..f + ((row1 - y0) * w) as usize];
-                    let (base, lo) = (band_base[bc], band_lo[bc]);
+                    let (base, lo, map) = entries(p);
                     let mut a = *acc;
                     for &e in map {
                         let s = &slots[base + (e - lo) as usize];
@@ -774,14 +786,17 @@ impl Workspace {
     }
 }
 
+/// How many splats ahead the slot reduction prefetches.
+const REDUCE_PREFETCH: usize = 4;
+
 /// How many Gaussians ahead the per-Gaussian pass prefetches its slot sums.
 const ACC_PREFETCH: usize = 12;
 
-/// Hint the CPU to load `acc[i]` (both cache lines it may span).
+/// Hint the CPU to load slot `i` of `slots` (both cache lines it may span).
 #[inline(always)]
-fn prefetch_acc(acc: &[[f32; slot::LEN]], i: usize) {
+fn prefetch_slot(slots: &[[f32; slot::LEN]], i: usize) {
     #[cfg(target_arch = "x86_64")]
-    if let Some(a) = acc.get(i) {
+    if let Some(a) = slots.get(i) {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
         let p = a.as_ptr() as *const i8;
         // SAFETY: prefetching never faults, and both addresses lie inside `*a`.
@@ -791,7 +806,7 @@ fn prefetch_acc(acc: &[[f32; slot::LEN]], i: usize) {
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = (acc, i);
+    let _ = (slots, i);
 }
 
 /// Visible Gaussians per per-Gaussian work unit (fixed, independent of the thread count).
