@@ -99,6 +99,16 @@ impl Step {
     }
 }
 
+/// Whether the command line's benchmark filter (criterion's positional argument) selects
+/// `id`, so a filtered run (e.g. under a profiler) prints and runs only that configuration.
+fn wanted(id: &str) -> bool {
+    let filters: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with('-') && a.parse::<f64>().is_err())
+        .collect();
+    filters.is_empty() || filters.iter().any(|f| id.contains(f.as_str()))
+}
+
 fn report(label: &str, step: &mut Step, scene: &Scene, cam: &Camera, opts: &DiffOptions) {
     // best of a few runs (the first pays page faults)
     let mut best: Option<(RenderStats, BackwardStats, f64, f64)> = None;
@@ -153,6 +163,10 @@ fn bench_garden(c: &mut Criterion) {
             },
             ..Default::default()
         };
+        let id = format!("fwd_bwd_{}_{threads}threads", simd.name());
+        if !wanted(&format!("backward_garden_648x420/{id}")) {
+            continue;
+        }
         report(
             &format!("garden {} {threads} threads", simd.name()),
             &mut step,
@@ -162,27 +176,29 @@ fn bench_garden(c: &mut Criterion) {
         );
         let evals = step.run(&scene, &cam, &opts).1.evaluations;
         g.throughput(Throughput::Elements(evals));
-        g.bench_function(format!("fwd_bwd_{}_{threads}threads", simd.name()), |b| {
-            b.iter(|| step.run(&scene, &cam, &opts))
-        });
+        g.bench_function(id, |b| b.iter(|| step.run(&scene, &cam, &opts)));
     }
     let opts = DiffOptions {
         absgrad: true,
         ..Default::default()
     };
-    report(
-        &format!("garden auto + absgrad {threads} threads"),
-        &mut step,
-        &scene,
-        &cam,
-        &opts,
-    );
+    if wanted("backward_garden_648x420/absgrad") {
+        report(
+            &format!("garden auto + absgrad {threads} threads"),
+            &mut step,
+            &scene,
+            &cam,
+            &opts,
+        );
+    }
     let one = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()
         .expect("pool");
     let opts = DiffOptions::default();
-    one.install(|| report("garden auto 1 thread", &mut step, &scene, &cam, &opts));
+    if wanted("backward_garden_648x420/fwd_bwd_auto_1thread") {
+        one.install(|| report("garden auto 1 thread", &mut step, &scene, &cam, &opts));
+    }
     g.bench_function("fwd_bwd_auto_1thread", |b| {
         b.iter(|| one.install(|| step.run(&scene, &cam, &opts)))
     });
@@ -202,6 +218,9 @@ fn peak_rss_mb() -> f64 {
 }
 
 fn bench_grid5(c: &mut Criterion) {
+    if !wanted("backward_grid5_1920x1080/fwd_bwd_auto") {
+        return;
+    }
     let (scene, cams) = garden(5);
     let cam = resized(&cams[0], 1920, 1080);
     let opts = DiffOptions::default();

@@ -195,7 +195,7 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
                     _mm256_store_ps(cdy_r.0.as_mut_ptr().add(h * HALF), cdy);
                 }
             }
-            let mut todo = range & alive & ok;
+            let rows = range & alive & ok;
             let half_a = _mm256_set1_ps(0.5 * ca);
             let (va_, vb_) = (_mm256_set1_ps(ca), _mm256_set1_ps(cb));
             let dx = [_mm256_sub_ps(v_mx, px[0]), _mm256_sub_ps(v_mx, px[1])];
@@ -212,16 +212,19 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
                 _mm256_set1_ps(s.rgb[2]),
                 _mm256_set1_ps(s.depth),
             ];
-            let mut acc = [[zero; 2]; 9];
-            while todo != 0 {
-                let r = todo.trailing_zeros() as usize;
-                todo &= todo - 1;
-                evals += LANES as u64;
-                let (bdy, cdy2) = (_mm256_set1_ps(bdy_r.0[r]), _mm256_set1_ps(cdy2_r.0[r]));
-                let (dyv, dy2v) = (_mm256_set1_ps(dy_r.0[r]), _mm256_set1_ps(dy2_r.0[r]));
-                let cdy = _mm256_set1_ps(cdy_r.0[r]);
-                let mut row_live = 0u32;
-                for h in 0..2 {
+            // the two 8-lane halves in turn (9 accumulators each fit the 16 ymm registers);
+            // every lane's operations and their order are the generic kernel's
+            let mut row_live = [0u32; LANES];
+            let mut v = [[zero; 2]; 12];
+            for h in 0..2 {
+                let mut acc = [zero; 9];
+                let mut todo = rows;
+                while todo != 0 {
+                    let r = todo.trailing_zeros() as usize;
+                    todo &= todo - 1;
+                    let (bdy, cdy2) = (_mm256_set1_ps(bdy_r.0[r]), _mm256_set1_ps(cdy2_r.0[r]));
+                    let (dyv, dy2v) = (_mm256_set1_ps(dy_r.0[r]), _mm256_set1_ps(dy2_r.0[r]));
+                    let cdy = _mm256_set1_ps(cdy_r.0[r]);
                     let o = r * LANES + h * HALF;
                     // SAFETY: r < 16, h < 2: o..o + 8 lies inside each 256-float array, 32-byte
                     // aligned.
@@ -278,21 +281,20 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
                     let tq = _mm256_mul_ps(_mm256_sub_ps(q, s_new), ra);
                     let va = _mm256_fmsub_ps(gc, t, tq);
                     let uu = _mm256_mul_ps(e, va);
-                    let a = &mut acc;
-                    a[0][h] = _mm256_blendv_ps(a[0][h], _mm256_fmadd_ps(w, g0, a[0][h]), contrib);
-                    a[1][h] = _mm256_blendv_ps(a[1][h], _mm256_fmadd_ps(w, g1, a[1][h]), contrib);
-                    a[2][h] = _mm256_blendv_ps(a[2][h], _mm256_fmadd_ps(w, g2, a[2][h]), contrib);
-                    a[3][h] = _mm256_blendv_ps(a[3][h], _mm256_fmadd_ps(w, g3, a[3][h]), contrib);
-                    a[4][h] = _mm256_blendv_ps(a[4][h], _mm256_add_ps(a[4][h], uu), m2);
-                    a[5][h] = _mm256_blendv_ps(a[5][h], _mm256_fmadd_ps(uu, dyv, a[5][h]), m2);
-                    a[6][h] = _mm256_blendv_ps(a[6][h], _mm256_fmadd_ps(uu, dy2v, a[6][h]), m2);
+                    acc[0] = _mm256_blendv_ps(acc[0], _mm256_fmadd_ps(w, g0, acc[0]), contrib);
+                    acc[1] = _mm256_blendv_ps(acc[1], _mm256_fmadd_ps(w, g1, acc[1]), contrib);
+                    acc[2] = _mm256_blendv_ps(acc[2], _mm256_fmadd_ps(w, g2, acc[2]), contrib);
+                    acc[3] = _mm256_blendv_ps(acc[3], _mm256_fmadd_ps(w, g3, acc[3]), contrib);
+                    acc[4] = _mm256_blendv_ps(acc[4], _mm256_add_ps(acc[4], uu), m2);
+                    acc[5] = _mm256_blendv_ps(acc[5], _mm256_fmadd_ps(uu, dyv, acc[5]), m2);
+                    acc[6] = _mm256_blendv_ps(acc[6], _mm256_fmadd_ps(uu, dy2v, acc[6]), m2);
                     if ABS {
                         let ax =
                             _mm256_and_ps(_mm256_mul_ps(uu, _mm256_add_ps(adx[h], bdy)), abs_mask);
                         let ay =
                             _mm256_and_ps(_mm256_mul_ps(uu, _mm256_add_ps(bdx[h], cdy)), abs_mask);
-                        a[7][h] = _mm256_blendv_ps(a[7][h], _mm256_add_ps(a[7][h], ax), m2);
-                        a[8][h] = _mm256_blendv_ps(a[8][h], _mm256_add_ps(a[8][h], ay), m2);
+                        acc[7] = _mm256_blendv_ps(acc[7], _mm256_add_ps(acc[7], ax), m2);
+                        acc[8] = _mm256_blendv_ps(acc[8], _mm256_add_ps(acc[8], ay), m2);
                     }
                     // SAFETY: see above
                     unsafe {
@@ -301,33 +303,33 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
                     }
                     // valid lanes that do not contribute stop
                     let lv = _mm256_or_ps(_mm256_andnot_ps(valid, lv), contrib);
-                    row_live |= (_mm256_movemask_ps(lv) as u32) << (h * HALF);
+                    row_live[r] |= (_mm256_movemask_ps(lv) as u32) << (h * HALF);
                 }
-                live[r] = row_live;
-                if row_live == 0 {
+                v[0][h] = acc[0];
+                v[1][h] = acc[1];
+                v[2][h] = acc[2];
+                v[3][h] = acc[3];
+                v[4][h] = acc[4];
+                v[5][h] = _mm256_mul_ps(dx[h], acc[4]);
+                v[6][h] = acc[5];
+                v[7][h] = _mm256_mul_ps(_mm256_mul_ps(dx[h], dx[h]), acc[4]);
+                v[8][h] = _mm256_mul_ps(dx[h], acc[5]);
+                v[9][h] = acc[6];
+                v[10][h] = acc[7];
+                v[11][h] = acc[8];
+            }
+            // a splat's rows are fixed at its start, so the count does not depend on the order
+            evals += LANES as u64 * rows.count_ones() as u64;
+            let mut todo = rows;
+            while todo != 0 {
+                let r = todo.trailing_zeros() as usize;
+                todo &= todo - 1;
+                live[r] = row_live[r];
+                if row_live[r] == 0 {
                     alive &= !(1 << r);
-                    if alive == 0 {
-                        done = true;
-                        break;
-                    }
                 }
             }
-            let mut v = [[zero; 2]; 12];
-            for h in 0..2 {
-                let a = &acc;
-                v[0][h] = a[0][h];
-                v[1][h] = a[1][h];
-                v[2][h] = a[2][h];
-                v[3][h] = a[3][h];
-                v[4][h] = a[4][h];
-                v[5][h] = _mm256_mul_ps(dx[h], a[4][h]);
-                v[6][h] = a[5][h];
-                v[7][h] = _mm256_mul_ps(_mm256_mul_ps(dx[h], dx[h]), a[4][h]);
-                v[8][h] = _mm256_mul_ps(dx[h], a[5][h]);
-                v[9][h] = a[6][h];
-                v[10][h] = a[7][h];
-                v[11][h] = a[8][h];
-            }
+            done = alive == 0;
             sink.put(gi, &hsum12(&v));
         }
     }
