@@ -108,6 +108,55 @@ def _write_exr(path: _Path, image: _F32) -> None: ...
 def _write_png_batch(paths: Sequence[_Path], images: _U8, batched: bool = True) -> None: ...
 def _write_exr_batch(paths: Sequence[_Path], images: _F32, batched: bool = True) -> None: ...
 def _read_exr_batch(paths: Sequence[_Path], max_values: int = ...) -> list[_F32]: ...
+# ---- differentiable rasterizer ----
+@final
+class DiffRasterizer:
+    def __init__(self) -> None: ...
+    def forward(
+        self,
+        means: _F32,
+        quats: _F32,
+        log_scales: _F32,
+        opacity_logits: _F32,
+        sh0: _F32,
+        sh_rest: _F32,
+        world_to_camera: npt.NDArray[np.float64],
+        K: npt.NDArray[np.float64],
+        width: int,
+        height: int,
+        *,
+        near: float = 0.01,
+        far: float = 1e10,
+        background: tuple[float, float, float] | list[float] = ...,
+        max_alpha: float = 0.99,
+        sh_degree: int | None = None,
+        antialiased: bool = False,
+        colors: _F32 | None = None,
+        depth: Literal["expected", "accumulated"] = "expected",
+        slot_budget: int = ...,
+        absgrad: bool = False,
+    ) -> tuple[_F32, _F32, _F32, dict[str, Any]]: ...
+    def backward(
+        self,
+        means: _F32,
+        quats: _F32,
+        log_scales: _F32,
+        opacity_logits: _F32,
+        sh0: _F32,
+        sh_rest: _F32,
+        *,
+        colors: _F32 | None = None,
+        v_rgb: _F32 | None = None,
+        v_depth: _F32 | None = None,
+        v_alpha: _F32 | None = None,
+        view: bool = False,
+        cameras_per_step: float = 1.0,
+    ) -> dict[str, Any]: ...
+    def projection(self) -> dict[str, npt.NDArray[Any]]: ...
+    def contributions(
+        self,
+    ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.bool_]]: ...
+
 # ---- formats (.splat, .spz) ----
 def save_splat(scene: GaussianScene, path: _Path) -> None: ...
 def save_spz(

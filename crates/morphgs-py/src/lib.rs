@@ -3,6 +3,7 @@
 use pyo3::prelude::*;
 
 mod blur;
+mod diff;
 mod errors;
 mod formats;
 mod io;
@@ -19,6 +20,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     io::register(m)?;
     blur::register(m)?;
     render::register(m)?;
+    diff::register(m)?;
     formats::register(m)?;
     perturb::register(m)?;
     m.add_function(wrap_pyfunction!(num_threads, m)?)?;

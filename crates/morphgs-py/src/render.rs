@@ -22,6 +22,12 @@ fn slice_of<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
     a: &'a numpy::PyReadonlyArray<'_, T, D>,
     name: &str,
 ) -> PyResult<&'a [T]> {
+    // as_slice also accepts Fortran order, whose memory order is not the row-major layout
+    if !a.is_c_contiguous() {
+        return Err(PyValueError::new_err(format!(
+            "{name} must be C-contiguous"
+        )));
+    }
     a.as_slice()
         .map_err(|_| PyValueError::new_err(format!("{name} must be C-contiguous")))
 }
@@ -58,7 +64,7 @@ fn cameras_from(
 
 /// The blend kernel: the best the CPU has, or a lower one named by `MORPHGS_SIMD` (`avx512`,
 /// `avx2`, `scalar`; for benchmarks and for checking a result on another kernel).
-fn simd_from_env() -> PyResult<raster::Simd> {
+pub(crate) fn simd_from_env() -> PyResult<raster::Simd> {
     match std::env::var("MORPHGS_SIMD") {
         Err(_) => Ok(raster::Simd::Auto),
         Ok(v) => raster::Simd::parse(&v).ok_or_else(|| {

@@ -36,7 +36,7 @@ impl Default for TileOut {
 }
 
 /// Blend parameters shared by every tile of a frame.
-#[derive(Clone, Copy)]
+#[derive(Debug, Clone, Copy)]
 pub(crate) struct BlendParams {
     pub width: u32,
     pub height: u32,
@@ -313,7 +313,7 @@ fn blend_tile_scalar<'a>(
     blend_tile_impl::<false>(x0, y0, p, splats, lists, out)
 }
 
-fn blend_tile<'a>(
+pub(crate) fn blend_tile<'a>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -341,6 +341,8 @@ struct FrameOut {
     alpha: *mut f32,
     width: usize,
     height: usize,
+    /// Write the expected depth D / max(1 - T, 1e-10), else the accumulated depth D.
+    expected_depth: bool,
 }
 
 // SAFETY: the pointers come from three `&mut [f32]` borrowed for the whole parallel pass, and
@@ -381,7 +383,11 @@ impl FrameOut {
                 }
                 let a = 1.0 - t;
                 alpha[l] = a;
-                depth[l] = tile.d[r][l] / a.max(1e-10);
+                depth[l] = if self.expected_depth {
+                    tile.d[r][l] / a.max(1e-10)
+                } else {
+                    tile.d[r][l]
+                };
             }
         }
     }
@@ -397,6 +403,44 @@ pub(crate) fn blend_frame(
     depth: &mut [f32],
     alpha: &mut [f32],
 ) -> u64 {
+    blend_frame_impl(sorted, bins, p, rgb, depth, alpha, None, true)
+}
+
+/// [`blend_frame`] keeping every tile's final state (transmittance and colour and depth sums
+/// per pixel, `saved[t]` for tile t) for the backward pass; `expected_depth` false writes the
+/// accumulated depth instead of the expected one.
+pub(crate) fn blend_frame_saving(
+    sorted: &[Splat],
+    bins: &TileBins,
+    p: &BlendParams,
+    rgb: &mut [f32],
+    depth: &mut [f32],
+    alpha: &mut [f32],
+    saved: &mut [TileOut],
+    expected_depth: bool,
+) -> u64 {
+    blend_frame_impl(
+        sorted,
+        bins,
+        p,
+        rgb,
+        depth,
+        alpha,
+        Some(saved),
+        expected_depth,
+    )
+}
+
+fn blend_frame_impl(
+    sorted: &[Splat],
+    bins: &TileBins,
+    p: &BlendParams,
+    rgb: &mut [f32],
+    depth: &mut [f32],
+    alpha: &mut [f32],
+    saved: Option<&mut [TileOut]>,
+    expected_depth: bool,
+) -> u64 {
     let (tiles_x, tiles_y) = (bins.tiles_x as usize, bins.tiles_y as usize);
     let (width, height) = (p.width as usize, p.height as usize);
     assert!(rgb.len() == width * height * 3 && depth.len() == width * height);
@@ -408,24 +452,50 @@ pub(crate) fn blend_frame(
         alpha: alpha.as_mut_ptr(),
         width,
         height,
+        expected_depth,
     };
-    // each tile blends into its own stack buffer and writes its pixels of the image
-    (0..tiles_x * tiles_y)
-        .into_par_iter()
-        .map(|t| {
-            let (x0, y0) = ((t % tiles_x) * LANES, (t / tiles_x) * LANES);
-            if bins.lists(t).all(|l| l.is_empty()) {
-                // SAFETY: tile t is written by this task only (see `FrameOut`).
-                unsafe { out.tile(x0, y0, None, p.background) };
-                return 0;
+    // each tile blends into its own buffer and writes its pixels of the image; a tile no
+    // Gaussian touches gets the background (and its saved state the default: T = 1, no colour)
+    let tile = |t: usize, buf: Option<&mut TileOut>| {
+        let (x0, y0) = ((t % tiles_x) * LANES, (t / tiles_x) * LANES);
+        if bins.lists(t).all(|l| l.is_empty()) {
+            if let Some(buf) = buf {
+                *buf = TileOut::default();
             }
-            let mut buf = TileOut::default();
-            let evals = blend_tile(x0 as u32, y0 as u32, p, sorted, bins.lists(t), &mut buf);
-            // SAFETY: as above
-            unsafe { out.tile(x0, y0, Some(&buf), p.background) };
-            evals
-        })
-        .sum()
+            // SAFETY: tile t is written by this task only (see `FrameOut`).
+            unsafe { out.tile(x0, y0, None, p.background) };
+            return 0;
+        }
+        let mut local;
+        let buf = match buf {
+            Some(b) => {
+                *b = TileOut::default();
+                b
+            }
+            None => {
+                local = TileOut::default();
+                &mut local
+            }
+        };
+        let evals = blend_tile(x0 as u32, y0 as u32, p, sorted, bins.lists(t), buf);
+        // SAFETY: as above
+        unsafe { out.tile(x0, y0, Some(buf), p.background) };
+        evals
+    };
+    match saved {
+        Some(saved) => {
+            assert_eq!(saved.len(), tiles_x * tiles_y);
+            saved
+                .par_iter_mut()
+                .enumerate()
+                .map(|(t, buf)| tile(t, Some(buf)))
+                .sum()
+        }
+        None => (0..tiles_x * tiles_y)
+            .into_par_iter()
+            .map(|t| tile(t, None))
+            .sum(),
+    }
 }
 
 #[cfg(test)]

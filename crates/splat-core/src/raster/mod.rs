@@ -6,7 +6,8 @@
 //! 2. [`sort`]: one stable radix sort by depth, then per-chunk tile buckets;
 //! 3. [`blend`]: per-pixel blending, one 16x16 tile per unit, SIMD chosen at run time.
 //!
-//! [`render_batch`] renders S scenes x F cameras in one parallel pass.
+//! [`render_batch`] renders S scenes x F cameras in one parallel pass; [`diff`] is the
+//! differentiable variant (a forward that keeps its state and the backward pass).
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -20,6 +21,7 @@ pub mod blend;
 mod blend_avx2;
 #[cfg(target_arch = "x86_64")]
 mod blend_avx512;
+pub mod diff;
 pub mod project;
 pub mod sh;
 pub mod sort;

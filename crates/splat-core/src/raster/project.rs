@@ -44,26 +44,26 @@ pub struct Splat {
 /// Per-camera constants, in float32 as the reference kernels use them.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct Projector {
-    rot: [[f64; 3]; 3],
-    trans: [f64; 3],
-    rot32: [[f32; 3]; 3],
-    fx: f32,
-    fy: f32,
-    cx: f32,
-    cy: f32,
-    lim_x_pos: f32,
-    lim_x_neg: f32,
-    lim_y_pos: f32,
-    lim_y_neg: f32,
-    width: f32,
-    height: f32,
-    near: f64,
-    far: f64,
-    center: [f64; 3],
+    pub(crate) rot: [[f64; 3]; 3],
+    pub(crate) trans: [f64; 3],
+    pub(crate) rot32: [[f32; 3]; 3],
+    pub(crate) fx: f32,
+    pub(crate) fy: f32,
+    pub(crate) cx: f32,
+    pub(crate) cy: f32,
+    pub(crate) lim_x_pos: f32,
+    pub(crate) lim_x_neg: f32,
+    pub(crate) lim_y_pos: f32,
+    pub(crate) lim_y_neg: f32,
+    pub(crate) width: f32,
+    pub(crate) height: f32,
+    pub(crate) near: f64,
+    pub(crate) far: f64,
+    pub(crate) center: [f64; 3],
     /// Upper bound of the spectral norm of R (1 for a rigid camera).
-    rot_gain: f32,
-    antialiased: bool,
-    sh_degree: u8,
+    pub(crate) rot_gain: f32,
+    pub(crate) antialiased: bool,
+    pub(crate) sh_degree: u8,
 }
 
 impl Projector {
@@ -126,6 +126,7 @@ impl Projector {
         lo: usize,
         hi: usize,
         out: &mut Vec<Splat>,
+        ids: Option<&mut Vec<u32>>,
     ) {
         #[cfg(target_arch = "x86_64")]
         {
@@ -135,14 +136,14 @@ impl Projector {
                 && std::is_x86_feature_detected!("avx2")
             {
                 // SAFETY: the CPU has these features (checked just above).
-                return unsafe { self.project_range_avx512(scene, lo, hi, out) };
+                return unsafe { self.project_range_avx512(scene, lo, hi, out, ids) };
             }
             if std::is_x86_feature_detected!("avx2") {
                 // SAFETY: the CPU has AVX2 (checked just above).
-                return unsafe { self.project_range_avx2(scene, lo, hi, out) };
+                return unsafe { self.project_range_avx2(scene, lo, hi, out, ids) };
             }
         }
-        self.project_range_impl(scene, lo, hi, out)
+        self.project_range_impl(scene, lo, hi, out, ids)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -153,8 +154,9 @@ impl Projector {
         lo: usize,
         hi: usize,
         out: &mut Vec<Splat>,
+        ids: Option<&mut Vec<u32>>,
     ) {
-        self.project_range_impl(scene, lo, hi, out)
+        self.project_range_impl(scene, lo, hi, out, ids)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -165,10 +167,12 @@ impl Projector {
         lo: usize,
         hi: usize,
         out: &mut Vec<Splat>,
+        ids: Option<&mut Vec<u32>>,
     ) {
-        self.project_range_impl(scene, lo, hi, out)
+        self.project_range_impl(scene, lo, hi, out, ids)
     }
 
+    /// `ids`, when given, receives the Gaussian index of every splat pushed to `out`.
     #[inline(always)]
     fn project_range_impl(
         &self,
@@ -176,6 +180,7 @@ impl Projector {
         lo: usize,
         hi: usize,
         out: &mut Vec<Splat>,
+        mut ids: Option<&mut Vec<u32>>,
     ) {
         let mut survivors: Vec<usize> = Vec::with_capacity(hi - lo);
         let mut i0 = lo;
@@ -200,6 +205,9 @@ impl Projector {
                 if fp.ok[l] {
                     if let Some((s, _)) = self.finish(scene, i, &sc, &fp, l) {
                         out.push(s);
+                        if let Some(ids) = ids.as_deref_mut() {
+                            ids.push(i as u32);
+                        }
                     }
                 }
             }
@@ -544,10 +552,35 @@ pub(crate) fn project_visible(scene: &SceneView<'_>, proj: &Projector) -> Vec<Ve
             let lo = c * PROJECT_CHUNK;
             let hi = (lo + PROJECT_CHUNK).min(n);
             let mut out = Vec::new();
-            proj.project_range(scene, lo, hi, &mut out);
+            proj.project_range(scene, lo, hi, &mut out, None);
             out
         })
         .collect()
+}
+
+/// [`project_visible`] into reused buffers, with the Gaussian index of every splat:
+/// `parts[c]` and `ids[c]` hold chunk c's visible splats and their indices.
+pub(crate) fn project_visible_with_ids(
+    scene: &SceneView<'_>,
+    proj: &Projector,
+    parts: &mut Vec<Vec<Splat>>,
+    ids: &mut Vec<Vec<u32>>,
+) {
+    let n = scene.len();
+    let chunks = n.div_ceil(PROJECT_CHUNK);
+    parts.resize_with(chunks, Vec::new);
+    ids.resize_with(chunks, Vec::new);
+    parts
+        .par_iter_mut()
+        .zip(ids.par_iter_mut())
+        .enumerate()
+        .for_each(|(c, (out, id))| {
+            out.clear();
+            id.clear();
+            let lo = c * PROJECT_CHUNK;
+            let hi = (lo + PROJECT_CHUNK).min(n);
+            proj.project_range(scene, lo, hi, out, Some(id));
+        });
 }
 
 /// Every Gaussian's projection, for inspection and tests (gsplat's `fully_fused_projection`
@@ -682,13 +715,13 @@ mod tests {
                 let ranges = [(0, 7), (7, 1000), (1000, 4093), (4093, 5000)];
                 let mut got = Vec::new();
                 for (lo, hi) in ranges {
-                    proj.project_range(&view, lo, hi, &mut got);
+                    proj.project_range(&view, lo, hi, &mut got, None);
                 }
                 assert_eq!(bits(&got), bits(&want), "degree {degree}");
                 // the plain build too
                 let mut plain = Vec::new();
                 for (lo, hi) in ranges {
-                    proj.project_range_impl(&view, lo, hi, &mut plain);
+                    proj.project_range_impl(&view, lo, hi, &mut plain, None);
                 }
                 assert_eq!(bits(&plain), bits(&want), "degree {degree}, plain build");
             }

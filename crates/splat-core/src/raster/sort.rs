@@ -22,40 +22,85 @@ const RADIX: usize = 1 << RADIX_BITS;
 /// projection chunks in order (chunk c, local position j: payload c << PROJECT_CHUNK_BITS | j,
 /// which orders like the Gaussian index), so no concatenated copy is needed.
 pub(crate) fn sort_by_depth(parts: &[Vec<Splat>]) -> Vec<Splat> {
+    let (mut keys, mut tmp) = (Vec::new(), Vec::new());
+    sorted_keys(parts, &mut keys, &mut tmp);
+    drop(tmp);
+    let mut sorted = sorted_buffer();
+    keys.par_iter()
+        .with_min_len(BIN_CHUNK)
+        .map(|&(_, i)| part_item(parts, i))
+        .collect_into_vec(&mut sorted);
+    sorted
+}
+
+/// [`sort_by_depth`] into reused buffers, also gathering each splat's Gaussian index from
+/// `ids` (laid out like `parts`): `sorted[k]` is the splat of Gaussian `sorted_ids[k]`.
+pub(crate) fn sort_by_depth_with_ids(
+    parts: &[Vec<Splat>],
+    ids: &[Vec<u32>],
+    keys: &mut Vec<(u32, u32)>,
+    tmp: &mut Vec<(u32, u32)>,
+    sorted: &mut Vec<Splat>,
+    sorted_ids: &mut Vec<u32>,
+) {
+    sorted_keys(parts, keys, tmp);
+    keys.par_iter()
+        .with_min_len(BIN_CHUNK)
+        .map(|&(_, i)| part_item(parts, i))
+        .collect_into_vec(sorted);
+    keys.par_iter()
+        .with_min_len(BIN_CHUNK)
+        .map(|&(_, i)| part_item(ids, i))
+        .collect_into_vec(sorted_ids);
+}
+
+#[inline]
+fn part_item<T: Copy>(parts: &[Vec<T>], payload: u32) -> T {
+    parts[(payload >> PROJECT_CHUNK_BITS) as usize]
+        [(payload & ((1 << PROJECT_CHUNK_BITS) - 1)) as usize]
+}
+
+/// The (depth bits, payload) keys of all parts sorted front to back by a stable LSD radix sort,
+/// in `keys` (`tmp` is scratch). Both buffers are reused: only their capacity survives.
+fn sorted_keys(parts: &[Vec<Splat>], keys: &mut Vec<(u32, u32)>, tmp: &mut Vec<(u32, u32)>) {
     let n: usize = parts.iter().map(Vec::len).sum();
     let passes = 32u32.div_ceil(RADIX_BITS) as usize;
-    // (depth bits, payload), positive floats ordering like their bit patterns, and the
-    // histograms of every digit, in one parallel pass over the chunks
-    let per_part: Vec<(Vec<(u32, u32)>, Vec<u32>)> = parts
+    keys.clear();
+    keys.resize(n, (0, 0));
+    // each part's keys go straight to their place; (depth bits, payload), positive floats
+    // ordering like their bit patterns, and the histograms of every digit, in one parallel pass
+    let mut outs: Vec<&mut [(u32, u32)]> = Vec::with_capacity(parts.len());
+    let mut rest = keys.as_mut_slice();
+    for part in parts {
+        let (head, tail) = rest.split_at_mut(part.len());
+        outs.push(head);
+        rest = tail;
+    }
+    let hists: Vec<Vec<u32>> = parts
         .par_iter()
+        .zip(outs.into_par_iter())
         .enumerate()
-        .map(|(c, part)| {
+        .map(|(c, (part, out))| {
             let base = (c as u32) << PROJECT_CHUNK_BITS;
             let mut hist = vec![0u32; RADIX * passes];
-            let keys = part
-                .iter()
-                .enumerate()
-                .map(|(j, s)| {
-                    let key = s.depth.to_bits();
-                    for (pass, h) in hist.chunks_exact_mut(RADIX).enumerate() {
-                        h[((key >> (pass as u32 * RADIX_BITS)) as usize) & (RADIX - 1)] += 1;
-                    }
-                    (key, base | j as u32)
-                })
-                .collect();
-            (keys, hist)
+            for (j, (s, k)) in part.iter().zip(out.iter_mut()).enumerate() {
+                let key = s.depth.to_bits();
+                for (pass, h) in hist.chunks_exact_mut(RADIX).enumerate() {
+                    h[((key >> (pass as u32 * RADIX_BITS)) as usize) & (RADIX - 1)] += 1;
+                }
+                *k = (key, base | j as u32);
+            }
+            hist
         })
         .collect();
-    let mut keys = Vec::with_capacity(n);
     let mut hist = vec![0usize; RADIX * passes];
-    for (k, h) in &per_part {
-        keys.extend_from_slice(k);
+    for h in &hists {
         for (a, &b) in hist.iter_mut().zip(h) {
             *a += b as usize;
         }
     }
-    drop(per_part);
-    let mut tmp = vec![(0u32, 0u32); n];
+    tmp.clear();
+    tmp.resize(n, (0, 0));
     for (pass, h) in hist.chunks_exact_mut(RADIX).enumerate() {
         // a digit all keys share needs no pass (the exponent bits of depths of one scale)
         if h.contains(&n) {
@@ -68,22 +113,13 @@ pub(crate) fn sort_by_depth(parts: &[Vec<Splat>]) -> Vec<Splat> {
             *c = sum;
             sum += v;
         }
-        for k in &keys {
+        for k in keys.iter() {
             let b = ((k.0 >> shift) as usize) & (RADIX - 1);
             tmp[h[b]] = *k;
             h[b] += 1;
         }
-        std::mem::swap(&mut keys, &mut tmp);
+        std::mem::swap(keys, tmp);
     }
-    let mut sorted = sorted_buffer();
-    keys.par_iter()
-        .with_min_len(BIN_CHUNK)
-        .map(|&(_, i)| {
-            parts[(i >> PROJECT_CHUNK_BITS) as usize]
-                [(i & ((1 << PROJECT_CHUNK_BITS) - 1)) as usize]
-        })
-        .collect_into_vec(&mut sorted);
-    sorted
 }
 
 /// Sorted-splat buffers kept between frames, in bytes of capacity (2M splats).
@@ -138,14 +174,19 @@ pub(crate) fn tile_range(s: &Splat, tiles_x: u32, tiles_y: u32) -> (u32, u32, u3
     )
 }
 
+#[derive(Default)]
 struct BinChunk {
     /// n_tiles + 1 offsets into `items`.
     offsets: Vec<u32>,
     /// Positions in the sorted splat array.
     items: Vec<u32>,
+    /// With the splat map (for the backward): each splat's entries in `items`, splat by splat
+    /// (the chunk's order), each splat's tiles in row-major order.
+    entry_of: Vec<u32>,
 }
 
 /// Per-tile lists of sorted splat positions.
+#[derive(Default)]
 pub(crate) struct TileBins {
     pub tiles_x: u32,
     pub tiles_y: u32,
@@ -155,37 +196,65 @@ pub(crate) struct TileBins {
 impl TileBins {
     /// Bucket depth-sorted splats by tile.
     pub(crate) fn build(sorted: &[Splat], tiles_x: u32, tiles_y: u32) -> Result<Self> {
+        let mut bins = TileBins::default();
+        bins.rebuild(sorted, tiles_x, tiles_y, false)?;
+        Ok(bins)
+    }
+
+    /// [`TileBins::build`] reusing this value's buffers (an optimiser loop bins every step);
+    /// `splat_map` also records where each splat's entries are ([`TileBins::entries_of`]).
+    pub(crate) fn rebuild(
+        &mut self,
+        sorted: &[Splat],
+        tiles_x: u32,
+        tiles_y: u32,
+        splat_map: bool,
+    ) -> Result<()> {
         let n_tiles = (tiles_x * tiles_y) as usize;
-        let chunks = sorted
-            .par_chunks(BIN_CHUNK)
+        self.tiles_x = tiles_x;
+        self.tiles_y = tiles_y;
+        self.chunks
+            .resize_with(sorted.len().div_ceil(BIN_CHUNK), BinChunk::default);
+        self.chunks
+            .par_iter_mut()
+            .zip(sorted.par_chunks(BIN_CHUNK))
             .enumerate()
-            .map(|(c, part)| {
+            .try_for_each(|(c, (chunk, part))| {
                 let base = c * BIN_CHUNK;
-                let mut counts = vec![0u64; n_tiles + 1];
+                // counts per tile in offsets[1..], then their exclusive prefix sums
+                let offsets = &mut chunk.offsets;
+                offsets.clear();
+                offsets.resize(n_tiles + 1, 0);
+                let mut total = 0u64;
                 for s in part {
                     let (x0, x1, y0, y1) = tile_range(s, tiles_x, tiles_y);
+                    total += (x1 - x0) as u64 * (y1 - y0) as u64;
+                    if total > u32::MAX as u64 {
+                        return Err(Error::InvalidArgument(format!(
+                            "too many Gaussian-tile intersections (over {}): Gaussians cover \
+                             unreasonably large screen areas",
+                            u32::MAX
+                        )));
+                    }
                     for ty in y0..y1 {
-                        let row = (ty * tiles_x) as usize;
+                        let row = (ty * tiles_x) as usize + 1;
                         for tx in x0..x1 {
-                            counts[row + tx as usize] += 1;
+                            offsets[row + tx as usize] += 1;
                         }
                     }
                 }
-                let total: u64 = counts.iter().sum();
-                if total > u32::MAX as u64 {
-                    return Err(Error::InvalidArgument(format!(
-                        "too many Gaussian-tile intersections ({total}): Gaussians cover \
-                         unreasonably large screen areas"
-                    )));
-                }
-                let mut offsets = vec![0u32; n_tiles + 1];
-                let mut sum = 0u32;
-                for (o, c) in offsets.iter_mut().zip(&counts) {
-                    *o = sum;
-                    sum += *c as u32;
+                for t in 0..n_tiles {
+                    offsets[t + 1] += offsets[t];
                 }
                 let mut cursor: Vec<u32> = offsets[..n_tiles].to_vec();
-                let mut items = vec![0u32; sum as usize];
+                let items = &mut chunk.items;
+                items.clear();
+                items.resize(total as usize, 0);
+                let entry_of = &mut chunk.entry_of;
+                entry_of.clear();
+                if splat_map {
+                    entry_of.reserve(total as usize);
+                }
                 for (j, s) in part.iter().enumerate() {
                     let (x0, x1, y0, y1) = tile_range(s, tiles_x, tiles_y);
                     for ty in y0..y1 {
@@ -193,18 +262,46 @@ impl TileBins {
                         for tx in x0..x1 {
                             let cur = &mut cursor[row + tx as usize];
                             items[*cur as usize] = (base + j) as u32;
+                            if splat_map {
+                                entry_of.push(*cur);
+                            }
                             *cur += 1;
                         }
                     }
                 }
-                Ok(BinChunk { offsets, items })
+                Ok(())
             })
-            .collect::<Result<Vec<_>>>()?;
-        Ok(TileBins {
-            tiles_x,
-            tiles_y,
-            chunks,
-        })
+    }
+
+    /// Sorted splats per binning chunk: splat p is binned by chunk p / BIN_CHUNK.
+    pub(crate) const CHUNK: usize = BIN_CHUNK;
+
+    /// Number of binning chunks.
+    pub(crate) fn n_chunks(&self) -> usize {
+        self.chunks.len()
+    }
+
+    /// Chunk c's entries before tile t's (its list is entries [start(c, t), start(c, t + 1))).
+    #[inline]
+    pub(crate) fn start(&self, c: usize, t: usize) -> u32 {
+        self.chunks[c].offsets[t]
+    }
+
+    /// With the splat map: chunk c's entry indices of all its splats' tiles (splat-major, each
+    /// splat's tiles row-major); splat j of the chunk starts at the sum of the earlier splats'
+    /// tile counts.
+    #[inline]
+    pub(crate) fn entries_of(&self, c: usize) -> &[u32] {
+        &self.chunks[c].entry_of
+    }
+
+    /// Number of entries in tile `t`'s list.
+    #[inline]
+    pub(crate) fn tile_len(&self, t: usize) -> usize {
+        self.chunks
+            .iter()
+            .map(|c| (c.offsets[t + 1] - c.offsets[t]) as usize)
+            .sum()
     }
 
     /// The front-to-back list of tile `t`, as consecutive slices of sorted-splat positions.
@@ -213,6 +310,14 @@ impl TileBins {
         self.chunks
             .iter()
             .map(move |c| &c.items[c.offsets[t] as usize..c.offsets[t + 1] as usize])
+    }
+
+    /// Bytes of the lists (capacities).
+    pub(crate) fn bytes(&self) -> usize {
+        self.chunks
+            .iter()
+            .map(|c| (c.offsets.capacity() + c.items.capacity() + c.entry_of.capacity()) * 4)
+            .sum()
     }
 
     /// Total Gaussian-tile intersections.

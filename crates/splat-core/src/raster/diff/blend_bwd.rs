@@ -1,0 +1,405 @@
+//! Backward of the per-pixel blend, one 16x16 tile per work unit.
+//!
+//! The tile's list is replayed front to back with the forward's own arithmetic (same alpha,
+//! same transmittance bits, same skip and stop decisions), so no per-pixel "last index" is
+//! needed and no threshold can flip between the passes. For Gaussian i of a pixel with colour
+//! gradient g (rgb and the depth channel), T_i the transmittance before it and
+//! S_i = sum_{j <= i} (g . c_j) alpha_j T_j the running weighted colour:
+//!
+//!   dL/dalpha_i = (g . c_i) T_i - (Q - S_i) / (1 - alpha_i),
+//!   Q = g . C_final + T_final (g . background - dL/dA),
+//!
+//! (gsplat's back-to-front `v_alpha` rewritten with the colour behind i as C_final - C_i).
+//! Per (tile, Gaussian) the kernel sums over the tile's pixels, lane by lane and row by row,
+//! then over the 16 lanes with a fixed halving tree, into one [`slot`] of the intersection.
+//! Every kernel (generic, AVX2, AVX-512) performs the same operations in the same order.
+use super::slot;
+use crate::raster::blend::{
+    opacity_exp, prefetch, row_span, BlendParams, TileOut, LANES, PREFETCH_AHEAD, T_MIN,
+};
+use crate::raster::project::{Splat, ALPHA_THRESHOLD};
+use crate::raster::Simd;
+
+/// Per-pixel inputs of a tile's backward: the colour gradients g (r, g, b, depth channel) and
+/// Q (see the module docs); pixels outside the image hold zeros.
+#[derive(Clone)]
+#[repr(C, align(64))]
+pub(crate) struct PixIn {
+    pub g: [[[f32; LANES]; LANES]; 4],
+    pub q: [[f32; LANES]; LANES],
+}
+
+impl Default for PixIn {
+    fn default() -> Self {
+        PixIn {
+            g: [[[0.0; LANES]; LANES]; 4],
+            q: [[0.0; LANES]; LANES],
+        }
+    }
+}
+
+/// Where a tile kernel puts the slot of list entry `pos` (a sorted-splat position). Kernels
+/// call `put` exactly once per entry of the tile's list, in list order.
+pub(crate) trait SlotSink {
+    fn put(&mut self, pos: u32, vals: &[f32; slot::LEN]);
+    /// Called for every (pixel, Gaussian) pair that contributes, in blend order, when
+    /// `RECORD` is true (tests and the reference check): row r, lane l, sorted position, and
+    /// whether alpha was clamped at max_alpha.
+    const RECORD: bool = false;
+    fn contrib(&mut self, _r: usize, _l: usize, _pos: u32, _clamped: bool) {}
+}
+
+#[inline(always)]
+fn fmadd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
+    if FMA {
+        a.mul_add(b, c)
+    } else {
+        a * b + c
+    }
+}
+
+#[inline(always)]
+fn select(m: bool, a: f32, b: f32) -> f32 {
+    if m {
+        a
+    } else {
+        b
+    }
+}
+
+/// The canonical sum of 16 lanes: halving tree (i + 8, then i + 4, i + 2, i + 1), which the SIMD
+/// kernels reproduce exactly.
+#[inline(always)]
+pub(crate) fn hsum16(v: &[f32; LANES]) -> f32 {
+    let mut h = [0.0f32; 8];
+    for i in 0..8 {
+        h[i] = v[i] + v[i + 8];
+    }
+    let h4 = [h[0] + h[4], h[1] + h[5], h[2] + h[6], h[3] + h[7]];
+    let h2 = [h4[0] + h4[2], h4[1] + h4[3]];
+    h2[0] + h2[1]
+}
+
+/// The slot of one (tile, Gaussian) pair from its per-lane accumulators (rows already summed):
+/// `acc` = [c0, c1, c2, c3, V0, V1 (u dy), V2 (u dy^2), |x|, |y|] and the Gaussian's dx per lane.
+#[inline(always)]
+pub(crate) fn finish_slot(acc: &[[f32; LANES]; 9], dx: &[f32; LANES]) -> [f32; slot::LEN] {
+    let mut w5 = [0.0f32; LANES];
+    let mut w7 = [0.0f32; LANES];
+    let mut w8 = [0.0f32; LANES];
+    for l in 0..LANES {
+        w5[l] = dx[l] * acc[4][l];
+        w7[l] = (dx[l] * dx[l]) * acc[4][l];
+        w8[l] = dx[l] * acc[5][l];
+    }
+    let mut out = [0.0f32; slot::LEN];
+    out[slot::C0] = hsum16(&acc[0]);
+    out[slot::C0 + 1] = hsum16(&acc[1]);
+    out[slot::C0 + 2] = hsum16(&acc[2]);
+    out[slot::C0 + 3] = hsum16(&acc[3]);
+    out[slot::V0] = hsum16(&acc[4]);
+    out[slot::VDX] = hsum16(&w5);
+    out[slot::VDY] = hsum16(&acc[5]);
+    out[slot::VDX2] = hsum16(&w7);
+    out[slot::VDXDY] = hsum16(&w8);
+    out[slot::VDY2] = hsum16(&acc[6]);
+    out[slot::ABSX] = hsum16(&acc[7]);
+    out[slot::ABSY] = hsum16(&acc[8]);
+    out
+}
+
+/// Replay one tile's list and emit the slot of every entry (zeros for entries after the tile
+/// finished or whose rows all miss). `t_final` is the forward's state (for the live pixels).
+/// Returns the Gaussian-pixel evaluations (as the forward counts them).
+#[inline(always)]
+fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
+    x0: u32,
+    y0: u32,
+    p: &BlendParams,
+    splats: &[Splat],
+    lists: impl Iterator<Item = &'a [u32]>,
+    pix: &PixIn,
+    sink: &mut S,
+) -> u64 {
+    let mut px = [0.0f32; LANES];
+    for (l, v) in px.iter_mut().enumerate() {
+        *v = (x0 + l as u32) as f32 + 0.5;
+    }
+    // the forward's state: T per pixel (negative = done; outside the image starts done) and
+    // the backward's running weighted colour S
+    let mut tt = [[1.0f32; LANES]; LANES];
+    let mut ss = [[0.0f32; LANES]; LANES];
+    let mut alive = [false; LANES];
+    let mut alive_rows = 0;
+    for r in 0..LANES {
+        for l in 0..LANES {
+            if x0 + l as u32 >= p.width || y0 + r as u32 >= p.height {
+                tt[r][l] = -1.0;
+            }
+        }
+        alive[r] = y0 + (r as u32) < p.height;
+        alive_rows += alive[r] as usize;
+    }
+    let max_alpha = p.max_alpha;
+    let y0f = y0 as f32;
+    let mut evals = 0u64;
+    let mut done = alive_rows == 0;
+    for list in lists {
+        for (k, &gi) in list.iter().enumerate() {
+            if done {
+                sink.put(gi, &[0.0; slot::LEN]);
+                continue;
+            }
+            if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
+                prefetch(splats, ahead as usize);
+            }
+            let s = &splats[gi as usize];
+            let (mx, my) = (s.xy[0], s.xy[1]);
+            let [ca, cb, cc] = s.conic;
+            let (two_a_level, det, inv_a) = (s.two_a_level, s.conic_det, s.inv_a);
+            let (lo, hi) = row_span(my, s.half_height, y0f);
+            let (lo, hi) = (lo as usize, hi as usize);
+            let half_a = 0.5 * ca;
+            let ln_op = s.ln_opacity;
+            let col = [s.rgb[0], s.rgb[1], s.rgb[2], s.depth];
+            let (xl, xh) = (px[0], px[LANES - 1]);
+            let mut dxs = [0.0f32; LANES];
+            let mut adx2 = [0.0f32; LANES];
+            let mut adx = [0.0f32; LANES];
+            let mut bdx = [0.0f32; LANES];
+            for l in 0..LANES {
+                dxs[l] = mx - px[l];
+                adx2[l] = half_a * dxs[l] * dxs[l];
+                adx[l] = ca * dxs[l];
+                bdx[l] = cb * dxs[l];
+            }
+            let mut acc = [[0.0f32; LANES]; 9];
+            for r in lo..hi {
+                if !alive[r] {
+                    continue;
+                }
+                let dy = my - (y0f + r as f32 + 0.5);
+                let bdy = cb * dy;
+                let disc = two_a_level - dy * dy * det;
+                if disc.is_nan() || disc < 0.0 {
+                    continue;
+                }
+                let sq = disc.sqrt();
+                if mx - (sq - bdy) * inv_a > xh || mx + (sq + bdy) * inv_a < xl {
+                    continue;
+                }
+                evals += LANES as u64;
+                let cdy2 = 0.5 * cc * dy * dy;
+                let dy2 = dy * dy;
+                let cdy = cc * dy;
+                let (trow, srow) = (&mut tt[r], &mut ss[r]);
+                let (g0, g1, g2, g3) = (&pix.g[0][r], &pix.g[1][r], &pix.g[2][r], &pix.g[3][r]);
+                let qrow = &pix.q[r];
+                for l in 0..LANES {
+                    let sigma = fmadd::<FMA>(bdy, dxs[l], adx2[l]) + cdy2;
+                    let e = opacity_exp::<FMA>(sigma, ln_op);
+                    let alpha = select(e < max_alpha, e, max_alpha);
+                    let t = trow[l];
+                    let valid = (alpha >= ALPHA_THRESHOLD) & (t > 0.0);
+                    let wt = alpha * t;
+                    let tn = t - wt;
+                    let contrib = valid & (tn > T_MIN);
+                    // gradient of the pixel's loss through this Gaussian's alpha
+                    let mut gc = g0[l] * col[0];
+                    gc = fmadd::<FMA>(g1[l], col[1], gc);
+                    gc = fmadd::<FMA>(g2[l], col[2], gc);
+                    gc = fmadd::<FMA>(g3[l], col[3], gc);
+                    let s_new = fmadd::<FMA>(gc, wt, srow[l]);
+                    let ra = 1.0 / (1.0 - alpha);
+                    let tq = (qrow[l] - s_new) * ra;
+                    let va = fmadd::<FMA>(gc, t, -tq);
+                    let u = e * va;
+                    let m2 = contrib & (e < max_alpha);
+                    acc[0][l] = select(contrib, fmadd::<FMA>(wt, g0[l], acc[0][l]), acc[0][l]);
+                    acc[1][l] = select(contrib, fmadd::<FMA>(wt, g1[l], acc[1][l]), acc[1][l]);
+                    acc[2][l] = select(contrib, fmadd::<FMA>(wt, g2[l], acc[2][l]), acc[2][l]);
+                    acc[3][l] = select(contrib, fmadd::<FMA>(wt, g3[l], acc[3][l]), acc[3][l]);
+                    acc[4][l] = select(m2, acc[4][l] + u, acc[4][l]);
+                    acc[5][l] = select(m2, fmadd::<FMA>(u, dy, acc[5][l]), acc[5][l]);
+                    acc[6][l] = select(m2, fmadd::<FMA>(u, dy2, acc[6][l]), acc[6][l]);
+                    if ABS {
+                        let ax = (u * (adx[l] + bdy)).abs();
+                        let ay = (u * (bdx[l] + cdy)).abs();
+                        acc[7][l] = select(m2, acc[7][l] + ax, acc[7][l]);
+                        acc[8][l] = select(m2, acc[8][l] + ay, acc[8][l]);
+                    }
+                    srow[l] = select(contrib, s_new, srow[l]);
+                    trow[l] = select(contrib, tn, select(valid, -t, t));
+                    if S::RECORD && contrib {
+                        sink.contrib(r, l, gi, e >= max_alpha);
+                    }
+                }
+                let mut all_done = u32::MAX;
+                for &t in trow.iter() {
+                    all_done &= t.to_bits();
+                }
+                if all_done >> 31 == 1 {
+                    alive[r] = false;
+                    alive_rows -= 1;
+                    if alive_rows == 0 {
+                        done = true;
+                        break;
+                    }
+                }
+            }
+            sink.put(gi, &finish_slot(&acc, &dxs));
+        }
+    }
+    evals
+}
+
+/// The generic kernel compiled for AVX2 + FMA: the reference the explicit kernels are tested
+/// against bit for bit.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+pub(crate) fn bwd_tile_generic_fma<'a, const ABS: bool, S: SlotSink>(
+    x0: u32,
+    y0: u32,
+    p: &BlendParams,
+    splats: &[Splat],
+    lists: impl Iterator<Item = &'a [u32]>,
+    pix: &PixIn,
+    sink: &mut S,
+) -> u64 {
+    bwd_tile_impl::<true, ABS, _>(x0, y0, p, splats, lists, pix, sink)
+}
+
+fn bwd_tile_scalar<'a, const ABS: bool, S: SlotSink>(
+    x0: u32,
+    y0: u32,
+    p: &BlendParams,
+    splats: &[Splat],
+    lists: impl Iterator<Item = &'a [u32]>,
+    pix: &PixIn,
+    sink: &mut S,
+) -> u64 {
+    bwd_tile_impl::<false, ABS, _>(x0, y0, p, splats, lists, pix, sink)
+}
+
+/// The backward kernel matching the forward kernel `p.simd` (so the replay gives the forward's
+/// bits): AVX-512, AVX2 + FMA or plain; `absgrad` also sums |dL/dmean2d| per pixel.
+pub(crate) fn bwd_tile<'a>(
+    x0: u32,
+    y0: u32,
+    p: &BlendParams,
+    splats: &[Splat],
+    lists: impl Iterator<Item = &'a [u32]>,
+    pix: &PixIn,
+    sink: &mut impl SlotSink,
+    absgrad: bool,
+) -> u64 {
+    macro_rules! run {
+        ($abs:literal) => {
+            match p.simd {
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: `Simd::resolve` only yields Avx512 when the CPU has these features.
+                Simd::Avx512 => unsafe {
+                    super::blend_bwd_avx512::bwd_tile_avx512::<$abs, _>(
+                        x0, y0, p, splats, lists, pix, sink,
+                    )
+                },
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: `Simd::resolve` only yields Avx2 when the CPU has AVX2 and FMA.
+                Simd::Avx2 => unsafe {
+                    super::blend_bwd_avx2::bwd_tile_avx2::<$abs, _>(
+                        x0, y0, p, splats, lists, pix, sink,
+                    )
+                },
+                _ => bwd_tile_scalar::<$abs, _>(x0, y0, p, splats, lists, pix, sink),
+            }
+        };
+    }
+    if absgrad {
+        run!(true)
+    } else {
+        run!(false)
+    }
+}
+
+/// The generic kernel of the same rounding as `p.simd`'s (with FMA for the AVX kernels):
+/// the same results as [`bwd_tile`], one pair at a time (it can record contributions).
+pub(crate) fn bwd_tile_generic<'a>(
+    x0: u32,
+    y0: u32,
+    p: &BlendParams,
+    splats: &[Splat],
+    lists: impl Iterator<Item = &'a [u32]>,
+    pix: &PixIn,
+    sink: &mut impl SlotSink,
+) -> u64 {
+    match p.simd {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `Simd::resolve` only yields Avx512 / Avx2 when the CPU has AVX2 and FMA.
+        Simd::Avx512 | Simd::Avx2 => unsafe {
+            bwd_tile_generic_fma::<true, _>(x0, y0, p, splats, lists, pix, sink)
+        },
+        _ => bwd_tile_scalar::<true, _>(x0, y0, p, splats, lists, pix, sink),
+    }
+}
+
+/// Fill a tile's [`PixIn`] from the image gradients and the forward's saved tile state, and
+/// return the tile's share of dL/d(background) (in float64, summed over its pixels in row-major
+/// order).
+///
+/// `depth_grad` is dL/d(depth image); with `expected_depth` it refers to D / max(A, 1e-10)
+/// and is turned into gradients of the accumulated depth D and of the alpha A here.
+pub(crate) fn tile_inputs(
+    x0: usize,
+    y0: usize,
+    width: usize,
+    height: usize,
+    saved: &TileOut,
+    grads: &super::ImageGrads<'_>,
+    background: [f32; 3],
+    expected_depth: bool,
+    pix: &mut PixIn,
+) -> [f64; 3] {
+    *pix = PixIn::default();
+    let mut v_bg = [0.0f64; 3];
+    let cols = LANES.min(width - x0);
+    for r in 0..LANES.min(height - y0) {
+        for l in 0..cols {
+            let i = (y0 + r) * width + x0 + l;
+            let t = saved.t[r][l].abs();
+            let a = 1.0 - t;
+            let mut g = [0.0f32; 4];
+            if let Some(v) = grads.rgb {
+                g[..3].copy_from_slice(&v[i * 3..i * 3 + 3]);
+            }
+            let mut ga = grads.alpha.map_or(0.0, |v| v[i]);
+            let gd = grads.depth.map_or(0.0, |v| v[i]);
+            if expected_depth {
+                // depth = D / max(A, 1e-10)
+                let am = a.max(1e-10);
+                g[3] = gd / am;
+                if a > 1e-10 {
+                    ga -= gd * (saved.d[r][l] / am) / am;
+                }
+            } else {
+                g[3] = gd;
+            }
+            let cf = [
+                saved.c[0][r][l],
+                saved.c[1][r][l],
+                saved.c[2][r][l],
+                saved.d[r][l],
+            ];
+            let gbg = g[0] * background[0] + g[1] * background[1] + g[2] * background[2];
+            let mut q = t * (gbg - ga);
+            for c in 0..4 {
+                q += g[c] * cf[c];
+                pix.g[c][r][l] = g[c];
+            }
+            pix.q[r][l] = q;
+            for c in 0..3 {
+                v_bg[c] += g[c] as f64 * t as f64;
+            }
+        }
+    }
+    v_bg
+}
