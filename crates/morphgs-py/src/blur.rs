@@ -11,14 +11,14 @@ use crate::errors::detach;
 /// replicate the edge pixel; runs in parallel with identical results for any thread count.
 ///
 /// Args:
-///     images: float32 array (H,W), (H,W,C) or (F,H,W,C), C-contiguous.
+///     images: float32 array (H,W), (H,W,C) or (F,H,W,C) (any memory layout).
 ///     sigma: standard deviation in pixels, in [0, 256]; 0 returns a copy.
 ///
 /// Returns:
 ///     A new float32 array of the same shape.
 ///
 /// Raises:
-///     ValueError: bad shape, non-contiguous input or sigma out of range.
+///     ValueError: bad shape or sigma out of range.
 #[pyfunction]
 #[pyo3(signature = (images, sigma))]
 fn gaussian_blur<'py>(
@@ -37,9 +37,17 @@ fn gaussian_blur<'py>(
             )))
         }
     };
-    let data = images
-        .as_slice()
-        .map_err(|_| PyValueError::new_err("images must be C-contiguous"))?;
+    // as_slice also accepts Fortran order, whose memory is not row-major: copy other layouts
+    // into logical (row-major) order instead of reading them wrongly
+    let copied: Vec<f32>;
+    let data = if images.is_c_contiguous() {
+        images
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("images must be C-contiguous"))?
+    } else {
+        copied = images.as_array().iter().copied().collect();
+        &copied
+    };
     let out = detach(py, || {
         splat_core::blur::gaussian_blur(data, f, h, w, c, sigma)
     })?;
