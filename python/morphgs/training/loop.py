@@ -99,7 +99,7 @@ def train(
     cfg = resolved.config
     data_dir = Path(data) if data is not None else _saved_data(run_dir) if resume else None
     accelerator = Accelerator(mixed_precision=_precision(cfg), gradient_accumulation_steps=cfg.optim.grad_accum,
-                              cpu=cfg.run.cpu, step_scheduler_with_optimizer=False)
+                              cpu=_use_cpu(cfg), step_scheduler_with_optimizer=False)
     main = accelerator.is_main_process
     say = log or ((lambda m: print(m, file=sys.stderr, flush=True)) if main else (lambda m: None))
     rank, world, device = accelerator.process_index, accelerator.num_processes, accelerator.device
@@ -168,7 +168,7 @@ def train(
                 with accelerator.accumulate(model_p):
                     loss, step_logs = model_p(batch, generator=gen)
                     if not torch.isfinite(loss.detach()):
-                        raise TrainingError(f"{run_dir}: the loss is {loss.item()} at step {state.step + 1} "
+                        raise TrainingError(f"{run_dir}: the loss is {loss.detach().item()} at step {state.step + 1} "
                                             f"(lr {scheduler.get_last_lr()[0]:.3g}); lower [optim] lr")
                     accelerator.backward(loss)
                     if accelerator.sync_gradients and o.grad_clip > 0:
@@ -228,6 +228,13 @@ def _precision(cfg: TrainConfig) -> str:
     if torch.cuda.is_available() and not cfg.run.cpu:
         return "bf16" if torch.cuda.is_bf16_supported() else "no"
     return "bf16" if _cpu_has_bf16() else "no"
+
+
+def _use_cpu(cfg: TrainConfig) -> bool:
+    """CPU when asked, and for a multi-process launch (torchrun) on a machine without CUDA, so that
+    accelerate sets up gloo DDP over the processes instead of running each one alone."""
+    multi = int(os.environ.get("WORLD_SIZE", "1")) > 1
+    return cfg.run.cpu or (multi and not torch.cuda.is_available())
 
 
 def _cpu_has_bf16() -> bool:
