@@ -92,12 +92,12 @@ def test_cli_refines_a_curated_pair_a_frames_folder_and_a_video(trained: tuple[P
     report = json.loads((tmp_path / "a" / "metrics.json").read_text())
     assert report["frames"] == 10 and f"{report['psnr_refined']:.2f} dB" in printed
     assert (tmp_path / "a" / "preview.png").is_file()  # before / after / target strip
-    out = media.read_clip(tmp_path / "a")
+    out = media.read_clip(tmp_path / "a" / "frames")
     assert out.shape == (10, 32, 40, 3) and media.clip_info(tmp_path / "a" / "refined.mp4") == (10, 32, 40)
     # an MP4 input gives as many frames as it has
     video = media.write_video(tmp_path / "in.mp4", media.read_clip(pair / "corrupted"))
     assert main(["refine", str(run), str(video), "--out", str(tmp_path / "b")]) == 0
-    assert media.read_clip(tmp_path / "b").shape == (10, 32, 40, 3)
+    assert media.read_clip(tmp_path / "b" / "frames").shape == (10, 32, 40, 3)
     # colour correction is on by default and matches --color-ref's statistics; off, it does not
     (tmp_path / "tint").mkdir()
     tint = _tinted(media.read_clip(pair / "clean"))
@@ -106,8 +106,8 @@ def test_cli_refines_a_curated_pair_a_frames_folder_and_a_video(trained: tuple[P
                  "--color-ref", str(tmp_path / "tint")]) == 0
     assert main(["refine", str(run), str(pair / "corrupted"), "--out", str(tmp_path / "d"), "--no-color-correct"]) == 0
     m_ref, s_ref = lab_stats(tint)
-    m_c, s_c = lab_stats(media.read_clip(tmp_path / "c"))
-    m_d, _ = lab_stats(media.read_clip(tmp_path / "d"))
+    m_c, s_c = lab_stats(media.read_clip(tmp_path / "c" / "frames"))
+    m_d, _ = lab_stats(media.read_clip(tmp_path / "d" / "frames"))
     np.testing.assert_allclose(m_c, m_ref, atol=1.0)
     np.testing.assert_allclose(s_c, s_ref, rtol=0.1, atol=1.0)
     assert np.abs(m_d - m_ref).max() > 3.0

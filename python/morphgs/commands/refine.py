@@ -12,7 +12,7 @@ def register(sub: Any) -> None:
         "refine", help="refine a clip (frames folder, MP4 or curated pair) with a trained run",
         description="Refine INPUT with the model of RUN: overlapping windows blended over their overlaps, then "
                     "colour correction (Reinhard transfer in CIELAB) against --color-ref or the input clip. "
-                    "Writes OUT/00000.png ... (and OUT/refined.mp4 with --video). A curated pair's corrupted "
+                    "Writes OUT/frames/00000.png ... (and OUT/refined.mp4 with --video). A curated pair's corrupted "
                     "frames are refined, and PSNR/SSIM against its clean frames are printed and written "
                     "to OUT/metrics.json with a before/after/target strip OUT/preview.png.")
     p.add_argument("run", metavar="RUN", help="run folder (morphgs train --out)")
@@ -59,8 +59,8 @@ def run(args: argparse.Namespace) -> int:
                           color_correct=not args.no_color_correct, color_reference=color_ref, device=loaded.device,
                           autocast=args.bf16)
     out = Path(args.out)
-    media.write_frames(out, refined)
-    print(f"{out}: {len(refined)} refined frames ({loaded.config.model}, {loaded.checkpoint.name})")
+    media.write_frames(out / "frames", refined)
+    print(f"{out / 'frames'}: {len(refined)} refined frames ({loaded.config.model}, {loaded.checkpoint.name})")
     if args.video:
         print(f"{media.write_video(out / 'refined.mp4', refined, fps=args.fps)}")
     if clean_path is not None:

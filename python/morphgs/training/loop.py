@@ -92,7 +92,6 @@ def train(
         (each names the path and the problem).
     """
     from accelerate import Accelerator
-    from accelerate.utils import set_seed
 
     run_dir = Path(out)
     resolved = _resolve(run_dir, model, config, overrides, resume, data)
@@ -100,23 +99,35 @@ def train(
     data_dir = Path(data) if data is not None else _saved_data(run_dir) if resume else None
     accelerator = Accelerator(mixed_precision=_precision(cfg), gradient_accumulation_steps=cfg.optim.grad_accum,
                               cpu=_use_cpu(cfg), step_scheduler_with_optimizer=False)
+    try:
+        return _run(accelerator, resolved, run_dir, data_dir, scenes, resume, progress, log)
+    finally:
+        _release(accelerator)
+
+
+def _run(accelerator: Any, resolved: ResolvedConfig, run_dir: Path, data_dir: Path | None, scenes: Sequence[Any],
+         resume: bool, progress: bool, log: Callable[[str], None] | None) -> TrainResult:
+    """The recipe, once accelerate is set up."""
+    from accelerate.utils import set_seed
+
+    cfg = resolved.config
     main = accelerator.is_main_process
     say = log or ((lambda m: print(m, file=sys.stderr, flush=True)) if main else (lambda m: None))
     rank, world, device = accelerator.process_index, accelerator.num_processes, accelerator.device
     if cfg.run.threads:
         torch.set_num_threads(cfg.run.threads)
 
-    # ---- the run folder (every process checks, then the main one writes) ----
+    # ---- data, then the run folder (every process checks, then the main one writes) ----
     _check_run_dir(run_dir, resume)
+    train_ds, val_ds = _datasets(cfg, data_dir, scenes, say)
     accelerator.wait_for_everyone()
     if main and not resume:
         _start_run_dir(run_dir, resolved, data_dir, scenes, accelerator)
     accelerator.wait_for_everyone()
 
-    # ---- data and model ----
+    # ---- the model ----
     ctx = ModelContext(frames=cfg.data.frames, size=cfg.data.size, reference=cfg.data.reference, training=True,
                        run_dir=run_dir, cache_dir=run_dir / "cache")
-    train_ds, val_ds = _datasets(cfg, data_dir, scenes, say)
     torch.manual_seed(cfg.seed)  # the same initial weights on every process
     refiner = create_model(cfg.model, cfg.model_config, ctx)
     train_ds = refiner.prepare_data(train_ds, ctx=ctx, accelerator=accelerator)
@@ -212,8 +223,17 @@ def train(
         result.checkpoint = found if found is not None else run_dir
     say(f"done: {state.step} steps in {result.seconds:.1f} s; checkpoint {result.checkpoint}")
     accelerator.wait_for_everyone()
-    accelerator.end_training()
     return result
+
+
+def _release(accelerator: Any) -> None:
+    """End the run's process group and forget accelerate's process-wide state, so that another
+    `train()` in the same process may use other settings (precision, accumulation)."""
+    from accelerate.state import AcceleratorState, GradientState
+
+    accelerator.end_training()
+    AcceleratorState._reset_state(reset_partial_state=True)
+    GradientState._reset_state()
 
 
 # ---------------------------------------------------------------------------------------------
