@@ -43,8 +43,10 @@ demo: $(VENV)/.extras-$(DEMO_EXTRAS) build ## curate pairs from the built-in sce
 	rm -rf out/demo/run out/demo/refined
 	$(VENV)/bin/morphgs train --data out/demo/data --out out/demo/run --max-steps $(DEMO_STEPS) \
 		--time-limit $(DEMO_MINUTES) --validate-every 100
+	# --no-color-correct: tiny works in pixel space and does not drift in colour; matching the corrupted
+	# input's statistics (refine's default) costs it SSIM here (docs/training.md, "Demo")
 	$(VENV)/bin/morphgs refine out/demo/run out/demo/data/pairs/sample-0/morphological/0000 \
-		--out out/demo/refined --video
+		--out out/demo/refined --video --no-color-correct
 
 .PHONY: lint
 lint: ## rustfmt and clippy (warnings are errors)

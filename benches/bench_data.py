@@ -1,12 +1,12 @@
 """Training-data throughput against what the tiny refiner consumes.
 
-- disk: `PairDataset` clips/s (16 frames, 128x192 random crops, flips) through a DataLoader with
-  0 and 2 workers, over a folder curated here from the built-in scenes (49-frame 832x480 PNG
+- disk: `PairDataset` clips/s (16 frames, 128x192 random crops, flips) through the training
+  loop's endless loader (`morphgs.data.train_loader`) with 0 and 2 workers, over a folder curated here from the built-in scenes (49-frame 832x480 PNG
   pairs, as `morphgs curate` writes by default);
 - live: `LivePairs` clips/s (16-frame 256x256 pairs of the 100k-Gaussian built-in scenes,
   morphological, rendered in the workers) with 0 and 2 workers;
-- the model: the tiny refiner's training clips/s at each clip shape (fp32, 2 threads, measured
-  alone), so the loader's rate can be read against it: the data path keeps up when its clips/s
+- the model: the tiny refiner's training clips/s at each clip shape (fp32 and bf16 autocast,
+  2 threads, measured alone), so the loader's rate can be read against it: the data path keeps up when its clips/s
   is above the model's.
 
     python benches/bench_data.py            # full size (a few minutes on 2 cores)
@@ -34,7 +34,7 @@ def _rate(loader: Any, clips: int) -> float:
     return n / (time.perf_counter() - t0)
 
 
-def _model_rate(frames: int, h: int, w: int, steps: int) -> float:
+def _model_rate(frames: int, h: int, w: int, steps: int, precision: str) -> float:
     import torch
 
     from morphgs.models import ModelContext, create_model
@@ -48,7 +48,8 @@ def _model_rate(frames: int, h: int, w: int, steps: int) -> float:
     times = []
     for i in range(steps + 1):
         t0 = time.perf_counter()
-        loss, _ = model(batch)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16"):
+            loss, _ = model(batch)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -64,7 +65,7 @@ def main() -> None:
     import torch
 
     import morphgs
-    from morphgs.data import LivePairs, PairDataset
+    from morphgs.data import LivePairs, PairDataset, train_loader
 
     torch.set_num_threads(2)
     if args.quick:
@@ -85,11 +86,11 @@ def main() -> None:
         ds = PairDataset(work / "ds", "train", frames=f_disk, size=crop, flip=True)
         print(f"disk: PairDataset, {f_disk}x{crop[0]}x{crop[1]} crops of {size[0]}x{size[1]} PNG pairs")
         for workers in (0, 2):
-            loader = torch.utils.data.DataLoader(ds, batch_size=1, shuffle=True, num_workers=workers,
-                                                 persistent_workers=False)
+            loader = train_loader(ds, batch_size=1, num_workers=workers, seed=0, rank=0, world_size=1, start_batch=0)
             print(f"  {workers} workers: {_rate(loader, disk_clips):6.2f} clips/s", flush=True)
-        print(f"  tiny refiner training consumes {_model_rate(f_disk, *crop, steps):6.2f} clips/s "
-              f"(batch 1, fp32, 2 threads)", flush=True)
+        for precision in ("fp32", "bf16"):
+            print(f"  tiny refiner training consumes {_model_rate(f_disk, *crop, steps, precision):6.2f} clips/s "
+                  f"(batch 1, {precision}, 2 threads)", flush=True)
         print(f"live: LivePairs, {f_live}x{live[0]}x{live[1]} pairs of {gaussians}-Gaussian built-in scenes, "
               "morphological")
         for workers in (0, 2):
@@ -97,8 +98,9 @@ def main() -> None:
                            threads=1 if workers else 2)
             loader = torch.utils.data.DataLoader(lp, batch_size=1, num_workers=workers)
             print(f"  {workers} workers: {_rate(loader, live_clips):6.2f} clips/s", flush=True)
-        print(f"  tiny refiner training consumes {_model_rate(f_live, *live, steps):6.2f} clips/s "
-              f"(batch 1, fp32, 2 threads)")
+        for precision in ("fp32", "bf16"):
+            print(f"  tiny refiner training consumes {_model_rate(f_live, *live, steps, precision):6.2f} clips/s "
+                  f"(batch 1, {precision}, 2 threads)", flush=True)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

@@ -80,7 +80,8 @@ def train_loader(dataset: Any, *, batch_size: int, num_workers: int, seed: int, 
     if num_workers > 0:
         common["prefetch_factor"] = 2
     if isinstance(dataset, torch.utils.data.IterableDataset):
-        stream = dataset.stream(start_batch=start_batch, batch_size=batch_size, rank=rank, world_size=world_size)
+        stream = dataset.stream(start_batch=start_batch, batch_size=batch_size,  # type: ignore[attr-defined]
+                                rank=rank, world_size=world_size)
         return torch.utils.data.DataLoader(stream, **common)
     sampler = EpochSampler(len(dataset), seed=seed, rank=rank, world_size=world_size,
                            start=start_batch * batch_size)

@@ -123,6 +123,27 @@ class _TemporalAttention(nn.Module):
         return x + y
 
 
+class _Stage(nn.Module):
+    """Blocks applied one after the other (each needs the frame count)."""
+
+    def __init__(self, blocks: list[_Block]) -> None:
+        super().__init__()
+        self.blocks = nn.ModuleList(blocks)
+
+    def forward(self, x: torch.Tensor, frames: int) -> torch.Tensor:
+        for blk in self.blocks:
+            x = blk(x, frames)
+        return x
+
+
+def _zero(conv: nn.Conv2d) -> nn.Conv2d:
+    """A convolution initialised to output zeros."""
+    nn.init.zeros_(conv.weight)
+    if conv.bias is not None:
+        nn.init.zeros_(conv.bias)
+    return conv
+
+
 class TinyNet(nn.Module):
     """The network: (B, 3, F, H, W) in [-1, 1] (+ optional (B, 3, R, H, W) references) -> same."""
 
@@ -134,19 +155,14 @@ class TinyNet(nn.Module):
         self.reference = reference
         if reference:
             self.ref_stem = nn.Conv2d(3 * r * r, ch[0], 3, padding=1)
-            self.ref_proj = nn.Conv2d(ch[0], ch[0], 1)
-            nn.init.zeros_(self.ref_proj.weight)
-            nn.init.zeros_(self.ref_proj.bias)
-        self.encoder = nn.ModuleList([nn.ModuleList([_Block(c, cfg) for _ in range(n)])
-                                      for c, n in zip(ch, cfg.blocks)])
+            self.ref_proj = _zero(nn.Conv2d(ch[0], ch[0], 1))
+        self.encoder = nn.ModuleList([_Stage([_Block(c, cfg) for _ in range(n)]) for c, n in zip(ch, cfg.blocks)])
         self.down = nn.ModuleList([nn.Conv2d(a, b, 3, stride=2, padding=1) for a, b in zip(ch[:-1], ch[1:])])
         self.attention = _TemporalAttention(ch[-1], cfg.attention_heads, cfg.groups) if cfg.attention_heads else None
         self.up = nn.ModuleList([nn.Conv2d(b, a, 1) for a, b in zip(ch[:-1], ch[1:])])
         self.decoder = nn.ModuleList([_Block(c, cfg) for c in ch[:-1]])
         self.head_norm = nn.GroupNorm(cfg.groups, ch[0])
-        self.head = nn.Conv2d(ch[0], 3 * r * r, 3, padding=1)
-        nn.init.zeros_(self.head.weight)
-        nn.init.zeros_(self.head.bias)
+        self.head = _zero(nn.Conv2d(ch[0], 3 * r * r, 3, padding=1))
 
     def _fold(self, x: torch.Tensor) -> torch.Tensor:
         b, c, f, h, w = x.shape
@@ -165,9 +181,8 @@ class TinyNet(nn.Module):
             rf = rf.reshape(b, reference.shape[2], *rf.shape[1:]).mean(dim=1)
             feats = feats + self.ref_proj(rf).repeat_interleave(f, dim=0)
         skips = []
-        for i, blocks in enumerate(self.encoder):
-            for blk in blocks:
-                feats = blk(feats, f)
+        for i, stage in enumerate(self.encoder):
+            feats = stage(feats, f)
             if i < len(self.down):
                 skips.append(feats)
                 feats = self.down[i](feats)
