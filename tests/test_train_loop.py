@@ -169,6 +169,20 @@ def test_two_processes_train_like_one_process_with_twice_the_batch(two_pairs: Pa
         assert sa == sb and float(loss_a) == pytest.approx(float(loss_b), rel=1e-4)  # the mean over both ranks
 
 
+def test_two_accumulated_micro_batches_train_like_one_batch_of_two(two_pairs: Path, tmp_path: Path) -> None:
+    weights, lrs = [], []
+    for name, data_over, optim_over in (("accum", {"batch_size": 1}, {"grad_accum": 2}),
+                                        ("batch", {"batch_size": 2}, {"grad_accum": 1})):
+        over = small_overrides(data=data_over, optim={"max_steps": 3, **optim_over}, run={"checkpoint_every": 0})
+        result = train(two_pairs, out=tmp_path / name, overrides=over, progress=False)
+        weights.append(load_file(str(result.checkpoint / "trained.safetensors")))
+        lrs.append([float(r["lr"]) for r in CsvLog(tmp_path / name / "logs" / "train.csv").read()])
+    assert lrs[0] == lrs[1] and len(lrs[0]) == 3  # one scheduler step per optimizer step, not per micro-batch
+    a, b = weights
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=1e-4, atol=1e-5)
+
+
 def test_live_pairs_train_and_validate_on_a_curated_test_split(data: Path, tmp_path: Path) -> None:
     scene = REPO / "tests" / "fixtures" / "marcelpadilla_spot_10k.splat"
     over = small_overrides(data={"live": True, "samples_per_epoch": 4, "live_threads": 1},
