@@ -177,7 +177,7 @@ def test_an_unreadable_png_is_named_even_from_a_worker(data: Path, tmp_path: Pat
     ds = PairDataset(copy, "test", frames=8)
     bad = ds.records[0].corrupted / "00005.png"
     bad.write_bytes(b"\x89PNG\r\n\x1a\n this is not a png")
-    with pytest.raises(media.MediaError, match="00005.png: not a readable image"):
+    with pytest.raises(media.MediaError, match="00005.png: not a readable PNG"):
         ds[0]
     loader = torch.utils.data.DataLoader(ds, batch_size=1, num_workers=1)
     with pytest.raises(media.MediaError, match="00005.png"):

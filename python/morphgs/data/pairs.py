@@ -232,14 +232,16 @@ class PairDataset(torch.utils.data.Dataset):  # type: ignore[type-arg]
         win = self.window(index, seed)
         out: dict[str, Any] = {"pair_id": r.pair_id, "start": win.start, "y0": win.y0, "x0": win.x0,
                                "flip": win.flip, "seed": seed}
-        clean = media.read_clip(r.clean, start=win.start, count=win.frames)
-        corrupted = media.read_clip(r.corrupted, start=win.start, count=win.frames)
+        # without a resize, only the rows down to the crop's bottom edge are decoded
+        rows = win.y0 + win.height if win.resized is None else None
+        clean = media.read_clip(r.clean, start=win.start, count=win.frames, rows=rows)
+        corrupted = media.read_clip(r.corrupted, start=win.start, count=win.frames, rows=rows)
         if clean.shape != corrupted.shape:
             raise media.MediaError(f"pair {r.pair_id}: clean frames {r.clean} are {clean.shape[2]}x{clean.shape[1]}"
                                    f" but corrupted frames {r.corrupted} are {corrupted.shape[2]}x{corrupted.shape[1]}")
-        if clean.shape[1:3] != (r.height, r.width):
-            raise media.MediaError(f"pair {r.pair_id}: frames of {r.clean} are {clean.shape[2]}x{clean.shape[1]}, "
-                                   f"the manifest says {r.width}x{r.height}")
+        if clean.shape[1:3] != (rows or r.height, r.width):
+            raise media.MediaError(f"pair {r.pair_id}: frames of {r.clean} are {clean.shape[2]} pixels wide and "
+                                   f"{clean.shape[1]} rows were read, the manifest says {r.width}x{r.height}")
         out["clean"] = frames_to_tensor(clean, win)
         out["corrupted"] = frames_to_tensor(corrupted, win)
         if self.reference:
