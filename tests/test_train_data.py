@@ -96,6 +96,17 @@ def test_split_comes_from_the_manifest_and_shards_are_merged(data: Path, tmp_pat
     assert len(PairDataset(copy, "all", frames=2)) == len(lines)
 
 
+def test_mp4_pairs_give_the_same_windows_as_their_frames(tmp_path: Path) -> None:
+    data = curated(tmp_path / "video", pairs_per_scene=1, frames=8, resolution=(48, 40), video=True)
+    ds = PairDataset(data, "train", frames=4, size=(16, 24))
+    rec = ds.records[0]
+    assert rec.clean.suffix == ".mp4"
+    s = ds[(0, 3)]
+    disk = media.read_clip(rec.corrupted, start=s["start"], count=4)[:, s["y0"]:s["y0"] + 16, s["x0"]:s["x0"] + 24]
+    torch.testing.assert_close(s["corrupted"], _u8_to_unit(disk), rtol=0, atol=1e-6)
+    assert s["clean"].shape == (3, 4, 16, 24)
+
+
 def test_sampler_shards_ranks_disjointly_and_resumes_mid_epoch() -> None:
     n = 7
     r0 = EpochSampler(n, seed=3, rank=0, world_size=2)

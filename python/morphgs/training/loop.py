@@ -351,7 +351,9 @@ def _datasets(cfg: TrainConfig, data: Path | None, scenes: Sequence[Any],
         train_ds = PairDataset(data, "train", d.frames, d.size, train=True, flip=d.flip, resize=d.resize,
                                reference=d.reference, configs=configs)
     val_ds = None
-    if data is not None:
+    if data is None:
+        say("no curated folder (--data): no validation")
+    else:
         if any(r.split == "test" for r in load_records(data)):
             val_ds = PairDataset(data, "test", d.frames, d.size, train=False, resize=d.resize,
                                  reference=d.reference, configs=configs)
