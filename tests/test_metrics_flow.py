@@ -60,6 +60,14 @@ def test_warping_error_measures_flicker_along_the_motion() -> None:
     assert metrics.warping_error(flicker, clip) == pytest.approx(0.05**2 + steady, rel=0.1)
 
 
+def test_one_pass_gives_both_errors_as_the_separate_functions() -> None:
+    clip = _translating_clip()
+    flicker = np.clip(clip + np.array([0.0, 0.05, 0.0, 0.05])[:, None, None, None], 0, 1)
+    both = metrics.temporal_errors(flicker, clip)
+    np.testing.assert_array_equal(both["eflow"], metrics.flow_epe(flicker, clip, reduction="none"))
+    np.testing.assert_array_equal(both["ewarp"], metrics.warping_error(flicker, clip, reduction="none"))
+
+
 def test_occlusion_mask_flags_forward_backward_disagreement() -> None:
     fw = np.zeros((20, 30, 2), np.float32)
     fw[...] = (3.0, 0.0)
@@ -110,7 +118,7 @@ def test_flow_bad_input() -> None:
         metrics.optical_flow(clip[:1])
     with pytest.raises(MetricError, match="shapes differ"):
         metrics.flow_epe(clip, clip[:3])
-    with pytest.raises(MetricError, match="target_flow must be"):
+    with pytest.raises(MetricError, match="reference flow must be"):
         metrics.flow_epe(clip, clip, target_flow=np.zeros((2, 72, 96, 2)))
     with pytest.raises(MetricError, match="preset"):
         metrics.optical_flow(clip, preset="slow")

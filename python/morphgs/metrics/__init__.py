@@ -30,6 +30,7 @@ from morphgs.metrics.flow import (
     geometric_flows,
     occlusion_mask,
     optical_flow,
+    temporal_errors,
     warp,
     warping_error,
 )
@@ -70,6 +71,7 @@ __all__ = [
     "psnr",
     "scene_points",
     "ssim",
+    "temporal_errors",
     "warp",
     "warping_error",
 ]

@@ -40,6 +40,7 @@ __all__ = [
     "geometric_flows",
     "occlusion_mask",
     "optical_flow",
+    "temporal_errors",
     "warp",
     "warping_error",
 ]
@@ -148,13 +149,6 @@ def occlusion_mask(forward: np.ndarray, backward: np.ndarray) -> np.ndarray:
     return np.asarray(inconsistent | boundary)
 
 
-def _frame_masks(mask: Any, n: int, hw: tuple[int, int], name: str) -> np.ndarray | None:
-    if mask is None:
-        return None
-    m = A.numpy_mask(mask, (n,), hw, name=name)
-    return m
-
-
 def flow_epe(
     pred: Any,
     target: Any,
@@ -183,16 +177,8 @@ def flow_epe(
         MetricError: clips of different shapes or under 2 frames, flows of the wrong shape.
     """
     A.check_reduction(reduction)
-    p, t = _clip(pred, "flow_epe"), _clip(target, "flow_epe")
-    if p.shape != t.shape:
-        raise A.MetricError(f"flow_epe: pred and target shapes differ: {p.shape} vs {t.shape}")
-    n, hw = p.shape[0] - 1, p.shape[1:3]
-    ref = optical_flow(t, preset=preset) if target_flow is None else _check_flow(target_flow, n, hw, "target_flow")
-    out = optical_flow(p, preset=preset)
-    w = _weights(valid, mask, n, hw, "flow_epe")
-    err = np.sqrt(((out - ref).astype(np.float64) ** 2).sum(axis=-1))
-    values = _weighted_means(err, w)
-    return A.reduce_numpy(values, reduction)
+    out = temporal_errors(pred, target, flow=target_flow, valid=valid, mask=mask, preset=preset, warp_error=False)
+    return A.reduce_numpy(out["eflow"], reduction)
 
 
 def warping_error(
@@ -224,29 +210,80 @@ def warping_error(
         MetricError: clips of different shapes, under 2 frames, or neither `target` nor `flow`.
     """
     A.check_reduction(reduction)
-    p = _clip(pred, "warping_error")
+    out = temporal_errors(pred, target, flow=flow, valid=valid, mask=mask, preset=preset, epe=False)
+    return A.reduce_numpy(out["ewarp"], reduction)
+
+
+def temporal_errors(
+    pred: Any,
+    target: Any | None = None,
+    *,
+    flow: np.ndarray | None = None,
+    valid: np.ndarray | None = None,
+    mask: Any = None,
+    preset: str = "medium",
+    epe: bool = True,
+    warp_error: bool = True,
+) -> dict[str, np.ndarray]:
+    """E_flow and E_warp per consecutive pair in one pass that shares the reference flows.
+
+    Flows are computed one pair at a time (a 49-frame 832x480 clip never holds all its flows).
+
+    Args:
+        pred: the output clip (F, H, W, C).
+        target: the ground-truth clip (needed unless `flow` is given and `epe` is False).
+        flow, valid: reference flows (F-1, H, W, 2) and their valid pixels, instead of DIS on
+            `target` (whose occlusions then come from the forward-backward check).
+        mask: optional per-pixel weights (F-1, H, W) or (H, W).
+        preset: DIS preset.
+        epe, warp_error: which errors to compute.
+
+    Returns:
+        {"eflow": (F-1,), "ewarp": (F-1,)} for the requested errors (NaN where no pixel is valid).
+
+    Raises:
+        MetricError: clips of different shapes or under 2 frames, bad flows or masks.
+    """
+    p = _clip(pred, "temporal_errors")
     n, hw = p.shape[0] - 1, p.shape[1:3]
-    if flow is None:
-        if target is None:
-            raise A.MetricError("warping_error: pass the ground-truth clip or reference flows")
-        t = _clip(target, "warping_error")
+    t = None
+    if target is not None:
+        t = _clip(target, "temporal_errors")
         if p.shape != t.shape:
-            raise A.MetricError(f"warping_error: pred and target shapes differ: {p.shape} vs {t.shape}")
-        fw = optical_flow(t, preset=preset)
-        bw = optical_flow(t, backward=True, preset=preset)
-        valid = np.stack([~occlusion_mask(fw[i], bw[i]) for i in range(n)])
-    else:
-        fw = _check_flow(flow, n, hw, "flow")
-    w = _weights(valid, mask, n, hw, "warping_error")
-    values = np.empty(n)
+            raise A.MetricError(f"pred and target shapes differ: {p.shape} vs {t.shape}")
+    elif flow is None or epe:
+        raise A.MetricError("pass the ground-truth clip or reference flows")
+    ref = None if flow is None else _check_flow(flow, n, hw, "reference flow")
+    if valid is not None:
+        if ref is None:
+            raise A.MetricError("valid goes with reference flows (flow=...)")
+        valid = np.asarray(valid, dtype=bool)
+        if valid.shape != (n,) + hw:
+            raise A.MetricError(f"valid must be (F-1, H, W) = {(n,) + hw}, got {valid.shape}")
+    m = None if mask is None else A.numpy_mask(mask, (n,), hw, name="temporal_errors")
+    dis = _dis(preset)
+    gray_p = [_luma(f) for f in p] if epe else []
+    gray_t = [_luma(f) for f in t] if t is not None and ref is None else []
+    out = {k: np.full(n, np.nan) for k, on in (("eflow", epe), ("ewarp", warp_error)) if on}
     for i in range(n):
-        warped, inside = warp(A.as_float(p[i + 1], np.float32), fw[i])
-        d = warped.astype(np.float64) - A.as_float(p[i])
-        se = (d * d).mean(axis=-1)
-        wi = inside.astype(np.float64) if w is None else w[i] * inside
-        total = wi.sum()
-        values[i] = np.einsum("hw,hw->", se, wi) / total if total > 0 else np.nan
-    return A.reduce_numpy(values, reduction)
+        w = None if m is None else m[i]
+        if ref is not None:  # given flows: trust their validity for both errors
+            fw = ref[i]
+            ok = None if valid is None else valid[i]
+            ok_warp = ok
+        else:  # DIS on the ground truth: every pixel for E_flow, non-occluded ones for E_warp
+            fw = dis.calc(gray_t[i], gray_t[i + 1], None)
+            ok = None
+            ok_warp = ~occlusion_mask(fw, dis.calc(gray_t[i + 1], gray_t[i], None)) if warp_error else None
+        if epe:
+            err = np.sqrt(((dis.calc(gray_p[i], gray_p[i + 1], None) - fw).astype(np.float64) ** 2).sum(axis=-1))
+            out["eflow"][i] = _weighted_mean(err, _combine(ok, w))
+        if warp_error:
+            warped, inside = warp(A.as_float(p[i + 1], np.float32), fw)
+            d = warped.astype(np.float64) - A.as_float(p[i])
+            keep = inside if ok_warp is None else inside & ok_warp
+            out["ewarp"][i] = _weighted_mean((d * d).mean(axis=-1), _combine(keep, w))
+    return out
 
 
 def _check_flow(flow: np.ndarray, n: int, hw: tuple[int, int], name: str) -> np.ndarray:
@@ -256,22 +293,17 @@ def _check_flow(flow: np.ndarray, n: int, hw: tuple[int, int], name: str) -> np.
     return f
 
 
-def _weights(valid: Any, mask: Any, n: int, hw: tuple[int, int], name: str) -> np.ndarray | None:
-    w = _frame_masks(mask, n, hw, name)
-    if valid is not None:
-        v = np.asarray(valid, dtype=bool)
-        if v.shape != (n,) + hw:
-            raise A.MetricError(f"{name}: valid must be (F-1, H, W) = {(n,) + hw}, got {v.shape}")
-        w = v.astype(np.float64) if w is None else w * v
-    return w
+def _combine(ok: np.ndarray | None, w: np.ndarray | None) -> np.ndarray | None:
+    if ok is None:
+        return w
+    return ok.astype(np.float64) if w is None else w * ok
 
 
-def _weighted_means(err: np.ndarray, w: np.ndarray | None) -> np.ndarray:
+def _weighted_mean(err: np.ndarray, w: np.ndarray | None) -> float:
     if w is None:
-        return err.mean(axis=(1, 2))
-    total = w.sum(axis=(1, 2))
-    s = np.einsum("nhw,nhw->n", err, w)
-    return np.divide(s, total, out=np.full(len(s), np.nan), where=total > 0)
+        return float(err.mean())
+    total = float(w.sum())
+    return float(np.einsum("hw,hw->", err, w) / total) if total > 0 else float("nan")
 
 
 def geometric_flow(
