@@ -20,6 +20,7 @@ _COMMAND_MODULES = (
     "morphgs.commands.convert",
     "morphgs.commands.sample",
     "morphgs.commands.perturb",
+    "morphgs.commands.eval",
 )
 
 
