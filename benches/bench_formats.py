@@ -1,9 +1,12 @@
 """Decode speed of morphgs.load against a vectorised NumPy decoder of the same format.
 
-Cases: the real SuperSplat capture playcanvas_engine_guitar.compressed.ply (90,854 splats) and a
-1M-splat .spz v3 (SH degree 3) written by morphgs.save_spz from random data. Each NumPy decoder
-is checked against morphgs before timing (max abs difference printed). Times are the best of
---repeat runs, in milliseconds.
+Cases: the real SuperSplat capture playcanvas_engine_guitar.compressed.ply (90,854 splats), a
+1M-splat .spz v3 (SH degree 3) written by morphgs.save_spz from random data, the real PlayCanvas
+SOG playcanvas_engine_monkey_0001.sog (31,658 splats; the NumPy side decodes its WebP textures
+with Pillow/libwebp), a glTF KHR_gaussian_splatting .glb and a SceneSplat .npy folder of the
+random scene. Each NumPy decoder is checked against morphgs before timing (max abs difference
+printed). A second table times the writers (no NumPy peer). Times are the best of --repeat runs,
+in milliseconds.
 
     python benches/bench_formats.py            # full sizes (< 1 minute on 2 cores)
     python benches/bench_formats.py --quick    # smoke check: tiny sizes
@@ -17,6 +20,7 @@ import os
 import sys
 import tempfile
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -153,6 +157,94 @@ def numpy_spz(path: Path) -> dict[str, np.ndarray]:
             "sh_rest": sh * flip_sh[None, :, None]}
 
 
+def numpy_sog(path: Path) -> dict[str, np.ndarray]:
+    """Vectorised decoder of a bundled SOG v2 without SH (WebP through Pillow)."""
+    import io
+    import json
+    import zipfile
+
+    from PIL import Image
+
+    z = zipfile.ZipFile(path)
+    meta = json.loads(z.read("meta.json"))
+    n = meta["count"]
+
+    def tex(name: str) -> np.ndarray:
+        img = Image.open(io.BytesIO(z.read(name))).convert("RGBA")
+        return np.asarray(img).reshape(-1, 4)[:n].astype(np.int32)
+
+    lo, hi = tex(meta["means"]["files"][0]), tex(meta["means"]["files"][1])
+    mins, maxs = np.array(meta["means"]["mins"]), np.array(meta["means"]["maxs"])
+    v = mins + (maxs - mins) * (lo[:, :3] | hi[:, :3] << 8) / 65535.0
+    means = (np.sign(v) * np.expm1(np.abs(v))).astype(np.float32)
+    q = tex(meta["quats"]["files"][0])
+    m = q[:, 3] - 252
+    abc = ((q[:, :3] / 255.0 * 2 - 1) / np.sqrt(2)).astype(np.float32)
+    quats = np.empty((n, 4), np.float32)
+    slots = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])[m]
+    quats[np.arange(n)[:, None], slots] = abc
+    quats[np.arange(n), m] = np.sqrt(np.maximum(0, 1 - (abc * abc).sum(1)))
+    sc, c0 = tex(meta["scales"]["files"][0]), tex(meta["sh0"]["files"][0])
+    return {"means": means, "quats": quats,
+            "log_scales": np.array(meta["scales"]["codebook"], np.float32)[sc[:, :3]],
+            "sh0": np.array(meta["sh0"]["codebook"], np.float32)[c0[:, :3]],
+            "opacity_logits": _logit_u8(c0[:, 3])}
+
+
+def numpy_glb(path: Path) -> dict[str, np.ndarray]:
+    """Vectorised decoder of a float KHR_gaussian_splatting .glb, converted to RDF axes."""
+    import json
+    import struct
+
+    data = path.read_bytes()
+    jlen = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20:20 + jlen])
+    bin_ = memoryview(data)[28 + jlen:]
+    attrs = doc["meshes"][0]["primitives"][0]["attributes"]
+
+    def get(name: str) -> np.ndarray:
+        acc = doc["accessors"][attrs[name]]
+        view = doc["bufferViews"][acc["bufferView"]]
+        w = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}[acc["type"]]
+        return np.frombuffer(bin_, "<f4", acc["count"] * w, view["byteOffset"]).reshape(-1, w)
+
+    e = "KHR_gaussian_splatting:"
+    flip = np.array([-1, -1, 1], np.float32)
+    rot = get(e + "ROTATION")
+    op = np.clip(get(e + "OPACITY")[:, 0], 1e-6, 1 - 1e-6)
+    out = {"means": get("POSITION") * flip,
+           "quats": rot[:, [3, 0, 1, 2]] * np.array([1, -1, -1, 1], np.float32),
+           "log_scales": np.log(get(e + "SCALE")), "sh0": get(e + "SH_DEGREE_0_COEF_0").copy(),
+           "opacity_logits": np.log(op / (1 - op))}
+    # parity of each SH basis function under (x, y) -> (-x, -y)
+    sign = np.array([-1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1], np.float32)
+    names = [f"{e}SH_DEGREE_{deg}_COEF_{c}" for deg in (1, 2, 3) for c in range(2 * deg + 1)]
+    if names[0] in attrs:
+        out["sh_rest"] = np.stack([get(nm) for nm in names], axis=1) * sign[:, None]
+    return out
+
+
+def numpy_scenesplat(folder: Path) -> dict[str, np.ndarray]:
+    """np.load of a SceneSplat folder, un-activated as morphgs does."""
+    c = np.load(folder / "color.npy").astype(np.float32)
+    op = np.clip(np.load(folder / "opacity.npy"), 1e-6, 1 - 1e-6)
+    return {"means": np.load(folder / "coord.npy"),
+            "quats": np.load(folder / "quat.npy"),
+            "log_scales": np.log(np.load(folder / "scale.npy")),
+            "sh0": (np.minimum((c + 0.5) / 255, 1) - 0.5) / np.float32(C0),
+            "opacity_logits": np.log(op / (1 - op))}
+
+
+def _write_scenesplat(scene: morphgs.GaussianScene, folder: Path) -> None:
+    folder.mkdir()
+    np.save(folder / "coord.npy", scene.means)
+    np.save(folder / "opacity.npy", scene.opacities)
+    np.save(folder / "scale.npy", scene.scales)
+    q = scene.quats * np.sign(scene.quats[:, :1])
+    np.save(folder / "quat.npy", q / np.linalg.norm(q, axis=1, keepdims=True))
+    np.save(folder / "color.npy", (scene.colors * 255).astype(np.uint8))
+
+
 def _best_ms(fn: Callable[[], Any], repeat: int) -> float:
     fn()  # warm the page cache and the thread pool
     best = float("inf")
@@ -198,18 +290,40 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         spz = Path(tmp) / "random.spz"
-        morphgs.save_spz(_random_scene(args.spz_splats, args.sh_degree), spz)
+        random_scene = _random_scene(args.spz_splats, args.sh_degree)
+        morphgs.save_spz(random_scene, spz)
+        glb = Path(tmp) / "random.glb"
+        morphgs.save_glb(random_scene, glb)
+        npy = Path(tmp) / "scenesplat"
+        _write_scenesplat(random_scene, npy)
+        sog = FIXTURES / "playcanvas_engine_monkey_0001.sog"
+        tag = f"random {args.spz_splats:,} splats, SH {args.sh_degree}"
         cases = [(ply.name, ply, numpy_compressed_ply),
-                 (f"random {args.spz_splats:,} splats, SH {args.sh_degree} (.spz v3)", spz,
-                  numpy_spz)]
+                 (f"{tag} (.spz v3)", spz, numpy_spz),
+                 (sog.name, sog, numpy_sog),
+                 (f"{tag} (.glb)", glb, numpy_glb),
+                 (f"random {args.spz_splats:,} splats (SceneSplat .npy)", npy, numpy_scenesplat)]
         for label, path, np_decode in cases:
-            scene = morphgs.load(path)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", morphgs.MorphgsWarning)  # SceneSplat is lossy
+                scene = morphgs.load(path)
             diff = _max_diff(scene, np_decode(path))
             if diff > 1e-5:
                 raise SystemExit(f"{label}: morphgs and the NumPy decoder disagree by {diff}")
-            t_mg = _best_ms(lambda p=path: morphgs.load(p), args.repeat)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", morphgs.MorphgsWarning)
+                t_mg = _best_ms(lambda p=path: morphgs.load(p), args.repeat)
             t_np = _best_ms(lambda p=path, f=np_decode: f(p), args.repeat)
-            rows.append((label, len(scene), path.stat().st_size, t_mg, t_np, diff))
+            size = sum(f.stat().st_size for f in path.iterdir()) if path.is_dir() \
+                else path.stat().st_size
+            rows.append((label, len(scene), size, t_mg, t_np, diff))
+        writers = []
+        for name, kw in [("w.spz", {}), ("w4.spz", {"spz_version": 4}),
+                         ("w.compressed.ply", {}), ("w.glb", {}), ("w.ply", {})]:
+            out = Path(tmp) / name
+            t = _best_ms(lambda o=out, k=kw: morphgs.save(random_scene, o, **k), args.repeat)
+            label = name.replace("w4.spz", ".spz v4").replace("w.spz", ".spz v3").lstrip("w")
+            writers.append((label, t, out.stat().st_size))
     print(f"morphgs {morphgs.__version__}, {morphgs.num_threads()} threads, best of "
           f"{args.repeat}, NumPy {np.__version__}, Python {sys.version.split()[0]}")
     head = f"{'file':<52} {'splats':>9} {'bytes':>10} {'morphgs ms':>11} {'numpy ms':>9} " \
@@ -219,6 +333,11 @@ def main(argv: list[str] | None = None) -> int:
     for label, n, size, t_mg, t_np, diff in rows:
         print(f"{label:<52} {n:>9,} {size:>10,} {t_mg:>11.2f} {t_np:>9.2f} "
               f"{t_np / t_mg:>12.1f}x {diff:>10.2e}")
+    print(f"\nwriters, morphgs.save of the random {args.spz_splats:,}-splat SH {args.sh_degree} "
+          "scene")
+    print(f"{'format':<20} {'ms':>10} {'bytes':>12} {'Msplats/s':>10}")
+    for label, t, size in writers:
+        print(f"{label:<20} {t:>10.2f} {size:>12,} {args.spz_splats / t / 1e3:>10.2f}")
     return 0
 
 

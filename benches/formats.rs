@@ -1,13 +1,16 @@
 //! Decode throughput of the compressed formats: the real SuperSplat capture
-//! (playcanvas_engine_guitar.compressed.ply, from MORPHGS_FIXTURES or tests/fixtures) and a
-//! generated 100k-splat SH-3 .spz (v3 gzip), decoded from memory.
+//! (playcanvas_engine_guitar.compressed.ply, from MORPHGS_FIXTURES or tests/fixtures), the real
+//! PlayCanvas SOG playcanvas_engine_monkey_0001.sog, and a generated 100k-splat SH-3 scene as
+//! .spz (v3 gzip, v4 zstd) and .glb, decoded from memory; and encode throughput of the writers
+//! (.spz v3/v4, compressed PLY, .glb) on the same scene.
 use std::hint::black_box;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use splat_core::formats::{spz, SpzAxes};
+use splat_core::formats::{compressed_ply, gltf, sog, spz, SpzAxes};
 use splat_core::io::{load, LoadOptions};
+use splat_core::ply::OnInvalid;
 use splat_core::scene::{normalize_quats, sh_rest_count, Scene};
 
 fn fixtures() -> PathBuf {
@@ -76,6 +79,40 @@ fn bench(c: &mut Criterion) {
     g.bench_function("decode 100k-splat SH3 .spz (uncompressed NGSP)", |b| {
         b.iter(|| black_box(spz::decode_bytes(&raw, Path::new("mem.spz"), SpzAxes::Rdf)))
     });
+    let v4 = spz::encode_v4(&scene.view(), SpzAxes::Rdf).expect("v4");
+    g.bench_function("decode 100k-splat SH3 .spz v4 (zstd)", |b| {
+        b.iter(|| black_box(spz::decode_bytes(&v4, Path::new("mem.spz"), SpzAxes::Rdf)))
+    });
+    let glb = gltf::encode_glb(&scene.view(), "bench").expect("glb");
+    g.bench_function("decode 100k-splat SH3 .glb", |b| {
+        b.iter(|| black_box(gltf::read(&glb, Path::new("mem.glb"), OnInvalid::Error)))
+    });
+    g.bench_function("encode 100k-splat SH3 .spz v3 (gzip)", |b| {
+        b.iter(|| {
+            let raw = spz::encode_v3(&scene.view(), SpzAxes::Rdf).expect("v3");
+            let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+            gz.write_all(&raw).expect("gzip");
+            black_box(gz.finish().expect("gzip").len())
+        })
+    });
+    g.bench_function("encode 100k-splat SH3 .spz v4 (zstd)", |b| {
+        b.iter(|| black_box(spz::encode_v4(&scene.view(), SpzAxes::Rdf).map(|v| v.len())))
+    });
+    g.bench_function("encode 100k-splat SH3 compressed PLY", |b| {
+        b.iter(|| black_box(compressed_ply::encode(&scene.view(), "bench").map(|v| v.len())))
+    });
+    g.bench_function("encode 100k-splat SH3 .glb", |b| {
+        b.iter(|| black_box(gltf::encode_glb(&scene.view(), "bench").map(|v| v.len())))
+    });
+    let monkey = fixtures().join("playcanvas_engine_monkey_0001.sog");
+    if let Ok(bytes) = std::fs::read(&monkey) {
+        g.throughput(Throughput::Elements(31_658));
+        g.bench_function("decode monkey_0001.sog (31,658 splats, WebP)", |b| {
+            b.iter(|| {
+                black_box(sog::read_zip(&bytes, &monkey, OnInvalid::Error).map(|s| s.0.len()))
+            })
+        });
+    }
     g.finish();
 }
 

@@ -3,6 +3,7 @@ every bad input a clear MediaError naming the file."""
 
 from __future__ import annotations
 
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +39,36 @@ def test_mp4_round_trip_keeps_count_size_and_content(tmp_path: Path) -> None:
     window = media.read_clip(out, start=4, count=3)
     np.testing.assert_array_equal(window, back[4:7])
     assert not list(tmp_path.glob(".*tmp*"))  # the temporary was renamed into place
+
+
+def test_encode_frames_gives_the_bytes_write_video_gives_and_the_same_bytes_every_time(tmp_path: Path) -> None:
+    u8 = np.rint(_frames(n=5, h=48, w=64) * 255).astype(np.uint8)
+    media.write_frames(tmp_path / "clip", u8)
+    a = media.encode_frames(tmp_path / "clip", tmp_path / "a.mp4", fps=8)
+    b = media.encode_frames(tmp_path / "clip", tmp_path / "b.mp4", fps=8)
+    c = media.write_video(tmp_path / "c.mp4", u8, fps=8)
+    assert a.read_bytes() == b.read_bytes() == c.read_bytes()
+    # frames not numbered 00000.png... go through read_clip, with the same result
+    (tmp_path / "named").mkdir()
+    for i, f in enumerate(sorted((tmp_path / "clip").iterdir())):
+        (tmp_path / "named" / f"frame_{i + 10}.png").write_bytes(f.read_bytes())
+    d = media.encode_frames(tmp_path / "named", tmp_path / "d.mp4", fps=8)
+    assert d.read_bytes() == a.read_bytes()
+    with pytest.raises(FileNotFoundError):
+        media.encode_frames(tmp_path / "nothing", tmp_path / "e.mp4")
+
+
+def test_mp4_keeps_saturated_colours_and_says_which_matrix_it_used(tmp_path: Path) -> None:
+    """Flat saturated colours come back within limited-range rounding, and the stream is tagged
+    BT.601 (smpte170m, tv range): the matrix it was converted with, which is also what decoders
+    that ignore tags (decord's swscale default) assume, so every reader sees the same colours."""
+    colours = [(200, 50, 100), (30, 180, 60), (40, 60, 220), (240, 220, 30), (128, 128, 128)]
+    u8 = np.stack([np.broadcast_to(np.array(c, np.uint8), (32, 48, 3)) for c in colours])
+    out = media.write_video(tmp_path / "v.mp4", u8, crf=0)
+    back = media.read_clip(out).astype(int)
+    assert np.abs(back.mean(axis=(1, 2)) - np.array(colours)).max() <= 3
+    info = subprocess.run([media._ffmpeg(), "-hide_banner", "-i", str(out)], capture_output=True, text=True).stderr
+    assert "yuv420p(tv, smpte170m" in info
 
 
 def test_depth_exr_folder_reads_back_bit_exact(tmp_path: Path) -> None:

@@ -20,6 +20,7 @@ def test_render_and_curate_functions_do_not_hide_their_modules() -> None:
 
 
 def test_import_morphgs_does_not_import_torch() -> None:
-    code = "import sys, morphgs, morphgs.curation, morphgs.cli; print('torch' in sys.modules)"
+    code = ("import sys, morphgs, morphgs.curation, morphgs.cli, morphgs.exports, morphgs.commands.export; "
+            "print('torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"

@@ -16,10 +16,13 @@ from morphgs._core import (
     gaussian_blur,
     load,
     num_threads,
+    save_compressed_ply,
+    save_glb,
     save_ply,
     save_splat,
     save_spz,
 )
+from morphgs.saving import save
 from morphgs.camera import Camera, Cameras
 from morphgs.pair import Pair, render_pair
 from morphgs import trajectory
@@ -28,6 +31,7 @@ from morphgs import trajectory
 from morphgs.curation import curate
 from morphgs.rendering import Render, render, render_many
 from morphgs import synthetic
+from morphgs import exports
 from morphgs.perturb import PerturbConfig, perturb
 
 __all__ = [
@@ -42,6 +46,7 @@ __all__ = [
     "SceneFormatError",
     "__version__",
     "curate",
+    "exports",
     "gaussian_blur",
     "load",
     "num_threads",
@@ -49,6 +54,9 @@ __all__ = [
     "render",
     "render_many",
     "render_pair",
+    "save",
+    "save_compressed_ply",
+    "save_glb",
     "save_ply",
     "save_splat",
     "save_spz",

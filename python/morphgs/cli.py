@@ -15,6 +15,7 @@ from morphgs._core import MorphgsError
 _COMMAND_MODULES = (
     "morphgs.commands.info",
     "morphgs.commands.curate",
+    "morphgs.commands.export",
     "morphgs.commands.export_difix",
     "morphgs.commands.preview",
     "morphgs.commands.train",
@@ -22,6 +23,7 @@ _COMMAND_MODULES = (
     "morphgs.commands.convert",
     "morphgs.commands.sample",
     "morphgs.commands.perturb",
+    "morphgs.commands.eval",
 )
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import os
 import re
 import subprocess
+import threading
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -30,6 +31,7 @@ __all__ = [
     "VIDEO_SUFFIXES",
     "MediaError",
     "clip_info",
+    "encode_frames",
     "frame_paths",
     "is_video",
     "read_clip",
@@ -275,6 +277,31 @@ def write_frames(folder: str | os.PathLike[str], frames: np.ndarray | Iterable[n
     return paths
 
 
+def _x264_output(*, fps: float, crf: int) -> list[str]:
+    """ffmpeg output options shared by every MP4 morphgs writes: H.264 in yuv420p (every player and
+    trainer decodes it) with the BT.601 matrix that untagged-video readers (decord, ffmpeg's own
+    rgb24 output) assume, tagged as such; odd sides padded by one pixel; one encoder thread and
+    bit-exact muxing, so the same frames give the same bytes on every run."""
+    return ["-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2", "-r", str(fps), "-c:v", "libx264", "-pix_fmt", "yuv420p",
+            "-crf", str(crf), "-preset", "medium", "-threads", "1", "-colorspace", "smpte170m",
+            "-color_primaries", "smpte170m", "-color_trc", "smpte170m", "-color_range", "tv",
+            "-flags:v", "+bitexact", "-fflags", "+bitexact", "-map_metadata", "-1", "-movflags", "+faststart"]
+
+
+def _run_ffmpeg(cmd: list[str], out: Path, tmp: Path, stdin: bytes | None = None) -> Path:
+    proc = subprocess.run(cmd, input=stdin, capture_output=True, check=False)
+    if proc.returncode != 0:
+        tmp.unlink(missing_ok=True)
+        raise MediaError(f"{out}: ffmpeg failed: {proc.stderr.decode(errors='replace').strip()}")
+    os.replace(tmp, out)
+    return out
+
+
+def _tmp_beside(out: Path) -> Path:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return out.with_name(f".{out.name}.tmp{os.getpid()}-{threading.get_ident()}{out.suffix}")
+
+
 def write_video(path: str | os.PathLike[str], frames: np.ndarray | Iterable[np.ndarray], *, fps: float = 16,
                 crf: int = 18) -> Path:
     """Encode frames (uint8, or float in [0, 1]) as an H.264 MP4 (yuv420p, so every player opens it;
@@ -284,15 +311,35 @@ def write_video(path: str | os.PathLike[str], frames: np.ndarray | Iterable[np.n
         raise ValueError(f"{path}: no frames to encode")
     exe = _ffmpeg()
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}{out.suffix}")
+    tmp = _tmp_beside(out)
     _, h, w, _ = arr.shape
     cmd = [exe, "-v", "error", "-y", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{w}x{h}", "-r", str(fps),
-           "-i", "-", "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2", "-c:v", "libx264", "-pix_fmt", "yuv420p",
-           "-crf", str(crf), "-preset", "medium", "-threads", "1", "-movflags", "+faststart", str(tmp)]
-    proc = subprocess.run(cmd, input=arr.tobytes(), capture_output=True, check=False)
-    if proc.returncode != 0:
-        tmp.unlink(missing_ok=True)
-        raise MediaError(f"{out}: ffmpeg failed: {proc.stderr.decode(errors='replace').strip()}")
-    os.replace(tmp, out)
-    return out
+           "-i", "-", *_x264_output(fps=fps, crf=crf), str(tmp)]
+    return _run_ffmpeg(cmd, out, tmp, stdin=arr.tobytes())
+
+
+_NUMBERED = re.compile(r"^(\d{5})\.png$")
+
+
+def encode_frames(folder: str | os.PathLike[str], path: str | os.PathLike[str], *, fps: float = 16,
+                  crf: int = 18) -> Path:
+    """Encode a folder of frames as an H.264 MP4, as `write_video(path, read_clip(folder))` would.
+
+    Frames numbered `00000.png, 00001.png, ...` (what `morphgs curate` writes) are read by ffmpeg
+    itself, with no decoding in Python, so several folders can be encoded at once from threads; any
+    other folder of frames is read with `read_clip` first. Written to a temporary, then renamed.
+
+    Raises:
+        FileNotFoundError: no such folder. MediaError: no frames, or ffmpeg failed (names the file).
+    """
+    files = frame_paths(folder)
+    numbered = all((m := _NUMBERED.match(f.name)) is not None and int(m.group(1)) == i for i, f in enumerate(files))
+    if not numbered:
+        return write_video(path, read_clip(folder), fps=fps, crf=crf)
+    exe = _ffmpeg()
+    out = Path(path)
+    tmp = _tmp_beside(out)
+    cmd = [exe, "-v", "error", "-y", "-f", "image2", "-framerate", str(fps), "-start_number", "0",
+           "-i", str(Path(folder) / "%05d.png"), "-frames:v", str(len(files)),
+           *_x264_output(fps=fps, crf=crf), str(tmp)]
+    return _run_ffmpeg(cmd, out, tmp)

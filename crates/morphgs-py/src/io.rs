@@ -29,11 +29,16 @@ pub(crate) fn parse_spz_axes(s: &str) -> PyResult<SpzAxes> {
     }
 }
 
-/// Load a Gaussian-splat scene, detecting the format from the file's content (not its name):
-/// INRIA 3DGS PLY, SuperSplat compressed PLY, Niantic .spz (v2, v3, v4) or antimatter15 .splat.
+/// Load a Gaussian-splat scene, detecting the format from the content (not the name): INRIA
+/// 3DGS PLY, SuperSplat compressed PLY, Niantic .spz (v1-v4), PlayCanvas SOG (.sog bundle,
+/// meta.json or its folder), glTF/GLB with KHR_gaussian_splatting, a SceneSplat .npy folder or
+/// antimatter15 .splat.
+///
+/// Lossy sources (SceneSplat folders: 8-bit DC colour only) and .spz extension records that were
+/// skipped or are informational are reported with a MorphgsWarning.
 ///
 /// Args:
-///     path: the scene file.
+///     path: the scene file or folder.
 ///     on_invalid: "error" (default) raises SceneFormatError on NaN/Inf values; "drop" removes
 ///         those Gaussians and warns with MorphgsWarning saying how many.
 ///     spz_axes: "rdf" (default) converts .spz scenes from their stored RUB axes to the PLY/OpenCV
@@ -59,6 +64,10 @@ fn load(
     };
     let p = path.clone();
     let (scene, report) = detach(py, move || splat_core::io::load(&p, opts))?;
+    let cat = py.get_type::<MorphgsWarning>();
+    for note in &report.notes {
+        PyErr::warn(py, &cat, &std::ffi::CString::new(note.as_str())?, 1)?;
+    }
     if report.dropped > 0 {
         let msg = format!(
             "{}: dropped {} of {} Gaussians holding NaN or Inf values",

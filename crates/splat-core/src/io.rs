@@ -3,6 +3,10 @@
 //! - `ply\n`: a PLY; a `chunk` element plus packed `vertex` properties make it a SuperSplat
 //!   compressed PLY, anything else is read as an INRIA 3DGS PLY.
 //! - `NGSP` (plain) or a gzip stream (`1f 8b`): Niantic `.spz`.
+//! - `glTF`: a GLB; `{`: JSON, either a glTF document (`asset` and `meshes`) or a SOG
+//!   `meta.json` (`means` and `quats`, textures beside it);
+//! - `PK\x03\x04`: a ZIP holding a `meta.json`: a bundled PlayCanvas `.sog`;
+//! - a directory: a SceneSplat `.npy` folder (`coord.npy` ...) or an unbundled SOG (`meta.json`);
 //! - otherwise a non-empty file whose size is a multiple of 32 and whose first records hold
 //!   plausible positions and scales: antimatter15 `.splat` (a format without magic).
 use std::fs::File;
@@ -10,7 +14,7 @@ use std::io::{BufReader, Read};
 use std::path::Path;
 
 use crate::error::{Error, Result};
-use crate::formats::{compressed_ply, splat, spz, SpzAxes};
+use crate::formats::{compressed_ply, gltf, scenesplat, sog, splat, spz, zip, SpzAxes};
 use crate::ply::{self, OnInvalid};
 use crate::scene::Scene;
 
@@ -31,10 +35,7 @@ pub fn load(path: &Path, opts: LoadOptions) -> Result<(Scene, LoadReport)> {
         let mut f = File::open(path).map_err(|e| Error::io(path, e))?;
         let meta = f.metadata().map_err(|e| Error::io(path, e))?;
         if meta.is_dir() {
-            return Err(Error::io(
-                path,
-                std::io::Error::new(std::io::ErrorKind::IsADirectory, "is a directory"),
-            ));
+            return load_dir(path, opts);
         }
         (
             read_up_to(&mut f, &mut magic).map_err(|e| Error::io(path, e))?,
@@ -59,6 +60,40 @@ pub fn load(path: &Path, opts: LoadOptions) -> Result<(Scene, LoadReport)> {
     if magic.starts_with(&spz::MAGIC.to_le_bytes()) || magic.starts_with(&spz::GZIP_MAGIC) {
         return spz::read(path, opts.spz_axes);
     }
+    if magic.starts_with(&gltf::GLB_MAGIC.to_le_bytes()) {
+        let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+        return gltf::read(&bytes, path, opts.on_invalid);
+    }
+    if magic.starts_with(&zip::MAGIC) {
+        let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+        if sog::zip_has_meta(&bytes, path) {
+            return sog::read_zip(&bytes, path, opts.on_invalid);
+        }
+        // a damaged archive: say what is wrong with it
+        zip::Zip::open(&bytes, path)?;
+        return Err(unrecognised(
+            path,
+            magic,
+            len,
+            "a ZIP archive without a SOG meta.json; ",
+        ));
+    }
+    if magic.trim_ascii_start().starts_with(b"{") && len < MAX_JSON {
+        let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+        if gltf::looks_like_gltf_json(&bytes) {
+            return gltf::read(&bytes, path, opts.on_invalid);
+        }
+        if sog::looks_like_meta(&bytes) {
+            return sog::read_dir(path, opts.on_invalid);
+        }
+        if serde_json::from_slice::<serde_json::Value>(&bytes).is_ok() {
+            return Err(Error::format(
+                path,
+                "a JSON file that is neither a glTF document (asset, meshes) nor a SOG \
+                 meta.json (means, quats)",
+            ));
+        }
+    }
     if len % splat::RECORD_BYTES as u64 == 0 {
         let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
         match splat::looks_like_splat(&bytes) {
@@ -79,13 +114,39 @@ pub fn load(path: &Path, opts: LoadOptions) -> Result<(Scene, LoadReport)> {
             }
         }
     }
-    Err(Error::format(
+    Err(unrecognised(path, magic, len, ""))
+}
+
+fn unrecognised(path: &Path, magic: &[u8], len: u64, what: &str) -> Error {
+    Error::format(
         path,
         format!(
-            "unrecognised scene format (first bytes {}); supported: INRIA 3DGS PLY, SuperSplat \
-             compressed PLY, Niantic .spz (v2-v4), antimatter15 .splat (size a multiple of 32, \
-             this file has {len} bytes)",
+            "unrecognised scene format ({what}first bytes {}); supported: INRIA 3DGS PLY, SuperSplat \
+             compressed PLY, Niantic .spz (v1-v4), PlayCanvas SOG (.sog or meta.json), glTF/GLB \
+             with KHR_gaussian_splatting, SceneSplat .npy folders, antimatter15 .splat (size a \
+             multiple of 32, this file has {len} bytes)",
             hex(magic)
+        ),
+    )
+}
+
+/// JSON documents (glTF, SOG meta.json) larger than this are not sniffed.
+const MAX_JSON: u64 = 256 << 20;
+
+/// A directory: a SceneSplat `.npy` folder or an unbundled SOG.
+fn load_dir(path: &Path, opts: LoadOptions) -> Result<(Scene, LoadReport)> {
+    if scenesplat::is_scenesplat_dir(path) {
+        return scenesplat::read(path, opts.on_invalid);
+    }
+    if path.join("meta.json").is_file() {
+        return sog::read_dir(path, opts.on_invalid);
+    }
+    Err(Error::io(
+        path,
+        std::io::Error::new(
+            std::io::ErrorKind::IsADirectory,
+            "is a directory, but neither a SceneSplat .npy folder (coord.npy, color.npy, \
+             opacity.npy, scale.npy, quat.npy) nor an unbundled SOG (meta.json and its textures)",
         ),
     ))
 }

@@ -8,35 +8,36 @@ from pathlib import Path
 from typing import Any
 
 import morphgs
-
-#: Output extensions and what writes them.
-WRITERS = {
-    ".ply": "INRIA 3DGS PLY (float32, all SH bands)",
-    ".splat": "antimatter15 .splat (32 bytes per Gaussian, no SH bands)",
-    ".spz": "Niantic .spz v3 (gzip, RUB axes)",
-}
+from morphgs.saving import WRITERS, format_for
 
 
 def register(sub: Any) -> None:
     p = sub.add_parser(
         "convert",
-        help="convert a scene between formats (.ply, .splat, .spz; the input format is detected)",
-        description="Read any supported scene (INRIA PLY, SuperSplat compressed PLY, .spz v2-v4, "
-        ".splat) and write it in the format named by OUT's extension: "
+        help="convert a scene between formats (.ply, .compressed.ply, .splat, .spz, .glb; the "
+        "input format is detected)",
+        description="Read any supported scene (INRIA PLY, SuperSplat compressed PLY, .spz v1-v4, "
+        "PlayCanvas SOG, glTF/GLB KHR_gaussian_splatting, SceneSplat .npy folders, .splat) and "
+        "write it in the format named by OUT's extension: "
         + "; ".join(f"{k} = {v}" for k, v in WRITERS.items())
         + ".",
     )
-    p.add_argument("input", help="the scene to read (format detected from its content)")
-    p.add_argument("output", help="the file to write: .ply, .splat or .spz")
+    p.add_argument("input", help="the scene to read: a file or folder (format detected from its "
+                   "content)")
+    p.add_argument("output", help="the file to write: .ply, .compressed.ply, .splat, .spz or .glb")
+    p.add_argument("--spz-version", type=int, choices=(3, 4), default=3,
+                   help=".spz output version: 3 (gzip, default) or 4 (zstd streams)")
     p.set_defaults(func=run)
 
 
-def convert(src: str | Path, dst: str | Path) -> morphgs.GaussianScene:
+def convert(src: str | Path, dst: str | Path, *, spz_version: int = 3) -> morphgs.GaussianScene:
     """Load `src` and write it to `dst` in the format given by `dst`'s extension.
 
     Args:
-        src: any scene file `morphgs.load` reads.
-        dst: the output path; its suffix (.ply, .splat or .spz, any case) picks the writer.
+        src: any scene file or folder `morphgs.load` reads.
+        dst: the output path; its suffix (.ply, .compressed.ply, .splat, .spz or .glb, any
+            case) picks the writer.
+        spz_version: 3 or 4, for `.spz` output.
 
     Returns:
         The scene that was written.
@@ -46,25 +47,15 @@ def convert(src: str | Path, dst: str | Path) -> morphgs.GaussianScene:
         SceneFormatError: `src` is malformed or unsupported.
         OSError: a file cannot be read or written.
     """
-    suffix = Path(dst).suffix.lower()
-    if suffix not in WRITERS:
-        raise ValueError(
-            f"{dst}: unknown output extension {suffix!r}; expected one of "
-            + ", ".join(sorted(WRITERS))
-        )
+    format_for(dst)
     scene = morphgs.load(src)
-    if suffix == ".ply":
-        morphgs.save_ply(scene, dst)
-    elif suffix == ".splat":
-        morphgs.save_splat(scene, dst)
-    else:
-        morphgs.save_spz(scene, dst)
+    morphgs.save(scene, dst, spz_version=spz_version)
     return scene
 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        scene = convert(args.input, args.output)
+        scene = convert(args.input, args.output, spz_version=args.spz_version)
     except ValueError as e:
         if isinstance(e, morphgs.MorphgsError):
             raise

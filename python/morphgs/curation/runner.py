@@ -121,8 +121,9 @@ def _matches(rec: dict[str, Any], job: PairJob, opts: OutputOptions) -> bool:
 class _PlainProgress:
     """A stand-in for tqdm (not installed): one stderr line per finished pair with rate and ETA."""
 
-    def __init__(self, total: int, enabled: bool) -> None:
+    def __init__(self, total: int, enabled: bool, desc: str = "curate", unit: str = "pair") -> None:
         self.total, self.n, self.enabled, self.t0 = total, 0, enabled, time.perf_counter()
+        self.desc, self.unit = desc, unit
 
     def update(self, k: int = 1) -> None:
         self.n += k
@@ -130,7 +131,8 @@ class _PlainProgress:
             dt = time.perf_counter() - self.t0
             rate = self.n / dt if dt > 0 else 0.0
             eta = (self.total - self.n) / rate if rate > 0 else float("nan")
-            print(f"curate: {self.n}/{self.total} pairs, {rate:.2f} pairs/s, ETA {eta:.0f} s", file=sys.stderr)
+            print(f"{self.desc}: {self.n}/{self.total} {self.unit}s, {rate:.2f} {self.unit}s/s, ETA {eta:.0f} s",
+                  file=sys.stderr)
 
     def write(self, msg: str, file: Any = None) -> None:
         print(msg, file=file or sys.stderr)
@@ -139,12 +141,12 @@ class _PlainProgress:
         pass
 
 
-def _progress(total: int, enabled: bool) -> Any:
+def _progress(total: int, enabled: bool, desc: str = "curate", unit: str = "pair") -> Any:
     try:
         from tqdm import tqdm
     except ImportError:
-        return _PlainProgress(total, enabled)
-    return tqdm(total=total, unit="pair", desc="curate", file=sys.stderr, disable=not enabled,
+        return _PlainProgress(total, enabled, desc, unit)
+    return tqdm(total=total, unit=unit, desc=desc, file=sys.stderr, disable=not enabled,
                 dynamic_ncols=True, smoothing=0.1)
 
 

@@ -25,7 +25,7 @@ from morphgs.camera import Camera, Cameras
 
 __all__ = ["SCENE_EXTENSIONS", "SceneSource", "builtin_sources", "discover"]
 
-SCENE_EXTENSIONS = (".ply", ".splat", ".spz", ".ksplat", ".sog")
+SCENE_EXTENSIONS = (".ply", ".splat", ".spz", ".ksplat", ".sog", ".glb", ".gltf")
 _PREFERRED = ("point_cloud.ply", "splat.ply", "scene.ply", "splat.splat", "scene.splat")
 BUILTIN_GAUSSIANS = 100_000
 
@@ -103,6 +103,9 @@ def _slug(name: str) -> str:
 
 
 def _scene_file_in(folder: Path) -> Path:
+    # folders that are themselves scenes: SceneSplat .npy attributes, an unbundled SOG
+    if (folder / "coord.npy").is_file() or (folder / "meta.json").is_file():
+        return folder
     its = []
     for d in (folder / "point_cloud").glob("iteration_*"):
         m = re.fullmatch(r"iteration_(\d+)", d.name)

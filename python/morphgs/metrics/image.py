@@ -27,8 +27,6 @@ SSIM_WINDOW = 11  # torchmetrics: int(3.5 * sigma + 0.5) * 2 + 1
 SSIM_K1 = 0.01
 SSIM_K2 = 0.03
 _PAD = SSIM_WINDOW // 2
-# numpy paths work on this many values at a time (bounded float64 temporaries)
-_CHUNK_VALUES = 1 << 23
 
 
 def psnr(pred: Any, target: Any, *, data_range: float = 1.0, mask: Any = None, reduction: str = "mean") -> Any:
@@ -62,19 +60,26 @@ def psnr(pred: Any, target: Any, *, data_range: float = 1.0, mask: Any = None, r
     m = None if m is None else m.reshape(n, h, w)
     sq_sum = np.empty(n)
     weight = np.empty(n)
-    step = max(1, _CHUNK_VALUES // (h * w * c))
-    for s in range(0, n, step):
-        d = A.as_float(p[s:s + step]) - A.as_float(t[s:s + step])
-        se = np.einsum("nhwc,nhwc->nhw", d, d)
+    for i in range(n):  # one image at a time: temporaries stay image-sized
+        d, scale = _difference(p[i], t[i])
         if m is None:
-            sq_sum[s:s + step] = se.sum(axis=(1, 2))
-            weight[s:s + step] = h * w
+            sq_sum[i] = scale * np.einsum("i,i->", d, d, dtype=np.float64)
+            weight[i] = h * w
         else:
-            mm = m[s:s + step]
-            sq_sum[s:s + step] = np.einsum("nhw,nhw->n", se, mm)
-            weight[s:s + step] = mm.sum(axis=(1, 2))
+            se = np.einsum("pc,pc->p", d.reshape(-1, c), d.reshape(-1, c))  # C terms per pixel
+            sq_sum[i] = scale * np.dot(se.astype(np.float64), m[i].reshape(-1))
+            weight[i] = m[i].sum()
     values = _psnr_from_sums(sq_sum, weight * c, r)
     return A.reduce_numpy(values.reshape(lead), reduction)
+
+
+def _difference(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, float]:
+    """Flat a - b and the factor its squares need: uint8 pairs subtract exactly in float32 (then
+    / 255^2), float64 inputs in float64, others in float32; sums accumulate in float64."""
+    if a.dtype == np.uint8 and b.dtype == np.uint8:
+        return np.subtract(a, b, dtype=np.float32).reshape(-1), 1.0 / 255.0**2
+    ft = np.float64 if np.float64 in (a.dtype, b.dtype) else np.float32
+    return (A.as_float(a, ft) - A.as_float(b, ft)).reshape(-1), 1.0
 
 
 def _psnr_from_sums(sq_sum: np.ndarray, count: np.ndarray, data_range: float) -> np.ndarray:

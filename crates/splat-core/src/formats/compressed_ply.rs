@@ -14,10 +14,12 @@ use std::path::Path;
 
 use rayon::prelude::*;
 
-use super::{finish, logit_unit};
+use super::{check_finite, finish, logit_unit, sigmoid, unit_quat};
 use crate::error::{Error, Result};
-use crate::ply::{Element, Encoding, Header, LoadReport, OnInvalid, PropertyKind, ScalarType};
-use crate::scene::{sh_degree_for_rest, sh_rest_count, Scene, SH_C0};
+use crate::ply::{
+    atomic_write, Element, Encoding, Header, LoadReport, OnInvalid, PropertyKind, ScalarType,
+};
+use crate::scene::{sh_degree_for_rest, sh_rest_count, Scene, SceneView, SH_C0};
 
 /// Splats per chunk.
 pub const CHUNK: usize = 256;
@@ -354,6 +356,215 @@ fn sh_value(v: u8) -> f32 {
         _ => (v as f32 + 0.5) / 256.0,
     };
     (n - 0.5) * 8.0
+}
+
+/// Highest SH degree written: web viewers of this format stop at 3 bands (45 `f_rest`).
+pub const MAX_WRITE_DEGREE: u8 = 3;
+
+/// Gaussian order for writing: Morton (Z-order) code of the centre in 21-bit cells of the
+/// scene's bounds, ties broken by index, so each 256-splat chunk is spatially compact and its
+/// quantisation bounds tight (splat-transform sorts the same way before writing).
+pub fn morton_order(means: &[f32]) -> Vec<u32> {
+    let n = means.len() / 3;
+    let mut lo = [f32::INFINITY; 3];
+    let mut hi = [f32::NEG_INFINITY; 3];
+    for p in means.chunks_exact(3) {
+        for d in 0..3 {
+            lo[d] = lo[d].min(p[d]);
+            hi[d] = hi[d].max(p[d]);
+        }
+    }
+    let cells = ((1u32 << 21) - 1) as f32;
+    let scale: Vec<f32> = (0..3)
+        .map(|d| {
+            let r = hi[d] - lo[d];
+            if r > 0.0 {
+                cells / r
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let spread = |mut v: u64| -> u64 {
+        v &= 0x1f_ffff;
+        v = (v | v << 32) & 0x1f_0000_0000_ffff;
+        v = (v | v << 16) & 0x1f_0000_ff00_00ff;
+        v = (v | v << 8) & 0x100f_00f0_0f00_f00f;
+        v = (v | v << 4) & 0x10c3_0c30_c30c_30c3;
+        v = (v | v << 2) & 0x1249_2492_4924_9249;
+        v
+    };
+    let mut keys: Vec<(u64, u32)> = means
+        .par_chunks(3)
+        .enumerate()
+        .map(|(i, p)| {
+            let c = |d: usize| ((p[d] - lo[d]) * scale[d]).clamp(0.0, cells) as u64;
+            (
+                spread(c(0)) | spread(c(1)) << 1 | spread(c(2)) << 2,
+                i as u32,
+            )
+        })
+        .collect();
+    keys.par_sort_unstable();
+    debug_assert_eq!(keys.len(), n);
+    keys.into_iter().map(|(_, i)| i).collect()
+}
+
+#[inline]
+fn pack_unorm(v: f32, bits: u32) -> u32 {
+    let t = ((1u32 << bits) - 1) as f32;
+    (v * t + 0.5).floor().clamp(0.0, t) as u32
+}
+
+#[inline]
+fn normalize(x: f32, lo: f32, hi: f32) -> f32 {
+    if x <= lo {
+        0.0
+    } else if x >= hi {
+        1.0
+    } else if hi - lo < 1e-5 {
+        0.0
+    } else {
+        (x - lo) / (hi - lo)
+    }
+}
+
+/// (w,x,y,z) as 2 bits of the largest component's index and three 10-bit components.
+fn pack_rotation(q: &[f32]) -> u32 {
+    let mut a = unit_quat(q);
+    let mut largest = 0;
+    for i in 1..4 {
+        if a[i].abs() > a[largest].abs() {
+            largest = i;
+        }
+    }
+    if a[largest] < 0.0 {
+        a = a.map(|v| -v);
+    }
+    let norm = std::f32::consts::FRAC_1_SQRT_2;
+    let mut r = largest as u32;
+    for (i, v) in a.iter().enumerate() {
+        if i != largest {
+            r = r << 10 | pack_unorm(v * norm + 0.5, 10);
+        }
+    }
+    r
+}
+
+/// One chunk: 18 bounds and 4 packed words per splat, from the scene rows `rows`.
+fn pack_chunk(s: &SceneView<'_>, rows: &[u32], bounds: &mut [f32], packed: &mut [u32]) {
+    let mut lo = [f32::INFINITY; 9];
+    let mut hi = [f32::NEG_INFINITY; 9];
+    let col = |i: usize, d: usize| 0.5 + SH_C0 * s.sh0[i * 3 + d];
+    for &r in rows {
+        let i = r as usize;
+        for d in 0..3 {
+            let v = [s.means[i * 3 + d], s.log_scales[i * 3 + d], col(i, d)];
+            for (k, v) in v.iter().enumerate() {
+                lo[k * 3 + d] = lo[k * 3 + d].min(*v);
+                hi[k * 3 + d] = hi[k * 3 + d].max(*v);
+            }
+        }
+    }
+    for d in 3..6 {
+        lo[d] = lo[d].clamp(-20.0, 20.0);
+        hi[d] = hi[d].clamp(-20.0, 20.0);
+    }
+    for (o, &r) in packed.chunks_exact_mut(4).zip(rows) {
+        let i = r as usize;
+        let nrm = |k: usize, d: usize, v: f32| normalize(v, lo[k * 3 + d], hi[k * 3 + d]);
+        let p111011 = |k: usize, v: [f32; 3]| {
+            pack_unorm(nrm(k, 0, v[0]), 11) << 21
+                | pack_unorm(nrm(k, 1, v[1]), 10) << 11
+                | pack_unorm(nrm(k, 2, v[2]), 11)
+        };
+        let m = &s.means[i * 3..i * 3 + 3];
+        let l = &s.log_scales[i * 3..i * 3 + 3];
+        o[0] = p111011(0, [m[0], m[1], m[2]]);
+        o[1] = pack_rotation(&s.quats[i * 4..i * 4 + 4]);
+        o[2] = p111011(1, [l[0], l[1], l[2]]);
+        o[3] = pack_unorm(nrm(2, 0, col(i, 0)), 8) << 24
+            | pack_unorm(nrm(2, 1, col(i, 1)), 8) << 16
+            | pack_unorm(nrm(2, 2, col(i, 2)), 8) << 8
+            | pack_unorm(sigmoid(s.opacity_logits[i]), 8);
+    }
+    // file order: min xyz, max xyz, min scale, max scale, min rgb, max rgb
+    for (k, slot) in [0usize, 1, 2].iter().enumerate() {
+        bounds[k * 6..k * 6 + 3].copy_from_slice(&lo[slot * 3..slot * 3 + 3]);
+        bounds[k * 6 + 3..k * 6 + 6].copy_from_slice(&hi[slot * 3..slot * 3 + 3]);
+    }
+}
+
+/// The bytes of a SuperSplat compressed PLY (splat-transform `write-compressed-ply.ts` layout):
+/// Gaussians in Morton order, 256 per chunk, SH bands above degree 3 dropped.
+pub fn encode(scene: &SceneView<'_>, generator: &str) -> Result<Vec<u8>> {
+    check_finite(scene, "compressed PLY")?;
+    let n = scene.len();
+    if n > u32::MAX as usize {
+        return Err(Error::InvalidArgument(format!(
+            "cannot write a compressed PLY of {n} Gaussians"
+        )));
+    }
+    let degree = scene.sh_degree.min(MAX_WRITE_DEGREE);
+    let k = sh_rest_count(degree);
+    let sk = scene.sh_rest_k();
+    let order = morton_order(scene.means);
+    let n_chunks = n.div_ceil(CHUNK);
+    let mut bounds = vec![0f32; n_chunks * 18];
+    let mut packed = vec![0u32; n * 4];
+    bounds
+        .par_chunks_mut(18)
+        .zip(packed.par_chunks_mut(4 * CHUNK))
+        .zip(order.par_chunks(CHUNK))
+        .for_each(|((b, p), rows)| pack_chunk(scene, rows, b, p));
+    let mut sh = vec![0u8; n * k * 3];
+    if k > 0 {
+        sh.par_chunks_mut(3 * k)
+            .zip(order.par_iter())
+            .for_each(|(o, &r)| {
+                let row = &scene.sh_rest[r as usize * sk * 3..];
+                for c in 0..3 {
+                    for j in 0..k {
+                        let v = row[j * 3 + c] / 8.0 + 0.5;
+                        o[c * k + j] = (v * 256.0).trunc().clamp(0.0, 255.0) as u8;
+                    }
+                }
+            });
+    }
+    let mut header = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment Generated by {generator}\nelement chunk \
+         {n_chunks}\n"
+    );
+    for p in CHUNK_BOUNDS[..6]
+        .iter()
+        .chain(&CHUNK_BOUNDS[6..])
+        .chain(&CHUNK_COLORS)
+    {
+        header.push_str(&format!("property float {p}\n"));
+    }
+    header.push_str(&format!("element vertex {n}\n"));
+    for p in PACKED {
+        header.push_str(&format!("property uint {p}\n"));
+    }
+    if k > 0 {
+        header.push_str(&format!("element sh {n}\n"));
+        for i in 0..3 * k {
+            header.push_str(&format!("property uchar f_rest_{i}\n"));
+        }
+    }
+    header.push_str("end_header\n");
+    let mut out = Vec::with_capacity(header.len() + bounds.len() * 4 + packed.len() * 4 + sh.len());
+    out.extend_from_slice(header.as_bytes());
+    out.extend(bounds.iter().flat_map(|v| v.to_le_bytes()));
+    out.extend(packed.iter().flat_map(|v| v.to_le_bytes()));
+    out.extend_from_slice(&sh);
+    Ok(out)
+}
+
+/// Write a SuperSplat compressed PLY, atomically.
+pub fn write(path: &Path, scene: &SceneView<'_>) -> Result<()> {
+    let bytes = encode(scene, concat!("morphgs ", env!("CARGO_PKG_VERSION")))?;
+    atomic_write(path, |w| w.write_all(&bytes))
 }
 
 #[cfg(test)]

@@ -12,8 +12,14 @@ use crate::ply::{LoadReport, OnInvalid};
 use crate::scene::{Scene, SceneView};
 
 pub mod compressed_ply;
+pub mod gltf;
+pub mod npy;
+pub mod scenesplat;
+pub mod sog;
 pub mod splat;
 pub mod spz;
+pub mod spz_ext;
+pub mod zip;
 
 /// Gaussians decoded per parallel task (fixed, so results never depend on the thread count).
 pub(crate) const ROWS_PER_TASK: usize = 4096;
@@ -101,6 +107,7 @@ pub(crate) fn finish(
     let mut report = LoadReport {
         format: format.to_owned(),
         dropped: 0,
+        notes: Vec::new(),
     };
     if !bad.is_empty() {
         match on_invalid {
@@ -164,9 +171,83 @@ pub(crate) fn unit_quat(q: &[f32]) -> [f32; 4] {
     }
 }
 
+/// Per-coefficient SH signs when the axes are mirrored by `f` = (sx, sy, sz) (each +-1): the
+/// parity of each basis function, from nianticlabs/spz `coordinateConverter` (bands 1-4).
+pub fn sh_flips(f: [f32; 3]) -> [f32; 24] {
+    let [x, y, z] = f;
+    [
+        y,
+        z,
+        x, // band 1
+        x * y,
+        y * z,
+        1.0,
+        x * z,
+        1.0, // band 2
+        y,
+        x * y * z,
+        y,
+        z,
+        x,
+        z,
+        x, // band 3
+        x * y,
+        y * z,
+        x * y,
+        y * z,
+        1.0,
+        x * z,
+        1.0,
+        x * z,
+        y, // band 4
+    ]
+}
+
+/// Mirror a scene's axes in place: positions by `f`, quaternions (w,x,y,z) by
+/// (1, fy*fz, fx*fz, fx*fy) and SH coefficients by [`sh_flips`]. With two flips this is a
+/// rotation by 180 degrees about the third axis (RUB <-> RDF, RDF <-> glTF's LUF).
+pub fn flip_axes(scene: &mut Scene, f: [f32; 3]) {
+    use rayon::prelude::*;
+    let k = scene.sh_rest_k();
+    let t = ROWS_PER_TASK;
+    let q = [1.0, f[1] * f[2], f[0] * f[2], f[0] * f[1]];
+    let sh = sh_flips(f);
+    scene.means.par_chunks_mut(3 * t).for_each(|m| {
+        for p in m.chunks_exact_mut(3) {
+            for d in 0..3 {
+                p[d] *= f[d];
+            }
+        }
+    });
+    scene.quats.par_chunks_mut(4 * t).for_each(|m| {
+        for r in m.chunks_exact_mut(4) {
+            for d in 1..4 {
+                r[d] *= q[d];
+            }
+        }
+    });
+    if k > 0 {
+        scene.sh_rest.par_chunks_mut(3 * k * t).for_each(|m| {
+            for row in m.chunks_exact_mut(3 * k) {
+                for (j, s) in sh.iter().take(k).enumerate() {
+                    for c in 0..3 {
+                        row[j * 3 + c] *= s;
+                    }
+                }
+            }
+        });
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn rub_rdf_flips_match_the_spz_table() {
+        let f = sh_flips([1.0, -1.0, -1.0]);
+        assert_eq!(f, spz::SH_FLIP_RUB_RDF);
+    }
 
     #[test]
     fn alpha_extremes_give_finite_logits() {

@@ -98,10 +98,10 @@ fn parse_header(b: &[u8], path: &Path) -> Result<Header> {
         fractional_bits: b[13],
         flags: b[14],
     };
-    if !(2..=4).contains(&h.version) {
+    if !(1..=4).contains(&h.version) {
         return Err(Error::format(
             path,
-            format!("unsupported SPZ version {} (supported: 2, 3, 4)", h.version),
+            format!("unsupported SPZ version {} (supported: 1-4)", h.version),
         ));
     }
     if h.sh_degree > 4 {
@@ -124,10 +124,19 @@ fn parse_header(b: &[u8], path: &Path) -> Result<Header> {
 
 impl Header {
     fn rotation_bytes(&self) -> u64 {
-        if self.version == 2 {
+        if self.version < 3 {
             3
         } else {
             4
+        }
+    }
+
+    /// v1 stored positions as three float16 (never released, still read by the reference).
+    fn position_bytes(&self) -> u64 {
+        if self.version == 1 {
+            6
+        } else {
+            9
         }
     }
 
@@ -139,7 +148,7 @@ impl Header {
     fn sections(&self) -> [(&'static str, u64); 6] {
         let n = self.num_points as u64;
         [
-            ("positions", n * 9),
+            ("positions", n * self.position_bytes()),
             ("alphas", n),
             ("colors", n * 3),
             ("scales", n * 3),
@@ -157,7 +166,7 @@ impl Header {
 /// integer fields, so there is never a Gaussian to drop for NaN/Inf (no `on_invalid`).
 pub fn read(path: &Path, axes: SpzAxes) -> Result<(Scene, LoadReport)> {
     let data = super::read_file(path)?;
-    let mut scene = decode_bytes(&data, path, axes)?;
+    let (mut scene, notes) = decode_with_notes(&data, path, axes)?;
     drop(data);
     scene.normalize_quats();
     Ok((
@@ -165,13 +174,19 @@ pub fn read(path: &Path, axes: SpzAxes) -> Result<(Scene, LoadReport)> {
         LoadReport {
             format: "spz".into(),
             dropped: 0,
+            notes,
         },
     ))
 }
 
 /// Decode the bytes of a `.spz` file (`path` only names it in errors).
 pub fn decode_bytes(data: &[u8], path: &Path, axes: SpzAxes) -> Result<Scene> {
-    let mut scene = if data.starts_with(&GZIP_MAGIC) {
+    decode_with_notes(data, path, axes).map(|(s, _)| s)
+}
+
+/// Decode a `.spz`, returning the scene and what its extension records said.
+pub fn decode_with_notes(data: &[u8], path: &Path, axes: SpzAxes) -> Result<(Scene, Vec<String>)> {
+    let (mut scene, ext) = if data.starts_with(&GZIP_MAGIC) {
         decode_gzip(data, path)?
     } else if data.len() >= 8 && u32_at(data, 0) == MAGIC && u32_at(data, 4) == 4 {
         decode_v4(data, path)?
@@ -182,13 +197,26 @@ pub fn decode_bytes(data: &[u8], path: &Path, axes: SpzAxes) -> Result<Scene> {
         }
         decode_legacy_body(&h, &data[16..], path)?
     };
-    if axes == SpzAxes::Rdf {
-        rub_rdf(&mut scene);
+    let records = super::spz_ext::parse(ext, path)?;
+    let stored = super::spz_ext::stored_axes(&records, path)?;
+    let mut notes = super::spz_ext::notes(&records, path);
+    match axes {
+        SpzAxes::Rdf => super::spz_ext::to_rdf(&mut scene, stored, path)?,
+        SpzAxes::Stored => {
+            if stored != super::spz_ext::CoordinateSystem::RUB {
+                notes.push(format!(
+                    "{}: .spz data is stored in {:?} axes (SPZ_ADOBE_coordinate_system); kept \
+                     as stored",
+                    path.display(),
+                    stored
+                ));
+            }
+        }
     }
-    Ok(scene)
+    Ok((scene, notes))
 }
 
-fn decode_gzip(data: &[u8], path: &Path) -> Result<Scene> {
+fn decode_gzip(data: &[u8], path: &Path) -> Result<(Scene, Vec<u8>)> {
     let mut gz = flate2::read::GzDecoder::new(data);
     let mut head = [0u8; 16];
     let mut got = 0;
@@ -243,8 +271,9 @@ fn decode_gzip(data: &[u8], path: &Path) -> Result<Scene> {
     decode_legacy_body(&h, &body, path)
 }
 
-/// v2/v3 body after the 16-byte header: optional extension records, then the payload.
-fn decode_legacy_body(h: &Header, body: &[u8], path: &Path) -> Result<Scene> {
+/// v1-v3 body after the 16-byte header: the payload, then (flag 0x2) extension records, as
+/// nianticlabs/spz `serializePackedGaussians` writes them.
+fn decode_legacy_body(h: &Header, body: &[u8], path: &Path) -> Result<(Scene, Vec<u8>)> {
     let payload = h.payload_bytes();
     let len = body.len() as u64;
     if len < payload {
@@ -268,15 +297,20 @@ fn decode_legacy_body(h: &Header, body: &[u8], path: &Path) -> Result<Scene> {
         ));
     }
     let mut sections = Vec::with_capacity(6);
-    let mut off = skip as usize;
+    let mut off = 0usize;
     for (_, size) in h.sections() {
         sections.push(&body[off..off + size as usize]);
         off += size as usize;
     }
-    Ok(unpack(h, &sections))
+    let ext = if h.flags & FLAG_EXTENSIONS != 0 {
+        body[off..].to_vec()
+    } else {
+        Vec::new()
+    };
+    Ok((unpack(h, &sections), ext))
 }
 
-fn decode_v4(data: &[u8], path: &Path) -> Result<Scene> {
+fn decode_v4(data: &[u8], path: &Path) -> Result<(Scene, Vec<u8>)> {
     if data.len() < 32 {
         return Err(Error::format(
             path,
@@ -286,14 +320,17 @@ fn decode_v4(data: &[u8], path: &Path) -> Result<Scene> {
     let h = parse_header(data, path)?;
     let num_streams = data[15] as usize;
     let toc = u32_at(data, 16) as usize;
-    let sections = h.sections();
-    let want = if h.sh_degree > 0 { 6 } else { 5 };
+    // the reference writer skips empty streams (SH at degree 0, everything when there are no
+    // points)
+    let sections: Vec<(&str, u64)> = h.sections().into_iter().filter(|s| s.1 > 0).collect();
+    let want = sections.len();
     if num_streams != want {
         return Err(Error::format(
             path,
             format!(
-                "SPZ v4 header declares {num_streams} streams; SH degree {} needs {want}",
-                h.sh_degree
+                "SPZ v4 header declares {num_streams} streams; {} points of SH degree {} need \
+                 {want}",
+                h.num_points, h.sh_degree
             ),
         ));
     }
@@ -378,11 +415,24 @@ fn decode_v4(data: &[u8], path: &Path) -> Result<Scene> {
             Ok(out)
         })
         .collect::<Result<_>>()?;
-    let mut refs: Vec<&[u8]> = decoded.iter().map(Vec::as_slice).collect();
-    if h.sh_degree == 0 {
-        refs.push(&[]);
-    }
-    Ok(unpack(&h, &refs))
+    let mut it = decoded.iter();
+    let refs: Vec<&[u8]> = h
+        .sections()
+        .iter()
+        .map(|s| {
+            if s.1 > 0 {
+                it.next().map_or(&[][..], Vec::as_slice)
+            } else {
+                &[][..]
+            }
+        })
+        .collect();
+    let ext = if h.flags & FLAG_EXTENSIONS != 0 {
+        data[32..toc].to_vec()
+    } else {
+        Vec::new()
+    };
+    Ok((unpack(&h, &refs), ext))
 }
 
 /// Decode the six attribute sections (exact sizes checked by the caller) in the stored axes.
@@ -393,11 +443,16 @@ fn unpack(h: &Header, s: &[&[u8]]) -> Scene {
     let (pos, alpha, col, scl, rot, sh) = (s[0], s[1], s[2], s[3], s[4], s[5]);
     let inv = 1.0 / (1u32 << h.fractional_bits) as f32;
     let t = ROWS_PER_TASK;
+    let pb = h.position_bytes() as usize / 3;
     out.means
         .par_chunks_mut(3 * t)
-        .zip(pos.par_chunks(9 * t))
+        .zip(pos.par_chunks(3 * pb * t))
         .for_each(|(m, p)| {
-            for (v, b) in m.iter_mut().zip(p.chunks_exact(3)) {
+            for (v, b) in m.iter_mut().zip(p.chunks_exact(pb)) {
+                if pb == 2 {
+                    *v = super::npy::f16_to_f32(u16::from_le_bytes([b[0], b[1]]));
+                    continue;
+                }
                 let raw = (b[0] as u32) | (b[1] as u32) << 8 | (b[2] as u32) << 16;
                 // sign-extend the 24-bit value
                 let fixed = ((raw << 8) as i32) >> 8;
@@ -506,31 +561,7 @@ fn pack_smallest_three(q: [f32; 4]) -> u32 {
 
 /// Flip between RUB and RDF in place (the map is its own inverse).
 pub fn rub_rdf(scene: &mut Scene) {
-    let k = scene.sh_rest_k();
-    let t = ROWS_PER_TASK;
-    scene.means.par_chunks_mut(3 * t).for_each(|m| {
-        for p in m.chunks_exact_mut(3) {
-            p[1] = -p[1];
-            p[2] = -p[2];
-        }
-    });
-    scene.quats.par_chunks_mut(4 * t).for_each(|m| {
-        for q in m.chunks_exact_mut(4) {
-            q[2] = -q[2];
-            q[3] = -q[3];
-        }
-    });
-    if k > 0 {
-        scene.sh_rest.par_chunks_mut(3 * k * t).for_each(|m| {
-            for row in m.chunks_exact_mut(3 * k) {
-                for (j, f) in SH_FLIP_RUB_RDF.iter().take(k).enumerate() {
-                    for c in 0..3 {
-                        row[j * 3 + c] *= f;
-                    }
-                }
-            }
-        });
-    }
+    super::flip_axes(scene, [1.0, -1.0, -1.0]);
 }
 
 /// The largest fractional-bit count (at most 12, the reference encoder's choice) at which every
@@ -632,16 +663,77 @@ pub fn encode_v3(scene: &SceneView<'_>, axes: SpzAxes) -> Result<Vec<u8>> {
     Ok(out)
 }
 
+/// zstd level of the v4 streams (nianticlabs/spz `compressZstd` uses 12).
+pub const ZSTD_LEVEL: i32 = 12;
+
+/// The bytes of a `.spz` v4 file: the v3 attribute sections, each its own zstd frame (empty ones
+/// skipped, as the reference writer does), behind a 32-byte header and a table of contents.
+pub fn encode_v4(scene: &SceneView<'_>, axes: SpzAxes) -> Result<Vec<u8>> {
+    let v3 = encode_v3(scene, axes)?;
+    let h = parse_header(&v3, Path::new("<memory>"))?;
+    let mut parts = Vec::with_capacity(6);
+    let mut off = 16usize;
+    for (_, size) in h.sections() {
+        if size > 0 {
+            parts.push(&v3[off..off + size as usize]);
+        }
+        off += size as usize;
+    }
+    let frames: Vec<Vec<u8>> = parts
+        .par_iter()
+        .map(|p| zstd::bulk::compress(p, ZSTD_LEVEL))
+        .collect::<std::io::Result<_>>()
+        .map_err(|e| Error::InvalidArgument(format!("zstd compression failed: {e}")))?;
+    let mut out =
+        Vec::with_capacity(32 + 16 * frames.len() + frames.iter().map(Vec::len).sum::<usize>());
+    out.extend_from_slice(&MAGIC.to_le_bytes());
+    out.extend_from_slice(&4u32.to_le_bytes());
+    out.extend_from_slice(&h.num_points.to_le_bytes());
+    out.extend_from_slice(&[h.sh_degree, h.fractional_bits, 0, frames.len() as u8]);
+    out.extend_from_slice(&32u32.to_le_bytes());
+    out.extend_from_slice(&[0u8; 12]);
+    for (f, p) in frames.iter().zip(&parts) {
+        out.extend_from_slice(&(f.len() as u64).to_le_bytes());
+        out.extend_from_slice(&(p.len() as u64).to_le_bytes());
+    }
+    for f in &frames {
+        out.extend_from_slice(f);
+    }
+    Ok(out)
+}
+
 /// Write a scene as `.spz` v3 (gzip), atomically. `axes` says what the scene's axes are:
 /// [`SpzAxes::Rdf`] (PLY/OpenCV, converted to the file's RUB) or [`SpzAxes::Stored`] (already RUB).
 pub fn write(path: &Path, scene: &SceneView<'_>, axes: SpzAxes) -> Result<()> {
-    let raw = encode_v3(scene, axes)?;
-    atomic_write(path, |w| {
-        let mut gz = flate2::write::GzEncoder::new(w, flate2::Compression::default());
-        std::io::Write::write_all(&mut gz, &raw)?;
-        gz.finish()?;
-        Ok(())
-    })
+    write_version(path, scene, axes, 3)
+}
+
+/// Write a scene as `.spz` of `version` 3 (gzip, the widest viewer support) or 4 (zstd streams,
+/// nianticlabs/spz's current default), atomically.
+pub fn write_version(
+    path: &Path,
+    scene: &SceneView<'_>,
+    axes: SpzAxes,
+    version: u32,
+) -> Result<()> {
+    match version {
+        3 => {
+            let raw = encode_v3(scene, axes)?;
+            atomic_write(path, |w| {
+                let mut gz = flate2::write::GzEncoder::new(w, flate2::Compression::default());
+                std::io::Write::write_all(&mut gz, &raw)?;
+                gz.finish()?;
+                Ok(())
+            })
+        }
+        4 => {
+            let bytes = encode_v4(scene, axes)?;
+            atomic_write(path, |w| w.write_all(&bytes))
+        }
+        v => Err(Error::InvalidArgument(format!(
+            "cannot write .spz version {v}: morphgs writes 3 (gzip) or 4 (zstd)"
+        ))),
+    }
 }
 
 #[cfg(test)]
@@ -705,7 +797,9 @@ mod tests {
         v4.extend_from_slice(&[2, v3[13], FLAG_EXTENSIONS, 6]);
         v4.extend_from_slice(&40u32.to_le_bytes());
         v4.extend_from_slice(&[0u8; 12]);
-        v4.extend_from_slice(b"EXT8BYTE"); // extension bytes before the table of contents
+        // an unknown, empty extension record before the table of contents
+        v4.extend_from_slice(&0x1234_0001u32.to_le_bytes());
+        v4.extend_from_slice(&0u32.to_le_bytes());
         for (c, plain) in &streams {
             v4.extend_from_slice(&(c.len() as u64).to_le_bytes());
             v4.extend_from_slice(&(*plain as u64).to_le_bytes());
@@ -718,6 +812,9 @@ mod tests {
         let b = decode_bytes(&v4, p, SpzAxes::Rdf).expect("v4");
         assert_eq!(a, b);
         assert_eq!(b.sh_rest.len(), n * k * 3);
+        let ours = encode_v4(&scene.view(), SpzAxes::Rdf).expect("v4");
+        let c = decode_bytes(&ours, p, SpzAxes::Rdf).expect("our v4");
+        assert_eq!(a, c);
     }
 
     #[test]

@@ -45,6 +45,9 @@ pub struct LoadReport {
     pub format: String,
     /// Gaussians dropped for non-finite values (OnInvalid::Drop).
     pub dropped: usize,
+    /// Things the caller should be told about (lossy source formats, skipped or honoured
+    /// extension records); the Python binding turns each into a `MorphgsWarning`.
+    pub notes: Vec<String>,
 }
 
 /// How the bytes of one vertex row become float32 values.
@@ -102,6 +105,7 @@ pub fn read_ply(path: &Path, on_invalid: OnInvalid) -> Result<(Scene, LoadReport
     let mut report = LoadReport {
         format: "ply".into(),
         dropped: 0,
+        notes: Vec::new(),
     };
     if !finite {
         let bad = scene.invalid_rows();
