@@ -52,6 +52,19 @@ def test_reference_frames_feed_the_model_only_when_it_was_built_for_them() -> No
         model.refine(x)
 
 
+def test_an_lpips_term_joins_the_loss_with_gradients() -> None:
+    torch.manual_seed(0)
+    model = create_model("tiny", {**SMALL_MODEL, "lpips": 0.5}, ModelContext(frames=2))
+    x = torch.rand(1, 3, 2, 32, 32) * 2 - 1
+    clean = x.flip(-1)
+    loss, logs = model({"corrupted": x, "clean": clean})
+    plain, _ = create_model("tiny", SMALL_MODEL, ModelContext(frames=2))({"corrupted": x, "clean": clean})
+    assert float(logs["lpips"]) > 0
+    assert float(loss.detach()) == pytest.approx(float(plain.detach()) + 0.5 * float(logs["lpips"]), rel=1e-5)
+    loss.backward()
+    assert model.net.head.weight.grad is not None and model.net.head.weight.grad.abs().sum() > 0
+
+
 def test_trained_weights_round_trip_and_refuse_another_config(tmp_path: Path) -> None:
     torch.manual_seed(0)
     a = create_model("tiny", SMALL_MODEL, ModelContext(frames=4))

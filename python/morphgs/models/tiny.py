@@ -18,8 +18,8 @@ A residual UNet over frames (2.8 M parameters with the default config):
 Convolutions are 2D over (batch x frames) and temporal ones 2D over (frames x pixels), which use
 the fast oneDNN kernels on CPUs (PyTorch's 3D CPU convolution is an order of magnitude slower).
 
-Objective: `l1 * L1 + l2 * MSE + ssim * (1 - SSIM) (+ lpips * LPIPS)` on [0, 1] images
-(defaults: L1 + (1 - SSIM)), with SSIM from `morphgs.metrics` (torchmetrics' definition).
+Objective: `l1 * L1 + l2 * MSE + ssim * (1 - SSIM) + lpips * LPIPS` on [0, 1] images (defaults:
+L1 + (1 - SSIM)), with SSIM and LPIPS (AlexNet or VGG, offline weights) from `morphgs.metrics`.
 """
 
 from __future__ import annotations
@@ -53,6 +53,7 @@ class TinyConfig:
     l2: float = 0.0
     ssim: float = 1.0
     lpips: float = 0.0
+    lpips_net: str = "alex"
 
     def __post_init__(self) -> None:
         if len(self.channels) != len(self.blocks) or not self.channels:
@@ -65,6 +66,8 @@ class TinyConfig:
             raise ValueError("unshuffle must be >= 1 and temporal_kernel odd and >= 1")
         if self.attention_heads < 0 or (self.attention_heads and self.channels[-1] % self.attention_heads):
             raise ValueError(f"attention_heads must divide the last channel count {self.channels[-1]}")
+        if self.lpips_net not in ("alex", "vgg"):
+            raise ValueError(f"lpips_net must be alex or vgg, got {self.lpips_net!r}")
         if min(self.l1, self.l2, self.ssim, self.lpips) < 0 or self.l1 + self.l2 + self.ssim + self.lpips <= 0:
             raise ValueError("loss weights l1, l2, ssim, lpips must be >= 0 and not all zero")
 
@@ -210,13 +213,14 @@ class TinyRefiner(Refiner):
         self.window = ctx.frames
         self.size_multiple = cfg.size_multiple
         self.net = TinyNet(cfg, reference=ctx.reference > 0)
-        self._lpips: Any = None
-        if cfg.lpips > 0:
-            self._lpips = _lpips_loss()
+        if cfg.lpips > 0 and ctx.training:
+            from morphgs.metrics import lpips_model
+
+            lpips_model(cfg.lpips_net)  # load the frozen network now: missing weights fail here, not at step 1
 
     def forward(self, batch: Mapping[str, Any], *,
                 generator: torch.Generator | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        from morphgs.metrics import ssim
+        from morphgs.metrics import lpips, ssim
 
         corrupted, clean = batch["corrupted"], batch["clean"]
         pred = self.net(corrupted, batch.get("reference"))
@@ -234,8 +238,8 @@ class TinyRefiner(Refiner):
                 s = ssim(p.flatten(0, 1), t.flatten(0, 1))
                 loss = loss + self.cfg.ssim * (1.0 - s)
                 logs["ssim"] = s.detach()
-            if self._lpips is not None:
-                lp = self._lpips(p.flatten(0, 1), t.flatten(0, 1))
+            if self.cfg.lpips > 0:
+                lp = lpips(p.flatten(0, 1), t.flatten(0, 1), net=self.cfg.lpips_net)
                 loss = loss + self.cfg.lpips * lp
                 logs["lpips"] = lp.detach()
         return loss, logs
@@ -244,15 +248,6 @@ class TinyRefiner(Refiner):
     def refine(self, corrupted: torch.Tensor, *, reference: torch.Tensor | None = None,
                generator: torch.Generator | None = None) -> torch.Tensor:
         return self.net(corrupted, reference).clamp(-1.0, 1.0)
-
-
-def _lpips_loss() -> Any:
-    """LPIPS from morphgs.metrics, when this version has it."""
-    try:
-        from morphgs.metrics import lpips  # type: ignore[attr-defined]
-    except ImportError:
-        raise ValueError("[model] lpips > 0 needs morphgs.metrics.lpips, which this version lacks") from None
-    return lpips
 
 
 @register_model("tiny", config="tiny.toml",
