@@ -18,9 +18,12 @@ _COMMAND_MODULES = (
     "morphgs.commands.export",
     "morphgs.commands.export_difix",
     "morphgs.commands.preview",
+    "morphgs.commands.train",
+    "morphgs.commands.refine",
     "morphgs.commands.convert",
     "morphgs.commands.sample",
     "morphgs.commands.perturb",
+    "morphgs.commands.eval",
 )
 
 

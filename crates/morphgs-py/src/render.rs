@@ -354,6 +354,32 @@ fn _read_exr_batch<'py>(
         .collect()
 }
 
+/// PNG frames as 8-bit RGB, decoded in parallel: for each path, the (rows, W, 3) uint8 array of
+/// its first `max_rows` rows (all rows when None) and the file's full height. Sizes are checked
+/// against `max_values` before decoding.
+#[pyfunction]
+#[pyo3(signature = (paths, max_rows = None, max_values = 1usize << 31))]
+fn _read_png_batch<'py>(
+    py: Python<'py>,
+    paths: Vec<PathBuf>,
+    max_rows: Option<u32>,
+    max_values: usize,
+) -> PyResult<Vec<(Bound<'py, PyAny>, u32)>> {
+    let images = detach(py, || {
+        image_out::read_png_batch(&paths, max_rows, max_values)
+    })?;
+    images
+        .into_iter()
+        .map(|im| {
+            let shape = (im.rows as usize, im.width as usize, 3);
+            let arr = Array1::from_vec(im.data)
+                .into_shape_with_order(shape)
+                .map_err(|e| PyValueError::new_err(e.to_string()))?;
+            Ok((arr.into_pyarray(py).into_any(), im.height))
+        })
+        .collect()
+}
+
 /// One frame per path over consecutive equal parts of `data`.
 fn split_frames<T>(paths: Vec<PathBuf>, data: &[T], f: usize) -> Vec<Frame<'_, T>> {
     let per = data.len() / f.max(1);
@@ -375,5 +401,6 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_write_png_batch, m)?)?;
     m.add_function(wrap_pyfunction!(_write_exr_batch, m)?)?;
     m.add_function(wrap_pyfunction!(_read_exr_batch, m)?)?;
+    m.add_function(wrap_pyfunction!(_read_png_batch, m)?)?;
     Ok(())
 }

@@ -1,5 +1,6 @@
 //! Image files: 8-bit PNG (image crate) and float32 OpenEXR (exr crate), written atomically
-//! (a temporary beside the target, then a rename), one frame or many frames in parallel.
+//! (a temporary beside the target, then a rename), one frame or many frames in parallel; PNG
+//! frames read back as 8-bit RGB (png crate), optionally only their top rows (a crop's worth).
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
 
@@ -206,6 +207,121 @@ pub fn read_exr_batch(paths: &[PathBuf], max_pixels: usize) -> Result<Vec<FloatI
     paths.par_iter().map(|p| read_exr(p, max_pixels)).collect()
 }
 
+/// An 8-bit RGB image read from a PNG: `rows` of its `height` rows were decoded (all of them
+/// unless a row limit was asked for); `data` holds `rows * width * 3` bytes.
+pub struct RgbImage {
+    pub width: u32,
+    pub height: u32,
+    pub rows: u32,
+    pub data: Vec<u8>,
+}
+
+fn png_error(path: &Path, e: png::DecodingError) -> Error {
+    match e {
+        png::DecodingError::IoError(io) if io.kind() != std::io::ErrorKind::UnexpectedEof => {
+            Error::io(path, io)
+        }
+        other => Error::format(path, format!("not a readable PNG: {other}")),
+    }
+}
+
+/// One decoded 8-bit row of `channels` samples per pixel (gray, gray+alpha, RGB, RGBA) appended
+/// as RGB.
+fn push_rgb(out: &mut Vec<u8>, row: &[u8], channels: usize) {
+    match channels {
+        3 => out.extend_from_slice(row),
+        4 => row
+            .chunks_exact(4)
+            .for_each(|p| out.extend_from_slice(&p[..3])),
+        1 => row.iter().for_each(|&g| out.extend_from_slice(&[g, g, g])),
+        _ => row
+            .chunks_exact(2)
+            .for_each(|p| out.extend_from_slice(&[p[0]; 3])),
+    }
+}
+
+/// Read a PNG as 8-bit RGB (palettes and low bit depths expanded, 16-bit reduced to 8, alpha
+/// dropped, gray repeated), decoding only its first `max_rows` rows when given (rows below a
+/// crop need no decompression; interlaced files are always decoded whole). The header's size is
+/// checked against `max_values` before anything is decoded.
+pub fn read_png_rgb(path: &Path, max_rows: Option<u32>, max_values: usize) -> Result<RgbImage> {
+    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
+    decoder.set_transformations(png::Transformations::normalize_to_color8());
+    let mut reader = decoder.read_info().map_err(|e| png_error(path, e))?;
+    let (width, height, interlaced) = {
+        let info = reader.info();
+        (info.width, info.height, info.interlaced)
+    };
+    let values = (width as usize)
+        .saturating_mul(height as usize)
+        .saturating_mul(3);
+    if width == 0 || height == 0 || values > max_values {
+        return Err(Error::format(
+            path,
+            format!("PNG of {width}x{height} is empty or larger than the {max_values}-value limit"),
+        ));
+    }
+    let channels = match reader.output_color_type() {
+        (png::ColorType::Grayscale, png::BitDepth::Eight) => 1,
+        (png::ColorType::GrayscaleAlpha, png::BitDepth::Eight) => 2,
+        (png::ColorType::Rgb, png::BitDepth::Eight) => 3,
+        (png::ColorType::Rgba, png::BitDepth::Eight) => 4,
+        (c, d) => {
+            return Err(Error::format(
+                path,
+                format!("PNG decodes to unsupported {c:?} {d:?}"),
+            ))
+        }
+    };
+    let rows = match max_rows {
+        Some(r) if !interlaced => r.min(height),
+        _ => height,
+    };
+    let mut data = Vec::with_capacity(rows as usize * width as usize * 3);
+    if interlaced {
+        let size = reader
+            .output_buffer_size()
+            .ok_or_else(|| Error::format(path, "PNG too large"))?;
+        let mut buf = vec![0u8; size];
+        let frame = reader
+            .next_frame(&mut buf)
+            .map_err(|e| png_error(path, e))?;
+        for row in buf[..frame.buffer_size()].chunks_exact(frame.line_size) {
+            push_rgb(&mut data, row, channels);
+        }
+    } else {
+        for _ in 0..rows {
+            let row = reader
+                .next_row()
+                .map_err(|e| png_error(path, e))?
+                .ok_or_else(|| Error::format(path, "PNG data ends before its last row"))?;
+            push_rgb(&mut data, row.data(), channels);
+        }
+    }
+    if data.len() != rows as usize * width as usize * 3 {
+        return Err(Error::format(path, "PNG rows of an unexpected length"));
+    }
+    Ok(RgbImage {
+        width,
+        height,
+        rows,
+        data,
+    })
+}
+
+/// Read many PNGs in parallel (see `read_png_rgb`); the first error in file order wins.
+pub fn read_png_batch(
+    paths: &[PathBuf],
+    max_rows: Option<u32>,
+    max_values: usize,
+) -> Result<Vec<RgbImage>> {
+    paths
+        .par_iter()
+        .map(|p| read_png_rgb(p, max_rows, max_values))
+        .collect()
+}
+
 /// One frame to write: path and interleaved samples.
 pub struct Frame<'a, T> {
     pub path: PathBuf,
@@ -284,6 +400,56 @@ mod tests {
         let back = read_exr(&e, 1 << 20).expect("read_exr");
         assert_eq!((back.width, back.height, back.channels), (4, 3, 1));
         assert_eq!(back.data, depth);
+    }
+
+    #[test]
+    fn png_reads_back_as_rgb_whole_or_its_top_rows_and_refuses_bad_files() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let rgb: Vec<u8> = (0..5 * 4 * 3).map(|v| (v * 11) as u8).collect();
+        let p = dir.path().join("a.png");
+        write_png(&p, 5, 4, 3, &rgb).expect("png");
+        let all = read_png_rgb(&p, None, 1 << 20).expect("read");
+        assert_eq!((all.width, all.height, all.rows), (5, 4, 4));
+        assert_eq!(all.data, rgb);
+        let top = read_png_rgb(&p, Some(2), 1 << 20).expect("top rows");
+        assert_eq!((top.height, top.rows), (4, 2));
+        assert_eq!(top.data, rgb[..2 * 5 * 3]);
+        // gray and RGBA files come back as RGB
+        let g = dir.path().join("g.png");
+        image::GrayImage::from_raw(2, 1, vec![7, 200])
+            .expect("gray")
+            .save(&g)
+            .expect("save");
+        assert_eq!(
+            read_png_rgb(&g, None, 1 << 20).expect("gray").data,
+            [7, 7, 7, 200, 200, 200]
+        );
+        let a = dir.path().join("rgba.png");
+        image::RgbaImage::from_raw(1, 1, vec![1, 2, 3, 4])
+            .expect("rgba")
+            .save(&a)
+            .expect("save");
+        assert_eq!(
+            read_png_rgb(&a, None, 1 << 20).expect("rgba").data,
+            [1, 2, 3]
+        );
+        let batch = read_png_batch(&[p.clone(), g], Some(1), 1 << 20).expect("batch");
+        assert_eq!(batch[0].data, rgb[..15]);
+        assert!(read_png_rgb(&p, None, 10).is_err()); // 60 values over the limit
+        let junk = dir.path().join("junk.png");
+        std::fs::write(&junk, b"\x89PNG\r\n\x1a\n not a png").expect("write");
+        assert!(matches!(
+            read_png_rgb(&junk, None, 1 << 20),
+            Err(Error::Format { .. })
+        ));
+        let cut = dir.path().join("cut.png");
+        let bytes = std::fs::read(&p).expect("read bytes");
+        std::fs::write(&cut, &bytes[..bytes.len() / 2]).expect("write");
+        assert!(read_png_rgb(&cut, None, 1 << 20).is_err());
+        assert!(matches!(
+            read_png_rgb(&dir.path().join("missing.png"), None, 1 << 20),
+            Err(Error::Io { .. })
+        ));
     }
 
     #[test]

@@ -1,0 +1,334 @@
+"""`evaluate`: every metric of every clip pair, per frame, then per clip and overall.
+
+Conventions:
+- Frame metrics (PSNR, SSIM, LPIPS, depth errors) have one value per frame; the pair metrics
+  (E_flow, E_warp) one per consecutive pair (t-1, t), stored on frame t (frame 0 has none).
+- A clip's value is the mean over its frames (or pairs); the overall value of a label is the
+  mean over all frames (or pairs) of all its clips, so long clips weigh more. NaN (an empty mask,
+  a depth map with no valid pixel) is skipped.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from collections.abc import Callable, Iterable, Sequence, Sized
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from morphgs import media
+from morphgs._core import MorphgsError
+
+__all__ = ["DEFAULT_METRICS", "METRICS", "ClipPair", "EvalError", "EvalReport", "evaluate"]
+
+
+class EvalError(MorphgsError):
+    """Clips that cannot be compared (names them): different sizes or frame counts, bad options."""
+
+
+@dataclass(frozen=True)
+class MetricInfo:
+    kind: str           # "frame", "pair" or "depth"
+    higher_is_better: bool
+    fmt: str
+    title: str
+
+
+_DEPTH = {
+    "depth_abs_rel": MetricInfo("depth", False, "{:.4f}", "AbsRel"),
+    "depth_sq_rel": MetricInfo("depth", False, "{:.4f}", "SqRel"),
+    "depth_rmse": MetricInfo("depth", False, "{:.4f}", "RMSE"),
+    "depth_rmse_log": MetricInfo("depth", False, "{:.4f}", "RMSE log"),
+    "depth_delta1": MetricInfo("depth", True, "{:.4f}", "δ<1.25"),
+    "depth_delta2": MetricInfo("depth", True, "{:.4f}", "δ<1.25²"),
+    "depth_delta3": MetricInfo("depth", True, "{:.4f}", "δ<1.25³"),
+}
+METRICS: dict[str, MetricInfo] = {
+    "psnr": MetricInfo("frame", True, "{:.2f}", "PSNR"),
+    "ssim": MetricInfo("frame", True, "{:.4f}", "SSIM"),
+    "lpips": MetricInfo("frame", False, "{:.4f}", "LPIPS"),
+    "eflow": MetricInfo("pair", False, "{:.3f}", "E_flow"),
+    "ewarp": MetricInfo("pair", False, "{:.5f}", "E_warp"),
+    **_DEPTH,
+}
+# what `metrics=` names: the image and temporal metrics, and "depth" for the seven depth errors
+SELECTABLE = ("psnr", "ssim", "lpips", "eflow", "ewarp", "depth")
+DEFAULT_METRICS = ("psnr", "ssim", "lpips", "eflow", "ewarp")
+
+Clip = str | os.PathLike[str] | np.ndarray
+
+
+@dataclass(frozen=True)
+class ClipPair:
+    """One prediction and its ground truth.
+
+    Attributes:
+        name: the clip's name in the tables (e.g. a pair id).
+        pred, gt: a clip path (folder of frames or video) or an (F, H, W, 3) array (uint8, or float
+            in [0, 1]).
+        depth_pred, depth_gt: optional depth (folder of EXRs or an (F, H, W) array); both are
+            needed for the depth errors.
+        cameras: optional `morphgs.Cameras` of the frames; with `depth_gt` the exact geometric
+            flow of the ground truth replaces DIS as E_flow's and E_warp's reference.
+        label: what the prediction is ("pred"; `morphgs eval --run` uses "input" and "output").
+    """
+
+    name: str
+    pred: Clip
+    gt: Clip
+    depth_pred: Clip | None = None
+    depth_gt: Clip | None = None
+    cameras: Any = None
+    label: str = "pred"
+
+
+@dataclass
+class EvalReport:
+    """What `evaluate` measured (and wrote).
+
+    Attributes:
+        metrics: the metric columns, in order.
+        rows: one dict per frame: label, clip, frame and each metric (NaN where it has no value).
+        clips: one dict per clip: label, clip, frames and each metric's clip mean.
+        overall: {label: {metric: mean over all frames of its clips}}.
+        files: what was written: {"csv", "markdown", "json", "plots"} -> paths.
+    """
+
+    metrics: list[str]
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    clips: list[dict[str, Any]] = field(default_factory=list)
+    overall: dict[str, dict[str, float]] = field(default_factory=dict)
+    files: dict[str, Any] = field(default_factory=dict)
+
+
+def _check_metrics(metrics: Sequence[str]) -> list[str]:
+    chosen = list(dict.fromkeys(metrics))
+    bad = [m for m in chosen if m not in SELECTABLE]
+    if bad:
+        raise EvalError(f"unknown metric {bad[0]!r}; choose from {', '.join(SELECTABLE)}")
+    if not chosen:
+        raise EvalError("no metric chosen")
+    return chosen
+
+
+def _load_clip(clip: Clip, what: str, name: str) -> np.ndarray:
+    if isinstance(clip, np.ndarray):
+        a = clip
+    else:
+        a = media.read_clip(clip)
+    if a.ndim != 4 or a.shape[-1] != 3 or len(a) == 0:
+        raise EvalError(f"{name}: {what} must be a clip (F, H, W, 3), got shape {a.shape}")
+    return a
+
+
+def _load_depth(depth: Clip, what: str, name: str) -> np.ndarray:
+    """Depth maps from an array or a folder: its `*.depth.exr` files (as `Render.save` and
+    `morphgs curate --depth` name them, beside `*.alpha.exr`), else all its `*.exr` files."""
+    if isinstance(depth, np.ndarray):
+        d = depth
+    else:
+        folder = Path(depth)
+        named = sorted(folder.glob("*.depth.exr")) if folder.is_dir() else []
+        d = media.read_depth(named if named else folder)
+    if d.ndim != 3:
+        raise EvalError(f"{name}: {what} must be depth maps (F, H, W), got shape {d.shape}")
+    return d
+
+
+def _describe(a: np.ndarray) -> str:
+    return f"{a.shape[0]} frames of {a.shape[2]}x{a.shape[1]}"
+
+
+def _same_size(pair: ClipPair, pred: np.ndarray, gt: np.ndarray, what: tuple[str, str]) -> None:
+    if pred.shape[:3] != gt.shape[:3]:
+        raise EvalError(f"{pair.name}: {what[0]} has {_describe(pred)} but {what[1]} has {_describe(gt)} "
+                        f"({_source(pair, what[0])} vs {_source(pair, what[1])})")
+
+
+def _source(pair: ClipPair, what: str) -> str:
+    v = {"pred": pair.pred, "gt": pair.gt, "depth_pred": pair.depth_pred, "depth_gt": pair.depth_gt}[what]
+    return "an array" if isinstance(v, np.ndarray) else str(v)
+
+
+def _clip_metrics(pair: ClipPair, chosen: list[str], opts: dict[str, Any], step: Callable[[str], None]) -> dict[str, np.ndarray]:
+    """{metric: (F,) values} for one pair (pair metrics NaN on frame 0)."""
+    from morphgs import metrics as M
+
+    pred = _load_clip(pair.pred, "pred", pair.name)
+    gt = _load_clip(pair.gt, "gt", pair.name)
+    _same_size(pair, pred, gt, ("pred", "gt"))
+    n = len(gt)
+    out: dict[str, np.ndarray] = {}
+    for name, fn in (("psnr", M.psnr), ("ssim", M.ssim)):
+        if name in chosen:
+            step(name)
+            out[name] = np.asarray(fn(pred, gt, reduction="none"), dtype=np.float64)
+    if "lpips" in chosen:
+        step("lpips")
+        out["lpips"] = np.asarray(M.lpips(pred, gt, net=opts["lpips_net"], weights=opts["lpips_weights"],
+                                          device=opts["device"], reduction="none"), dtype=np.float64)
+    depth_gt = None
+    if pair.depth_gt is not None:
+        depth_gt = _load_depth(pair.depth_gt, "depth_gt", pair.name)
+        _same_size(pair, depth_gt[..., None], gt, ("depth_gt", "gt"))
+    temporal = [m for m in ("eflow", "ewarp") if m in chosen]
+    if temporal and n >= 2:
+        step("+".join(temporal))
+        flow = valid = None
+        if pair.cameras is not None and depth_gt is not None:
+            if len(pair.cameras) != n:
+                raise EvalError(f"{pair.name}: {len(pair.cameras)} cameras for {n} frames")
+            flow, valid = M.geometric_flows(depth_gt, pair.cameras)
+        errs = M.temporal_errors(pred, gt, flow=flow, valid=valid, preset=opts["flow_preset"],
+                                 epe="eflow" in temporal, warp_error="ewarp" in temporal)
+        for key, vals in errs.items():
+            out[key] = np.concatenate([[np.nan], vals])
+    elif temporal:
+        for key in temporal:
+            out[key] = np.full(n, np.nan)
+    if "depth" in chosen and pair.depth_pred is not None and depth_gt is not None:
+        step("depth")
+        depth_pred = _load_depth(pair.depth_pred, "depth_pred", pair.name)
+        _same_size(pair, depth_pred[..., None], depth_gt[..., None], ("depth_pred", "depth_gt"))
+        errs_d = M.depth_metrics(depth_pred, depth_gt, align=opts["depth_align"], reduction="none")
+        for key, vals in errs_d.items():
+            out[f"depth_{key}"] = np.asarray(vals, dtype=np.float64)
+    return out
+
+
+def _nanmean(values: Sequence[float] | np.ndarray) -> float:
+    v = np.asarray(values, dtype=np.float64)
+    v = v[~np.isnan(v)]
+    return float(v.mean()) if v.size else float("nan")
+
+
+class _Steps:
+    """Counts finished stages on a tqdm bar (or nothing): `begin` names the stage now running."""
+
+    def __init__(self, bar: Any) -> None:
+        self.bar = bar
+        self.running = False
+
+    def begin(self, what: str) -> None:
+        if self.bar is None:
+            return
+        if self.running:
+            self.bar.update(1)
+        self.bar.set_postfix_str(what)
+        self.running = True
+
+    def finish(self) -> None:
+        if self.bar is not None and self.running:
+            self.bar.update(1)
+        self.running = False
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _progress(total: int | None, enabled: bool) -> Any:
+    if not enabled:
+        return None
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return None
+    return tqdm(total=total, desc="eval", unit="step", file=sys.stderr, dynamic_ncols=True)
+
+
+def evaluate(
+    pairs: Iterable[ClipPair],
+    *,
+    metrics: Sequence[str] = DEFAULT_METRICS,
+    out_dir: str | os.PathLike[str] | None = None,
+    lpips_net: str = "alex",
+    lpips_weights: str | os.PathLike[str] | None = None,
+    depth_align: str | None = None,
+    flow_preset: str = "medium",
+    device: str = "cpu",
+    plots: bool = True,
+    progress: bool = True,
+    total: int | None = None,
+) -> EvalReport:
+    """Measure every pair and write the per-frame CSV, the Markdown tables and the plots.
+
+    Args:
+        pairs: `ClipPair`s (any iterable, consumed once; clips are read one pair at a time).
+        metrics: any of "psnr", "ssim", "lpips", "eflow", "ewarp", "depth" ("depth": the seven
+            depth errors, for pairs with both depths).
+        out_dir: where to write `per_frame.csv`, `summary.md`, `summary.json` and `plots/`
+            (nothing is written when None).
+        lpips_net, lpips_weights: LPIPS trunk ("alex" or "vgg") and an explicit weights path.
+        depth_align: None, "median" or "lstsq" (see `morphgs.metrics.depth_metrics`).
+        flow_preset: DIS preset of the flow metrics.
+        device: where LPIPS runs ("cpu", "cuda", ...).
+        plots: write one PNG per clip of every metric over the frames (needs matplotlib).
+        progress: show a progress bar (tqdm) on stderr.
+        total: the number of pairs, for the progress bar, when `pairs` has no len().
+
+    Returns:
+        The EvalReport.
+
+    Raises:
+        EvalError: an unknown metric, no pairs, clips of different sizes or frame counts.
+        MediaError, FileNotFoundError: unreadable or missing clips. LPIPSWeightsError: no LPIPS weights.
+    """
+    chosen = _check_metrics(metrics)
+    opts = {"lpips_net": lpips_net, "lpips_weights": lpips_weights, "depth_align": depth_align,
+            "flow_preset": flow_preset, "device": device}
+    if "lpips" in chosen:  # fail before any work when the weights are missing
+        from morphgs.metrics import lpips_model
+
+        lpips_model(lpips_net, weights=lpips_weights, device=device)
+    if total is None and isinstance(pairs, Sized):
+        total = len(pairs)
+    stages = sum(m in chosen for m in ("psnr", "ssim", "lpips", "depth")) + any(m in chosen for m in ("eflow", "ewarp"))
+    bar = _Steps(_progress(None if total is None else total * stages, progress))
+    columns: list[str] = []
+    per_clip: list[tuple[ClipPair, dict[str, np.ndarray]]] = []
+    try:
+        for pair in pairs:
+            def stage(what: str, _name: str = pair.name) -> None:
+                bar.begin(f"{_name}: {what}")
+
+            values = _clip_metrics(pair, chosen, opts, stage)
+            bar.finish()
+            per_clip.append((pair, values))
+            columns += [k for k in values if k not in columns]
+    finally:
+        bar.close()
+    if not per_clip:
+        raise EvalError("no clip pairs to evaluate")
+    order = [m for m in METRICS if m in columns]
+    report = _tabulate(per_clip, order)
+    if out_dir is not None:
+        from morphgs.evaluation import report as R
+
+        report.files = R.write_all(report, Path(out_dir), plots=plots, lpips_net=lpips_net)
+    return report
+
+
+def _tabulate(per_clip: list[tuple[ClipPair, dict[str, np.ndarray]]], order: list[str]) -> EvalReport:
+    report = EvalReport(metrics=order)
+    pooled: dict[str, dict[str, list[float]]] = {}
+    for pair, values in per_clip:
+        n = max(len(v) for v in values.values())
+        for i in range(n):
+            row: dict[str, Any] = {"label": pair.label, "clip": pair.name, "frame": i}
+            for m in order:
+                row[m] = float(values[m][i]) if m in values else math.nan
+            report.rows.append(row)
+        summary: dict[str, Any] = {"label": pair.label, "clip": pair.name, "frames": n}
+        pool = pooled.setdefault(pair.label, {m: [] for m in order})
+        for m in order:
+            vals = values.get(m, np.full(n, np.nan))
+            summary[m] = _nanmean(vals)
+            pool[m] += list(vals)
+        report.clips.append(summary)
+    report.overall = {label: {m: _nanmean(v) for m, v in pool.items()} for label, pool in pooled.items()}
+    return report
