@@ -1,0 +1,156 @@
+"""VAEs as latent codecs: posterior (mean, std) of a clip, latent scaling, decoding.
+
+Two kinds, one interface:
+
+- `SDCodec`: SD 1.5's `AutoencoderKL`, applied frame by frame (latent frames = frames), latents
+  scaled by ``scaling_factor`` (0.18215).
+- `WanCodec`: Wan's causal 3D `AutoencoderKLWan` (Wan2.1 VAE: 8x spatial, 4x temporal, 16
+  channels; Wan2.2 VAE of TI2V-5B: 16x spatial, 48 channels), clips of 4k+1 frames, latents
+  normalised per channel with the config's ``latents_mean``/``latents_std`` as the Wan pipelines do.
+
+Clips are (B, 3, F, H, W) in [-1, 1]; latents are (B, C, F', H', W').
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Any
+
+import torch
+
+__all__ = ["SDCodec", "WanCodec", "model_fingerprint"]
+
+
+def model_fingerprint(model: Any) -> str:
+    """A content hash of a model: class, config and every parameter and buffer (sha256, 16 hex).
+
+    Two models with the same fingerprint compute the same function, whatever file they came from;
+    a cache records it to refuse latents made by another VAE.
+    """
+    h = hashlib.sha256(type(model).__name__.encode())
+    cfg = {k: v for k, v in dict(getattr(model, "config", {})).items() if not k.startswith("_")}
+    h.update(json.dumps(cfg, sort_keys=True, default=str).encode())
+    for name, t in sorted(model.state_dict().items()):
+        h.update(name.encode())
+        h.update(str(t.dtype).encode())
+        h.update(t.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+class SDCodec:
+    """SD 1.5's VAE applied per frame.
+
+    Args:
+        vae: a diffusers `AutoencoderKL`.
+        chunk: frames encoded or decoded at once (memory bound).
+    """
+
+    kind = "sd"
+
+    def __init__(self, vae: Any, *, chunk: int = 8) -> None:
+        self.vae = vae
+        self.chunk = chunk
+        self.scale = float(vae.config.scaling_factor)
+        self.spatial = 2 ** (len(vae.config.block_out_channels) - 1)
+        self.channels = int(vae.config.latent_channels)
+
+    def check_clip(self, frames: int, height: int, width: int) -> None:
+        """Raise ValueError if a clip size cannot be encoded."""
+        if height % self.spatial or width % self.spatial:
+            raise ValueError(f"SD VAE: clip size {height}x{width} must be a multiple of {self.spatial}")
+
+    def latent_shape(self, frames: int, height: int, width: int) -> tuple[int, int, int, int]:
+        """(C, F', H', W') of a clip's latents."""
+        return self.channels, frames, height // self.spatial, width // self.spatial
+
+    def _dtype(self) -> torch.dtype:
+        return next(self.vae.parameters()).dtype
+
+    @torch.no_grad()
+    def posterior(self, video: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The posterior mean and std (unscaled) of a clip, float32 (B, 4, F, H/8, W/8)."""
+        b, _, f, h, w = video.shape
+        self.check_clip(f, h, w)
+        x = video.permute(0, 2, 1, 3, 4).reshape(b * f, 3, h, w).to(self._dtype())
+        means, stds = [], []
+        for i in range(0, x.shape[0], self.chunk):
+            d = self.vae.encode(x[i:i + self.chunk]).latent_dist
+            means.append(d.mean.float())
+            stds.append(d.std.float())
+        mean, std = torch.cat(means), torch.cat(stds)
+        shape = (b, f) + tuple(mean.shape[1:])
+        return (mean.reshape(shape).permute(0, 2, 1, 3, 4).contiguous(),
+                std.reshape(shape).permute(0, 2, 1, 3, 4).contiguous())
+
+    def normalize(self, z: torch.Tensor) -> torch.Tensor:
+        """Raw VAE latents -> the diffusion model's latent space."""
+        return z * self.scale
+
+    def denormalize(self, latents: torch.Tensor) -> torch.Tensor:
+        """The diffusion model's latents -> raw VAE latents."""
+        return latents / self.scale
+
+    @torch.no_grad()
+    def decode(self, latents: torch.Tensor) -> torch.Tensor:
+        """Normalised latents (B, 4, F, h, w) -> clip (B, 3, F, 8h, 8w) in [-1, 1], float32."""
+        b, c, f, h, w = latents.shape
+        z = self.denormalize(latents).permute(0, 2, 1, 3, 4).reshape(b * f, c, h, w).to(self._dtype())
+        out = torch.cat([self.vae.decode(z[i:i + self.chunk]).sample.float() for i in range(0, b * f, self.chunk)])
+        out = out.reshape((b, f) + tuple(out.shape[1:])).permute(0, 2, 1, 3, 4)
+        return out.clamp(-1, 1).contiguous()
+
+
+class WanCodec:
+    """Wan's causal video VAE.
+
+    Args:
+        vae: a diffusers `AutoencoderKLWan`.
+    """
+
+    kind = "wan"
+
+    def __init__(self, vae: Any) -> None:
+        self.vae = vae
+        cfg = vae.config
+        self.temporal = int(cfg.scale_factor_temporal)
+        self.spatial = int(cfg.scale_factor_spatial)
+        self.channels = int(cfg.z_dim)
+        self._mean = torch.tensor(cfg.latents_mean, dtype=torch.float32).view(1, -1, 1, 1, 1)
+        self._std = torch.tensor(cfg.latents_std, dtype=torch.float32).view(1, -1, 1, 1, 1)
+
+    def check_clip(self, frames: int, height: int, width: int) -> None:
+        """Raise ValueError if a clip size cannot be encoded (frames 4k+1, sides multiples of the
+        spatial factor)."""
+        if (frames - 1) % self.temporal:
+            raise ValueError(f"Wan VAE: {frames} frames; clips need {self.temporal}k+1 frames (49, 81, ...)")
+        if height % self.spatial or width % self.spatial:
+            raise ValueError(f"Wan VAE: clip size {height}x{width} must be a multiple of {self.spatial}")
+
+    def latent_shape(self, frames: int, height: int, width: int) -> tuple[int, int, int, int]:
+        """(C, F', H', W') of a clip's latents."""
+        return (self.channels, (frames - 1) // self.temporal + 1, height // self.spatial, width // self.spatial)
+
+    def _dtype(self) -> torch.dtype:
+        return next(self.vae.parameters()).dtype
+
+    @torch.no_grad()
+    def posterior(self, video: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The posterior mean and std (unnormalised) of a clip, float32 (B, z, F', H', W')."""
+        self.check_clip(*video.shape[2:])
+        d = self.vae.encode(video.to(self._dtype())).latent_dist
+        return d.mean.float().contiguous(), d.std.float().contiguous()
+
+    def normalize(self, z: torch.Tensor) -> torch.Tensor:
+        """Raw VAE latents -> the transformer's latent space, ``(z - mean) / std`` per channel."""
+        return (z - self._mean.to(z.device, z.dtype)) / self._std.to(z.device, z.dtype)
+
+    def denormalize(self, latents: torch.Tensor) -> torch.Tensor:
+        """The transformer's latents -> raw VAE latents."""
+        return latents * self._std.to(latents.device, latents.dtype) + self._mean.to(latents.device, latents.dtype)
+
+    @torch.no_grad()
+    def decode(self, latents: torch.Tensor) -> torch.Tensor:
+        """Normalised latents -> clip (B, 3, F, H, W) in [-1, 1], float32."""
+        z = self.denormalize(latents.float()).to(self._dtype())
+        return self.vae.decode(z).sample.float().clamp(-1, 1)
