@@ -15,11 +15,16 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import torch
 
-__all__ = ["SDCodec", "WanCodec", "model_fingerprint"]
+_MIB = 1 << 20
+
+__all__ = ["LatentNorm", "SDCodec", "WanCodec", "files_fingerprint", "model_fingerprint"]
 
 
 def model_fingerprint(model: Any) -> str:
@@ -38,6 +43,57 @@ def model_fingerprint(model: Any) -> str:
     return h.hexdigest()[:16]
 
 
+def files_fingerprint(path: str | os.PathLike[str]) -> str:
+    """A cheap identity of a model folder or single file (sha256, 16 hex) without loading it: every
+    file's relative name and size, the folder's config.json in full, and the first and last MiB of
+    each weight file. Identifies a VAE or text encoder for a cache without reading gigabytes."""
+    p = Path(path)
+    files = sorted(f for f in p.rglob("*") if f.is_file()) if p.is_dir() else [p]
+    h = hashlib.sha256()
+    for f in files:
+        size = f.stat().st_size
+        h.update(f"{f.relative_to(p) if p.is_dir() else f.name}:{size}".encode())
+        with open(f, "rb") as fh:
+            if f.suffix == ".json" or size <= 2 * _MIB:
+                h.update(fh.read())
+            else:
+                h.update(fh.read(_MIB))
+                fh.seek(size - _MIB)
+                h.update(fh.read(_MIB))
+    return h.hexdigest()[:16]
+
+
+class LatentNorm:
+    """The map between raw VAE latents and the denoiser's latent space, from a VAE config alone
+    (no weights): ``x = (z - shift) * scale`` per channel.
+
+    SD's AutoencoderKL: shift ``shift_factor`` (absent for SD 1.5: 0), scale ``scaling_factor``
+    (0.18215). Wan's AutoencoderKLWan: shift ``latents_mean``, scale ``1 / latents_std``.
+    """
+
+    def __init__(self, shift: Sequence[float], scale: Sequence[float]) -> None:
+        self.shift = torch.tensor(list(shift), dtype=torch.float32).view(1, -1, 1, 1, 1)
+        self.scale = torch.tensor(list(scale), dtype=torch.float32).view(1, -1, 1, 1, 1)
+
+    @classmethod
+    def from_vae_config(cls, config: Mapping[str, Any]) -> LatentNorm:
+        """From a VAE's config (a dict or a diffusers FrozenDict)."""
+        if config.get("latents_mean") is not None:  # Wan
+            std = [float(v) for v in config["latents_std"]]
+            return cls([float(v) for v in config["latents_mean"]], [1.0 / v for v in std])
+        c = int(config.get("latent_channels", 4))
+        shift = float(config.get("shift_factor") or 0.0)
+        return cls([shift] * c, [float(config.get("scaling_factor", 0.18215))] * c)
+
+    def normalize(self, z: torch.Tensor) -> torch.Tensor:
+        """Raw VAE latents -> the denoiser's latent space."""
+        return (z - self.shift.to(z.device, z.dtype)) * self.scale.to(z.device, z.dtype)
+
+    def denormalize(self, x: torch.Tensor) -> torch.Tensor:
+        """The denoiser's latents -> raw VAE latents."""
+        return x / self.scale.to(x.device, x.dtype) + self.shift.to(x.device, x.dtype)
+
+
 class SDCodec:
     """SD 1.5's VAE applied per frame.
 
@@ -51,7 +107,7 @@ class SDCodec:
     def __init__(self, vae: Any, *, chunk: int = 8) -> None:
         self.vae = vae
         self.chunk = chunk
-        self.scale = float(vae.config.scaling_factor)
+        self.norm = LatentNorm.from_vae_config(vae.config)
         self.spatial = 2 ** (len(vae.config.block_out_channels) - 1)
         self.channels = int(vae.config.latent_channels)
 
@@ -84,12 +140,12 @@ class SDCodec:
                 std.reshape(shape).permute(0, 2, 1, 3, 4).contiguous())
 
     def normalize(self, z: torch.Tensor) -> torch.Tensor:
-        """Raw VAE latents -> the diffusion model's latent space."""
-        return z * self.scale
+        """Raw VAE latents -> the diffusion model's latent space (``z * 0.18215`` for SD 1.5)."""
+        return self.norm.normalize(z)
 
     def denormalize(self, latents: torch.Tensor) -> torch.Tensor:
         """The diffusion model's latents -> raw VAE latents."""
-        return latents / self.scale
+        return self.norm.denormalize(latents)
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor) -> torch.Tensor:
@@ -116,8 +172,7 @@ class WanCodec:
         self.temporal = int(cfg.scale_factor_temporal)
         self.spatial = int(cfg.scale_factor_spatial)
         self.channels = int(cfg.z_dim)
-        self._mean = torch.tensor(cfg.latents_mean, dtype=torch.float32).view(1, -1, 1, 1, 1)
-        self._std = torch.tensor(cfg.latents_std, dtype=torch.float32).view(1, -1, 1, 1, 1)
+        self.norm = LatentNorm.from_vae_config(cfg)
 
     def check_clip(self, frames: int, height: int, width: int) -> None:
         """Raise ValueError if a clip size cannot be encoded (frames 4k+1, sides multiples of the
@@ -143,11 +198,11 @@ class WanCodec:
 
     def normalize(self, z: torch.Tensor) -> torch.Tensor:
         """Raw VAE latents -> the transformer's latent space, ``(z - mean) / std`` per channel."""
-        return (z - self._mean.to(z.device, z.dtype)) / self._std.to(z.device, z.dtype)
+        return self.norm.normalize(z)
 
     def denormalize(self, latents: torch.Tensor) -> torch.Tensor:
         """The transformer's latents -> raw VAE latents."""
-        return latents * self._std.to(latents.device, latents.dtype) + self._mean.to(latents.device, latents.dtype)
+        return self.norm.denormalize(latents)
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor) -> torch.Tensor:

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from morphgs.diffusion.errors import LatentCacheError
@@ -149,7 +150,7 @@ class LatentCache:
         path = self.root / "items" / rec["file"]
         try:
             data = load_file(str(path))
-        except (OSError, ValueError, RuntimeError) as e:
+        except (OSError, ValueError, RuntimeError, SafetensorError) as e:
             raise LatentCacheError(f"latent cache item {path}: unreadable ({e}); delete the cache to rebuild") from None
         missing = [k for k in _TENSORS if k not in data]
         if missing:
@@ -197,34 +198,61 @@ def build_cache(root: str | os.PathLike[str], key: CacheKey, sources: Iterable[C
         cache = None
     if cache is not None:
         return cache
+    _remove_dead_builds(r)
     tmp = r.with_name(f".{r.name}.building-{os.getpid()}")
     if tmp.exists():
         shutil.rmtree(tmp)
     (tmp / "items").mkdir(parents=True)
-    dtype = _DTYPES[key.dtype]
-    items: list[dict[str, Any]] = []
-    prompts: dict[str, int] = {}
-    for n, src in enumerate(sources):
-        tensors: dict[str, torch.Tensor] = {}
-        for side, clip in (("clean", src.clean), ("corrupted", src.corrupted)):
-            mean, std = posterior(clip.unsqueeze(0))
-            tensors[f"{side}_mean"], tensors[f"{side}_std"] = mean[0], std[0]
-        name = f"{n:06d}.safetensors"
-        _write_item(tmp / "items" / name, tensors, dtype)
-        idx = prompts.setdefault(src.prompt, len(prompts))
-        items.append({"file": name, "pair_id": src.pair_id, "start": int(src.start), "text": idx})
-        if progress is not None:
-            progress(n + 1)
-    if not items:
+    try:
+        meta = _encode(tmp, key, sources, posterior=posterior, encode_text=encode_text, progress=progress)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if not meta["items"]:
         shutil.rmtree(tmp)
         raise LatentCacheError(f"latent cache {r}: nothing to encode (no clip pairs in split {key.split!r})")
-    text = encode_text(list(prompts))
-    save_file({"embeddings": text.to(dtype).contiguous()}, str(tmp / "text.safetensors"))
-    meta = {"key": asdict(key), "items": items, "prompts": list(prompts),
-            "latent_shape": list(tensors["clean_mean"].shape)}
-    (tmp / "meta.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
     r.parent.mkdir(parents=True, exist_ok=True)
     if r.exists():  # an empty folder the user made
         r.rmdir()
     os.replace(tmp, r)
     return LatentCache(r, meta)
+
+
+def _remove_dead_builds(root: Path) -> None:
+    """Remove temporary folders of builds whose process is gone (killed mid-build)."""
+    for d in root.parent.glob(f".{root.name}.building-*"):
+        try:
+            pid = int(d.name.rsplit("-", 1)[1])
+            os.kill(pid, 0)
+        except (ValueError, ProcessLookupError):
+            shutil.rmtree(d, ignore_errors=True)
+        except PermissionError:
+            pass
+
+
+def _encode(tmp: Path, key: CacheKey, sources: Iterable[CacheSource], *,
+            posterior: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
+            encode_text: Callable[[Sequence[str]], torch.Tensor],
+            progress: Callable[[int], None] | None) -> dict[str, Any]:
+    dtype = _DTYPES[key.dtype]
+    items: list[dict[str, Any]] = []
+    prompts: dict[str, int] = {}
+    shape: list[int] = []
+    for n, src in enumerate(sources):
+        tensors: dict[str, torch.Tensor] = {}
+        for side, clip in (("clean", src.clean), ("corrupted", src.corrupted)):
+            mean, std = posterior(clip.unsqueeze(0))
+            tensors[f"{side}_mean"], tensors[f"{side}_std"] = mean[0].cpu(), std[0].cpu()
+        name = f"{n:06d}.safetensors"
+        _write_item(tmp / "items" / name, tensors, dtype)
+        idx = prompts.setdefault(src.prompt, len(prompts))
+        items.append({"file": name, "pair_id": src.pair_id, "start": int(src.start), "text": idx})
+        shape = list(tensors["clean_mean"].shape)
+        if progress is not None:
+            progress(n + 1)
+    if items:
+        text = encode_text(list(prompts))
+        save_file({"embeddings": text.to(dtype).contiguous()}, str(tmp / "text.safetensors"))
+    meta = {"key": asdict(key), "items": items, "prompts": list(prompts), "latent_shape": shape}
+    (tmp / "meta.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
+    return meta

@@ -57,10 +57,6 @@ class SD15Parts:
     tokenizer: Any
 
 
-def _config_folder_parts() -> dict[str, str]:
-    return {"tokenizer": TOKENIZER}
-
-
 def _require_config_folder(config_dir: str | os.PathLike[str] | None, *, what: str, checkpoint: Path,
                            needs: Sequence[str]) -> Path:
     if config_dir is None:
@@ -103,7 +99,7 @@ def load_sd15(path: str | os.PathLike[str], *, config_dir: str | os.PathLike[str
         ckpt = require_file(p, what="SD 1.5 checkpoint", suffixes=_SINGLE_FILE)
         cfg = _require_config_folder(config_dir, what="SD 1.5 checkpoint", checkpoint=ckpt, needs=(
             "model_index.json", "unet/config.json", "vae/config.json", "text_encoder/config.json"))
-        require_folder(cfg, _config_folder_parts(), what="SD 1.5 config folder")
+        require_folder(cfg, {"tokenizer": TOKENIZER}, what="SD 1.5 config folder")
         from diffusers import StableDiffusionPipeline
 
         pipe = StableDiffusionPipeline.from_single_file(

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -118,7 +117,3 @@ def timestep_input(timesteps: torch.Tensor, latent_shape: torch.Size | tuple[int
     tokens = (f // patch_size[0]) * (h // patch_size[1]) * (w // patch_size[2])
     return timesteps.view(-1, 1).expand(-1, tokens)
 
-
-def checkpoint_tag(path: str | os.PathLike[str]) -> str:
-    """A short name for a model folder, for messages."""
-    return Path(path).name
