@@ -11,10 +11,10 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("diffusers")
 
-import tiny_diffusion as td  # noqa: E402
 
 from morphgs import MorphgsError  # noqa: E402
 from morphgs.diffusion import LatentCacheError  # noqa: E402
+from morphgs.diffusion import tiny as td  # noqa: E402
 from morphgs.diffusion.codecs import LatentNorm, SDCodec, WanCodec, files_fingerprint  # noqa: E402
 from morphgs.diffusion.latent_cache import CacheKey, CacheSource, LatentCache, build_cache  # noqa: E402
 

@@ -13,9 +13,9 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("diffusers")
 
-import tiny_diffusion as td  # noqa: E402
 
 from morphgs.diffusion import ModelFolderError  # noqa: E402
+from morphgs.diffusion import tiny as td  # noqa: E402
 from morphgs.diffusion import objectives, wan  # noqa: E402
 from morphgs.diffusion.controlnet import DilatedControlNet, controlled_forward  # noqa: E402
 

@@ -13,10 +13,10 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("diffusers")
 pytest.importorskip("peft")
 
-import tiny_diffusion as td  # noqa: E402
 
 from morphgs import MorphgsError  # noqa: E402
 from morphgs.diffusion import ModelFolderError  # noqa: E402
+from morphgs.diffusion import tiny as td  # noqa: E402
 from morphgs.diffusion import objectives, sandbox  # noqa: E402
 
 

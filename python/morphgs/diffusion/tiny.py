@@ -1,27 +1,34 @@
-"""Tiny random SD 1.5 / AnimateDiff / Wan models saved in the real diffusers layouts.
+"""Tiny random SD 1.5 / AnimateDiff / Wan model folders in the real diffusers layouts.
 
-The tests build these with fixed seeds and `save_pretrained` them into temporary folders, so the
-refiners' real local-folder loading path runs (no hub, HF_HUB_OFFLINE=1). Shapes follow the
-diffusers test suites' tiny configs (tests/models/unets/test_models_unet_motion.py,
-tests/pipelines/wan/test_wan_22.py) with a few channels more where group norms need them.
+For tests, benchmarks and smoke runs without downloaded weights: each function builds a model
+with a fixed seed and `save_pretrained`s it, so the refiners' real local-folder loading path runs
+(no hub). Shapes follow the diffusers test suites' tiny configs
+(tests/models/unets/test_models_unet_motion.py, tests/pipelines/wan/test_wan_22.py) with a few
+channels more where group norms need them. The VAEs get a trained VAE's narrow posterior.
+
+```python
+from morphgs.diffusion import tiny
+tiny.sd15_folder(Path("m/sd15")); tiny.motion_adapter_folder(Path("m/motion")); tiny.wan_folder(Path("m/wan"))
+```
 """
 
 from __future__ import annotations
 
 import json
-import os
 import string
 from pathlib import Path
+from typing import Any
 
 import torch
 
-os.environ.setdefault("HF_HUB_OFFLINE", "1")
+__all__ = ["TEXT_DIM", "TOKENS", "motion_adapter_folder", "sd15_folder", "wan_folder"]
 
 TEXT_DIM = 16
 TOKENS = 16
 
 
-def clip_tokenizer():
+def clip_tokenizer() -> Any:
+    """A CLIP BPE tokenizer over single letters."""
     from transformers import CLIPTokenizer
 
     chars = string.ascii_lowercase
@@ -33,7 +40,8 @@ def clip_tokenizer():
     return CLIPTokenizer(vocab=vocab, merges=[], model_max_length=TOKENS)
 
 
-def t5_tokenizer():
+def t5_tokenizer() -> Any:
+    """A T5 (Unigram) tokenizer over single letters."""
     from transformers import T5Tokenizer
 
     vocab = [("<pad>", 0.0), ("</s>", 0.0), ("<unk>", 0.0), ("\u2581", -2.0)]
@@ -86,7 +94,8 @@ def motion_adapter_folder(root: Path, *, seed: int = 1) -> Path:
     return root
 
 
-def wan_transformer_kwargs(*, channels: int = 16, layers: int = 8) -> dict:
+def wan_transformer_kwargs(*, channels: int = 16, layers: int = 8) -> dict[str, Any]:
+    """A tiny WanTransformer3DModel config (8 blocks: a 3-block ControlNet at stride 3 fits)."""
     return dict(patch_size=(1, 2, 2), num_attention_heads=2, attention_head_dim=12, in_channels=channels,
                 out_channels=channels, text_dim=TEXT_DIM, freq_dim=32, ffn_dim=32, num_layers=layers,
                 cross_attn_norm=True, qk_norm="rms_norm_across_heads", rope_max_seq_len=32)
