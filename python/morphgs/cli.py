@@ -17,6 +17,8 @@ _COMMAND_MODULES = (
     "morphgs.commands.curate",
     "morphgs.commands.export_difix",
     "morphgs.commands.preview",
+    "morphgs.commands.train",
+    "morphgs.commands.refine",
     "morphgs.commands.convert",
     "morphgs.commands.sample",
     "morphgs.commands.perturb",
