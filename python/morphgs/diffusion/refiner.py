@@ -158,6 +158,9 @@ class LatentRefiner(Refiner):
         from morphgs.diffusion.data import LatentPairs, cache_windows, window_sources
 
         s = self.settings
+        if not hasattr(dataset, "records") or not hasattr(dataset, "window"):
+            raise MorphgsError(f"{self.kind}: trains on a curated folder's latents ([data] live = false); "
+                               f"live pairs ({type(dataset).__name__}) cannot be latent-cached")
         win = dataset.window(0, None)
         self.check_clip_size(dataset.frames, win.height, win.width)
         stride = int(s.cache_stride or dataset.frames)

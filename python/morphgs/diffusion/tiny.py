@@ -96,8 +96,8 @@ def motion_adapter_folder(root: Path, *, seed: int = 1) -> Path:
 
 def wan_transformer_kwargs(*, channels: int = 16, layers: int = 8) -> dict[str, Any]:
     """A tiny WanTransformer3DModel config (8 blocks: a 3-block ControlNet at stride 3 fits)."""
-    return dict(patch_size=(1, 2, 2), num_attention_heads=2, attention_head_dim=12, in_channels=channels,
-                out_channels=channels, text_dim=TEXT_DIM, freq_dim=32, ffn_dim=32, num_layers=layers,
+    return dict(patch_size=(1, 2, 2), num_attention_heads=2, attention_head_dim=32, in_channels=channels,
+                out_channels=channels, text_dim=TEXT_DIM, freq_dim=32, ffn_dim=64, num_layers=layers,
                 cross_attn_norm=True, qk_norm="rms_norm_across_heads", rope_max_seq_len=32)
 
 
