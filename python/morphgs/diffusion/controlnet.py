@@ -18,7 +18,7 @@ duplicated.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import torch
 from diffusers.configuration_utils import ConfigMixin, register_to_config
@@ -35,7 +35,7 @@ def injection_layers(num_blocks: int, stride: int) -> list[int]:
     return [i * stride for i in range(num_blocks)]
 
 
-class DilatedControlNet(ModelMixin, ConfigMixin):
+class DilatedControlNet(ModelMixin, ConfigMixin):  # type: ignore[misc]
     """A trainable copy of every ``stride``-th block of a Wan transformer, driven by control latents.
 
     Args:
@@ -49,8 +49,8 @@ class DilatedControlNet(ModelMixin, ConfigMixin):
     """
 
     _supports_gradient_checkpointing = True
-    _no_split_modules = ["WanTransformerBlock"]
-    _keep_in_fp32_modules = ["scale_shift_table", "norm1", "norm2", "norm3"]
+    _no_split_modules = ["WanTransformerBlock"]  # type: ignore[assignment]
+    _keep_in_fp32_modules = ["scale_shift_table", "norm1", "norm2", "norm3"]  # type: ignore[assignment]
 
     @register_to_config
     def __init__(
@@ -76,10 +76,10 @@ class DilatedControlNet(ModelMixin, ConfigMixin):
                 f"DilatedControlNet: {num_blocks} blocks at stride {stride} reach base block "
                 f"{(num_blocks - 1) * stride}, but the base has {base_num_layers} blocks")
         inner = num_attention_heads * attention_head_dim
-        self.control_embedding = nn.Conv3d(control_channels, inner, kernel_size=tuple(patch_size),
-                                           stride=tuple(patch_size))
+        p_t, p_h, p_w = (int(v) for v in patch_size)
+        self.control_embedding = nn.Conv3d(control_channels, inner, kernel_size=(p_t, p_h, p_w), stride=(p_t, p_h, p_w))
         self.blocks = nn.ModuleList([
-            WanTransformerBlock(inner, ffn_dim, num_attention_heads, qk_norm, cross_attn_norm, eps,
+            WanTransformerBlock(inner, ffn_dim, num_attention_heads, qk_norm, cross_attn_norm, eps,  # type: ignore[arg-type]
                                 added_kv_proj_dim)
             for _ in range(num_blocks)
         ])
@@ -97,7 +97,8 @@ class DilatedControlNet(ModelMixin, ConfigMixin):
     @property
     def layers(self) -> list[int]:
         """Base blocks after which residuals are added (0, stride, 2*stride, ...)."""
-        return injection_layers(self.config.num_blocks, self.config.stride)
+        cfg: Any = self.config
+        return injection_layers(cfg.num_blocks, cfg.stride)
 
     @classmethod
     def from_transformer(cls, base: Any, *, num_blocks: int = 8, stride: int = 3) -> DilatedControlNet:
@@ -128,7 +129,7 @@ class DilatedControlNet(ModelMixin, ConfigMixin):
 
     def check_base(self, base: Any) -> None:
         """Raise ValueError if ``base`` is not a transformer this ControlNet fits."""
-        c, mine = base.config, self.config
+        c, mine = base.config, cast(Any, self.config)
         inner = c.num_attention_heads * c.attention_head_dim
         want = mine.num_attention_heads * mine.attention_head_dim
         if inner != want or tuple(c.patch_size) != tuple(mine.patch_size) or c.num_layers <= self.layers[-1]:

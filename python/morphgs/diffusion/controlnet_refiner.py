@@ -133,7 +133,7 @@ class ControlNetRefiner(LatentRefiner):
         if len(names) == 2 and ratio is None:
             raise MorphgsError(f"Wan model folder {root}: two experts but no boundary_ratio "
                                "(in model_index.json or the [model] table)")
-        self.boundary_ratio = float(ratio) if len(names) == 2 else None
+        self.boundary_ratio: float | None = float(ratio) if len(names) == 2 and ratio is not None else None
         self.expand_timesteps = bool(index.get("expand_timesteps", False))
         if s.controlnet_source not in names:
             raise MorphgsError(f"controlnet: controlnet_source {s.controlnet_source!r}, but {root} "
@@ -163,7 +163,7 @@ class ControlNetRefiner(LatentRefiner):
         vae_cfg = read_json(root / "vae" / "config.json", what="Wan VAE config")
         self.latent_norm = LatentNorm.from_vae_config(vae_cfg)
         self._vae_spatial = int(vae_cfg.get("scale_factor_spatial", 8))
-        self.latent_channels = int(self.experts[0].config.out_channels)
+        self.latent_channels = int(self._expert(0).config.out_channels)
         self._root = root
         self._text_tokens = int(s.text_tokens)
         self._checkpointing = bool(s.gradient_checkpointing and ctx.training)
@@ -176,6 +176,9 @@ class ControlNetRefiner(LatentRefiner):
         super().train(mode)
         self.experts.eval()
         return self
+
+    def _expert(self, i: int) -> Any:
+        return self.experts[i]
 
     # ---- pieces for the base class ----------------------------------------------------------
     def _load_codec(self) -> WanCodec:
@@ -198,7 +201,7 @@ class ControlNetRefiner(LatentRefiner):
                 f"UMT5EncoderModel:{files_fingerprint(self._root / 'text_encoder')}")
 
     def _spatial_multiple(self) -> int:
-        return self._vae_spatial * int(self.experts[0].config.patch_size[1])
+        return self._vae_spatial * int(self._expert(0).config.patch_size[1])
 
     def param_groups(self, *, lr: float, weight_decay: float) -> list[dict[str, Any]]:
         """AdamW groups: every ControlNet parameter at ``lr``."""
@@ -208,7 +211,7 @@ class ControlNetRefiner(LatentRefiner):
     def velocity(self, expert: int, x: torch.Tensor, t: torch.Tensor, text: torch.Tensor,
                  cond: torch.Tensor) -> torch.Tensor:
         """One expert's flow prediction with the ControlNet's residuals, for timesteps ``t`` (B,)."""
-        base = self.experts[expert]
+        base = self._expert(expert)
         ts = timestep_input(t, x.shape, tuple(base.config.patch_size), expand=self.expand_timesteps)
         with self.autocast(x.device):
             return controlled_forward(base, self.controlnet, x, ts, text, cond, scale=self.settings.conditioning_scale,

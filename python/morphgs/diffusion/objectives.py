@@ -230,7 +230,7 @@ def sample_flow(model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], sha
     """
     from diffusers import FlowMatchEulerDiscreteScheduler
 
-    sched = FlowMatchEulerDiscreteScheduler(num_train_timesteps=1000, shift=shift)
+    sched: Any = FlowMatchEulerDiscreteScheduler(num_train_timesteps=1000, shift=shift)
     sched.set_timesteps(steps, device=device)
     x = torch.randn(shape, generator=generator, device=generator.device if generator else device,
                     dtype=torch.float32).to(device)

@@ -49,6 +49,9 @@ class LatentRefiner(Refiner):
     kind = "latent"
     _text_masked = False
     _text_tokens = 77
+    _aux: dict[Any, Any]  # set in __init__ through __dict__: not a submodule
+    latent_norm: Any  # LatentNorm
+    latent_channels: int
 
     def __init__(self, settings: Any, ctx: ModelContext) -> None:
         super().__init__()

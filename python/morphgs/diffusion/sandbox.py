@@ -13,7 +13,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import nn
@@ -164,7 +164,7 @@ def widen_conv_in(unet: Any, *, in_channels: int = 8, cond_scale: float = 0.1) -
     Raises:
         ValueError: in_channels is not a multiple of the current count.
     """
-    old: nn.Conv2d = unet.conv_in
+    old: Any = unet.conv_in
     c = old.in_channels
     if in_channels == c:
         return
@@ -176,7 +176,7 @@ def widen_conv_in(unet: Any, *, in_channels: int = 8, cond_scale: float = 0.1) -
     with torch.no_grad():
         w = old.weight
         new.weight.copy_(torch.cat([w] + [cond_scale * w] * (in_channels // c - 1), dim=1))
-        if old.bias is not None:
+        if old.bias is not None and new.bias is not None:
             new.bias.copy_(old.bias)
     unet.conv_in = new
     unet.register_to_config(in_channels=in_channels)
@@ -200,7 +200,7 @@ def add_lora(unet: Any, *, rank: int = 64, alpha: float = 128, dropout: float = 
     from peft import LoraConfig
 
     unet.requires_grad_(False)
-    cfg = LoraConfig(r=rank, lora_alpha=alpha, lora_dropout=dropout, target_modules=list(targets),
+    cfg = LoraConfig(r=rank, lora_alpha=cast(Any, alpha), lora_dropout=dropout, target_modules=list(targets),
                      init_lora_weights=True)
     unet.add_adapter(cfg, adapter_name=adapter_name)
     unet.conv_in.requires_grad_(True)

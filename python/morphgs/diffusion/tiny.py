@@ -52,9 +52,10 @@ def t5_tokenizer() -> Any:
 def _narrow_posterior(quant_conv: torch.nn.Module, latent_channels: int) -> None:
     """Give a random VAE a trained VAE's narrow posterior (std around 0.002 instead of 1): the
     log-variance rows of quant_conv get small weights and a bias of -12."""
+    conv: Any = quant_conv
     with torch.no_grad():
-        quant_conv.weight[latent_channels:] *= 0.01
-        quant_conv.bias[latent_channels:] = -12.0
+        conv.weight[latent_channels:] *= 0.01
+        conv.bias[latent_channels:] = -12.0
 
 
 def sd15_folder(root: Path, *, seed: int = 0) -> Path:
@@ -63,12 +64,13 @@ def sd15_folder(root: Path, *, seed: int = 0) -> Path:
     from transformers import CLIPTextConfig, CLIPTextModel
 
     torch.manual_seed(seed)
-    UNet2DConditionModel(
+    unet: Any = UNet2DConditionModel(
         block_out_channels=(16, 32), layers_per_block=1, sample_size=8, in_channels=4, out_channels=4,
         down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"), up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
         cross_attention_dim=TEXT_DIM, norm_num_groups=8, attention_head_dim=4,
-    ).save_pretrained(root / "unet")
-    vae = AutoencoderKL(
+    )
+    unet.save_pretrained(root / "unet")
+    vae: Any = AutoencoderKL(
         block_out_channels=(8, 8, 8, 8), down_block_types=("DownEncoderBlock2D",) * 4,
         up_block_types=("UpDecoderBlock2D",) * 4, latent_channels=4, norm_num_groups=4, layers_per_block=1,
         sample_size=32,
@@ -89,8 +91,9 @@ def motion_adapter_folder(root: Path, *, seed: int = 1) -> Path:
     from diffusers import MotionAdapter
 
     torch.manual_seed(seed)
-    MotionAdapter(block_out_channels=(16, 32), motion_layers_per_block=1, motion_norm_num_groups=8,
-                  motion_num_attention_heads=2, motion_max_seq_length=32).save_pretrained(root)
+    adapter: Any = MotionAdapter(block_out_channels=(16, 32), motion_layers_per_block=1, motion_norm_num_groups=8,
+                                 motion_num_attention_heads=2, motion_max_seq_length=32)
+    adapter.save_pretrained(root)
     return root
 
 
@@ -112,7 +115,9 @@ def wan_folder(root: Path, *, experts: int = 2, boundary_ratio: float = 0.875, t
     channels = 48 if ti2v else 16
     names = ["transformer", "transformer_2"][:experts]
     for name in names:
-        WanTransformer3DModel(**wan_transformer_kwargs(channels=channels)).save_pretrained(root / name)
+        transformer: Any = WanTransformer3DModel(**wan_transformer_kwargs(channels=channels))
+        transformer.save_pretrained(root / name)
+    vae: Any
     if ti2v:
         vae = AutoencoderKLWan(base_dim=3, z_dim=48, in_channels=12, out_channels=12, is_residual=True, patch_size=2,
                                latents_mean=[0.0] * 48, latents_std=[1.0] * 48, dim_mult=[1, 1, 1, 1],
