@@ -154,6 +154,26 @@ def test_resume_gives_the_same_losses(world: dict[str, Path], model: str, tmp_pa
     assert resumed == straight
 
 
+@pytest.mark.parametrize("model", sorted(CASES))
+def test_validation_refines_the_test_split(world: dict[str, Path], model: str, tmp_path: Path) -> None:
+    """With a test split, the loop's validation runs the model's sampling on test windows (with the
+    prompt embedding from the cache, no text encoder) and writes metrics and a preview strip."""
+    data = tmp_path / "data"
+    assert cli.main(["curate", "--out", str(data), "--frames", "5", "--size", "32x32", "-k", "1",
+                     "--sample-gaussians", "3000", "--test-fraction", "0.5", "--no-progress"]) == 0
+    splits = sorted(json.loads(line)["split"] for line in (data / "manifest.jsonl").read_text().splitlines())
+    assert splits == ["test", "train"]
+    cfg = _config(world, model, tmp_path / "c.toml")
+    run = tmp_path / "run"
+    assert cli.main(["train", "--data", str(data), "--out", str(run), "--config", str(cfg), "--no-progress",
+                     "--max-steps", "2", "--validate-every", "2", "--set", "data.batch_size=1"]) == 0
+    with open(run / "logs" / "val.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 1 and all(np.isfinite(float(rows[0][k])) for k in ("psnr_input", "psnr_output"))
+    assert (run / "previews" / "step-0000002.png").is_file()
+    assert not (run / "cache" / f"{model}-test").exists()  # validation reads pixels, not latents
+
+
 def test_missing_model_folder_is_a_clear_cli_error(world: dict[str, Path], tmp_path: Path,
                                                    capsys: pytest.CaptureFixture[str]) -> None:
     cfg = _config(world, "sandbox", tmp_path / "c.toml", sd15=str(tmp_path / "no-such-sd15"))

@@ -137,7 +137,11 @@ class LatentCache:
     def text(self) -> torch.Tensor:
         """All prompt embeddings (P, L, D), float32."""
         if self._text is None:
-            self._text = load_file(str(self.root / "text.safetensors"))["embeddings"].float()
+            path = self.root / "text.safetensors"
+            try:
+                self._text = load_file(str(path))["embeddings"].float()
+            except (OSError, KeyError, RuntimeError, SafetensorError) as e:
+                raise LatentCacheError(f"latent cache {path}: unreadable ({e}); delete the cache to rebuild") from None
         return self._text
 
     def load(self, i: int) -> dict[str, Any]:

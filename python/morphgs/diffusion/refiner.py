@@ -178,6 +178,8 @@ class LatentRefiner(Refiner):
             # the VAE and the text encoder load only if the cache has to be built
             cache = build_cache(root, key, sources, posterior=lambda clip: self.codec().posterior(clip.to(device)),
                                 encode_text=self.encode_text, rebuild=bool(s.rebuild_cache))
+        if s.prompt in cache.prompts:  # validation's refine reuses it: no text encoder reload
+            self._aux[("prompt", s.prompt)] = cache.text[cache.prompts.index(s.prompt)]
         self.release_text_encoder()
         return LatentPairs(cache, [r.pair_id for r in dataset.records], train=bool(dataset.train),
                            centres=[w.start for w in (dataset.window(i, None) for i in range(len(dataset)))])
