@@ -142,6 +142,23 @@ def test_single_file_checkpoint_needs_a_local_config_folder(tmp_path: Path) -> N
         sandbox.load_sd15(f, config_dir=cfg)
 
 
+def test_original_single_file_sd15_checkpoint_loads(folders: dict[str, Path], parts, tmp_path: Path) -> None:
+    """An original-layout (LDM) single-file SD 1.5 checkpoint loads through diffusers'
+    from_single_file with a local config folder, to the same weights as the diffusers folder."""
+    from ldm_checkpoint import sd15_to_ldm
+    from safetensors.torch import save_file
+
+    sd, _ = parts
+    ckpt = tmp_path / "v1-5-tiny.safetensors"
+    save_file(sd15_to_ldm(sd.unet, sd.vae, sd.text_encoder), str(ckpt))
+    single = sandbox.load_sd15(ckpt, config_dir=folders["sd"])
+    for name in ("unet", "vae", "text_encoder"):
+        ref, got = getattr(sd, name).state_dict(), getattr(single, name).state_dict()
+        assert got.keys() == ref.keys(), name
+        assert all(torch.equal(got[k], ref[k]) for k in ref), name
+    assert single.tokenizer("remove degradation").input_ids == sd.tokenizer("remove degradation").input_ids
+
+
 def _to_original_motion_keys(state: dict) -> dict:
     """diffusers MotionAdapter keys -> the original AnimateDiff checkpoint's (the inverse of
     diffusers' convert_animatediff_checkpoint_to_diffusers)."""

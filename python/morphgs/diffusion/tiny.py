@@ -59,8 +59,9 @@ def _narrow_posterior(quant_conv: torch.nn.Module, latent_channels: int) -> None
 
 
 def sd15_folder(root: Path, *, seed: int = 0) -> Path:
-    """A tiny SD 1.5-shaped model folder: unet/, vae/ (8x downsampling), text_encoder/, tokenizer/."""
-    from diffusers import AutoencoderKL, UNet2DConditionModel
+    """A tiny SD 1.5-shaped model folder: unet/, vae/ (8x downsampling), text_encoder/, tokenizer/,
+    scheduler/ and model_index.json (so it also serves as the config folder of a single file)."""
+    from diffusers import AutoencoderKL, PNDMScheduler, UNet2DConditionModel
     from transformers import CLIPTextConfig, CLIPTextModel
 
     torch.manual_seed(seed)
@@ -82,7 +83,14 @@ def sd15_folder(root: Path, *, seed: int = 0) -> Path:
         max_position_embeddings=TOKENS, bos_token_id=0, eos_token_id=1, pad_token_id=1,
     )).save_pretrained(root / "text_encoder")
     clip_tokenizer().save_pretrained(root / "tokenizer")
-    (root / "model_index.json").write_text(json.dumps({"_class_name": "StableDiffusionPipeline"}))
+    PNDMScheduler(beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear", skip_prk_steps=True,
+                  steps_offset=1, set_alpha_to_one=False).save_pretrained(root / "scheduler")
+    index = {"_class_name": "StableDiffusionPipeline", "requires_safety_checker": False,
+             "feature_extractor": [None, None], "safety_checker": [None, None],
+             "scheduler": ["diffusers", "PNDMScheduler"], "text_encoder": ["transformers", "CLIPTextModel"],
+             "tokenizer": ["transformers", "CLIPTokenizer"], "unet": ["diffusers", "UNet2DConditionModel"],
+             "vae": ["diffusers", "AutoencoderKL"]}
+    (root / "model_index.json").write_text(json.dumps(index))
     return root
 
 
