@@ -62,7 +62,7 @@ def _component_missing(folder: Path, sub: str, kind: str, variant: str | None) -
     where = folder / sub if sub else folder
     label = f"{sub}/" if sub else ""
     if not where.is_dir():
-        return [f"{label or 'the folder'} (the {kind} component{' ' + sub if sub else ''})"]
+        return [f"{label} (the whole folder)"] if sub else ["everything (not a folder)"]
     if kind == TOKENIZER:
         if any(all((where / f).is_file() for f in s) for s in _TOKENIZER_SETS):
             return []
