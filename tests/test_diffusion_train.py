@@ -174,6 +174,35 @@ def test_validation_refines_the_test_split(world: dict[str, Path], model: str, t
     assert not (run / "cache" / f"{model}-test").exists()  # validation reads pixels, not latents
 
 
+def test_two_processes_share_one_cache_and_train(world: dict[str, Path], tmp_path: Path) -> None:
+    """torchrun + gloo: accelerate wraps the refiner in DDP; the main process encodes the cache
+    while the other waits, then both read it; the step's loss is the mean over both ranks. (The
+    controlnet only, to keep the suite short: the cache and DDP paths are the shared base class's.)"""
+    model = "controlnet"
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    cfg = _config(world, model, tmp_path / "c.toml")
+    run = tmp_path / "ddp"
+    launch = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", str(port),
+              "-m", "morphgs", "train", "--no-progress", "--data", str(world["data"]), "--out", str(run),
+              "--config", str(cfg), "--max-steps", "2", "--batch-size", "1", "--set", "run.cpu=true"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HF_HUB_OFFLINE": "1"}
+    done = subprocess.run(launch, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "2 process(es)" in done.stderr
+    cache = run / "cache" / f"{model}-train"
+    assert len(json.loads((cache / "meta.json").read_text())["items"]) == 2
+    assert [p.name for p in cache.parent.iterdir()] == [cache.name]  # one build, no leftovers
+    losses = _losses(run)
+    assert len(losses) == 2 and all(np.isfinite(losses))
+
+
 def test_missing_model_folder_is_a_clear_cli_error(world: dict[str, Path], tmp_path: Path,
                                                    capsys: pytest.CaptureFixture[str]) -> None:
     cfg = _config(world, "sandbox", tmp_path / "c.toml", sd15=str(tmp_path / "no-such-sd15"))
