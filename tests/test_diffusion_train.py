@@ -214,3 +214,8 @@ def test_missing_model_folder_is_a_clear_cli_error(world: dict[str, Path], tmp_p
     cfg.write_text(text)
     assert _train(world, cfg, tmp_path / "run2") == 1
     assert "no_such_key" in capsys.readouterr().err
+    cfg = _config(world, "controlnet", tmp_path / "c3.toml")
+    assert _train(world, cfg, tmp_path / "run3", "--frames", "4") == 1  # Wan clips are 4k+1 frames
+    assert "4k+1 frames" in capsys.readouterr().err
+    assert _train(world, cfg, tmp_path / "run4", "--size", "24x24") == 1
+    assert "multiples of 16" in capsys.readouterr().err

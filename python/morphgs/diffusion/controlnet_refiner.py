@@ -141,6 +141,11 @@ class ControlNetRefiner(LatentRefiner):
         if s.train_experts != "both" and len(names) == 1:
             raise MorphgsError(f"controlnet: train_experts = {s.train_experts!r} needs two experts; {root} has one")
         require_folder(root, {n: DIFFUSERS for n in names}, what="Wan model folder", variant=s.variant)
+        vae_cfg = read_json(root / "vae" / "config.json", what="Wan VAE config")
+        patch = read_json(root / "transformer" / "config.json", what="Wan transformer config").get("patch_size", [1, 2, 2])
+        self._vae_spatial = int(vae_cfg.get("scale_factor_spatial", 8))
+        self.check_context(ctx, multiple=self._vae_spatial * int(patch[1]),
+                           temporal=int(vae_cfg.get("scale_factor_temporal", 4)))
         # training one expert's noise range loads only that expert (half the A14B weights)
         if ctx.training and s.train_experts != "both":
             self.expert_names = [names[0] if s.train_experts == "high" else names[1]]
@@ -160,9 +165,7 @@ class ControlNetRefiner(LatentRefiner):
         del source
         for e in self.experts:
             self.controlnet.check_base(e)
-        vae_cfg = read_json(root / "vae" / "config.json", what="Wan VAE config")
         self.latent_norm = LatentNorm.from_vae_config(vae_cfg)
-        self._vae_spatial = int(vae_cfg.get("scale_factor_spatial", 8))
         self.latent_channels = int(self._expert(0).config.out_channels)
         self._root = root
         self._text_tokens = int(s.text_tokens)

@@ -184,6 +184,19 @@ class LatentRefiner(Refiner):
         return LatentPairs(cache, [r.pair_id for r in dataset.records], train=bool(dataset.train),
                            centres=[w.start for w in (dataset.window(i, None) for i in range(len(dataset)))])
 
+    def check_context(self, ctx: ModelContext, *, multiple: int, temporal: int = 1) -> None:
+        """Refuse a run geometry the model cannot take, before any heavy loading.
+
+        Raises:
+            MorphgsError: [data] frames not ``temporal * k + 1`` (when temporal > 1), or a size
+                whose sides are not multiples of ``multiple``.
+        """
+        if temporal > 1 and (ctx.frames - 1) % temporal:
+            raise MorphgsError(f"{self.kind}: [data] frames = {ctx.frames}; the VAE needs {temporal}k+1 frames "
+                               "(49 in the paper, 81, ...)")
+        if ctx.size is not None and (ctx.size[0] % multiple or ctx.size[1] % multiple):
+            raise MorphgsError(f"{self.kind}: [data] size = {list(ctx.size)}; H and W must be multiples of {multiple}")
+
     def check_clip_size(self, frames: int, height: int, width: int) -> None:
         """Raise MorphgsError if training windows of this size do not fit the model."""
         m = self._spatial_multiple()

@@ -126,6 +126,7 @@ class SandboxRefiner(LatentRefiner):
         self.latent_channels = int(parts.vae.config.latent_channels)
         self.latent_norm = LatentNorm.from_vae_config(parts.vae.config)
         self._vae_spatial = 2 ** (len(parts.vae.config.block_out_channels) - 1)
+        self.check_context(ctx, multiple=self._spatial_multiple())
         self.scheduler = objectives.ddpm_scheduler()
         self._aux["codec"] = SDCodec(parts.vae)
         self._aux["text"] = (parts.tokenizer, parts.text_encoder)
