@@ -83,8 +83,9 @@ def sd15_folder(root: Path, *, seed: int = 0) -> Path:
         max_position_embeddings=TOKENS, bos_token_id=0, eos_token_id=1, pad_token_id=1,
     )).save_pretrained(root / "text_encoder")
     clip_tokenizer().save_pretrained(root / "tokenizer")
-    PNDMScheduler(beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear", skip_prk_steps=True,
-                  steps_offset=1, set_alpha_to_one=False).save_pretrained(root / "scheduler")
+    scheduler: Any = PNDMScheduler(beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear",
+                                   skip_prk_steps=True, steps_offset=1, set_alpha_to_one=False)
+    scheduler.save_pretrained(root / "scheduler")
     index = {"_class_name": "StableDiffusionPipeline", "requires_safety_checker": False,
              "feature_extractor": [None, None], "safety_checker": [None, None],
              "scheduler": ["diffusers", "PNDMScheduler"], "text_encoder": ["transformers", "CLIPTextModel"],
