@@ -57,6 +57,19 @@ def test_shipped_model_tables_state_the_code_defaults(model: str) -> None:
         config_from_dict(Settings, table, section="model")  # the folders must be given
 
 
+@pytest.mark.parametrize("model", ["sandbox", "controlnet"])
+def test_without_the_diffusion_extra_the_cli_says_what_to_install(model: str, tmp_path) -> None:
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['diffusers'] = None\n"  # as if diffusers were not installed
+            "from morphgs import cli\n"
+            f"sys.exit(cli.main(['train', '--model', '{model}', '--out', r'{tmp_path / 'run'}']))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 1, done.stderr[-2000:]
+    assert "pip install 'morphgs[diffusion]'" in done.stderr and "Traceback" not in done.stderr
+
+
 def _launch_options() -> set[str]:
     from accelerate.commands.launch import launch_command_parser
 

@@ -7,10 +7,19 @@ from __future__ import annotations
 
 from typing import Any
 
+from morphgs._core import MorphgsError
 from morphgs.configfile import config_from_dict
-from morphgs.diffusion.controlnet_refiner import ControlNetRefiner, ControlNetSettings
-from morphgs.models.base import ModelContext
-from morphgs.models.registry import register_model
+
+try:
+    import diffusers  # noqa: F401
+    import transformers  # noqa: F401
+except ImportError as e:  # a clear message instead of a traceback from deep inside
+    raise MorphgsError(f"model 'controlnet' needs the diffusion extra: pip install 'morphgs[diffusion]' ({e})") \
+        from None
+
+from morphgs.diffusion.controlnet_refiner import ControlNetRefiner, ControlNetSettings  # noqa: E402
+from morphgs.models.base import ModelContext  # noqa: E402
+from morphgs.models.registry import register_model  # noqa: E402
 
 __all__ = ["build"]
 
