@@ -96,22 +96,24 @@ class LatentRefiner(Refiner):
             return p.device
         return torch.device("cpu")
 
-    def codec(self) -> Any:
-        """The VAE as a latent codec (loaded on first use, kept on the network's device)."""
+    def codec(self, device: torch.device | None = None) -> Any:
+        """The VAE as a latent codec (loaded on first use), on ``device`` (default: the
+        network's)."""
         if "codec" not in self._aux:
             self._aux["codec"] = self._load_codec()
         codec = self._aux["codec"]
-        codec.vae.to(self._device())
+        codec.vae.to(device or self._device())
         return codec
 
-    def encode_text(self, prompts: Sequence[str]) -> torch.Tensor:
-        """Prompt embeddings (P, L, D), float32 on the CPU (loads the text encoder if needed)."""
+    def encode_text(self, prompts: Sequence[str], *, device: torch.device | None = None) -> torch.Tensor:
+        """Prompt embeddings (P, L, D), float32 on the CPU (loads the text encoder if needed and
+        runs it on ``device``, default the network's)."""
         from morphgs.diffusion.text import encode_prompts
 
         if "text" not in self._aux:
             self._aux["text"] = self._load_text()
         tok, enc = self._aux["text"]
-        enc.to(self._device())
+        enc.to(device or self._device())
         return encode_prompts(tok, enc, prompts, max_length=self._text_tokens, masked=self._text_masked)
 
     def prompt_embedding(self, prompt: str) -> torch.Tensor:
@@ -172,12 +174,15 @@ class LatentRefiner(Refiner):
         root = self.cache_dir(dataset, ctx)
         captions = load_captions(s.captions) if s.captions else None
         sources = window_sources(dataset, windows, prompt=s.prompt, captions=captions)
-        device = self._device()
+        # encode on the accelerator's device (prepare_data runs before accelerate moves the model)
+        device = accelerator.device if accelerator is not None else self._device()
         first = accelerator.main_process_first() if accelerator is not None else contextlib.nullcontext()
         with first:
             # the VAE and the text encoder load only if the cache has to be built
-            cache = build_cache(root, key, sources, posterior=lambda clip: self.codec().posterior(clip.to(device)),
-                                encode_text=self.encode_text, rebuild=bool(s.rebuild_cache))
+            cache = build_cache(root, key, sources,
+                                posterior=lambda clip: self.codec(device).posterior(clip.to(device)),
+                                encode_text=lambda prompts: self.encode_text(prompts, device=device),
+                                rebuild=bool(s.rebuild_cache))
         if s.prompt in cache.prompts:  # validation's refine reuses it: no text encoder reload
             self._aux[("prompt", s.prompt)] = cache.text[cache.prompts.index(s.prompt)]
         self.release_text_encoder()
