@@ -14,7 +14,6 @@ Clips are (B, 3, F, H, W) in [-1, 1]; latents are (B, C, F', H', W').
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -24,23 +23,7 @@ import torch
 
 _MIB = 1 << 20
 
-__all__ = ["LatentNorm", "SDCodec", "WanCodec", "files_fingerprint", "model_fingerprint"]
-
-
-def model_fingerprint(model: Any) -> str:
-    """A content hash of a model: class, config and every parameter and buffer (sha256, 16 hex).
-
-    Two models with the same fingerprint compute the same function, whatever file they came from;
-    a cache records it to refuse latents made by another VAE.
-    """
-    h = hashlib.sha256(type(model).__name__.encode())
-    cfg = {k: v for k, v in dict(getattr(model, "config", {})).items() if not k.startswith("_")}
-    h.update(json.dumps(cfg, sort_keys=True, default=str).encode())
-    for name, t in sorted(model.state_dict().items()):
-        h.update(name.encode())
-        h.update(str(t.dtype).encode())
-        h.update(t.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
-    return h.hexdigest()[:16]
+__all__ = ["LatentNorm", "SDCodec", "WanCodec", "files_fingerprint"]
 
 
 def files_fingerprint(path: str | os.PathLike[str]) -> str:
