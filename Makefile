@@ -5,8 +5,8 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 # Each target installs only the extras (pyproject's [project.optional-dependencies]) it uses.
-DEMO_EXTRAS ?= curate,video
-TEST_EXTRAS ?= test,reference,video,ray,curate,metrics,diffusion
+DEMO_EXTRAS ?= curate,video,train
+TEST_EXTRAS ?= test,reference,video,ray,curate,metrics,train,diffusion
 BENCH_EXTRAS ?= $(TEST_EXTRAS)
 
 .PHONY: help
@@ -32,10 +32,19 @@ build: $(VENV)/.base
 .PHONY: setup
 setup: $(VENV)/.extras-$(TEST_EXTRAS) build ## create .venv with every test dependency and build morphgs (release) into it
 
+# the demo's training budget: at most DEMO_STEPS steps, stopped (with a checkpoint) after DEMO_MINUTES
+DEMO_STEPS ?= 300
+DEMO_MINUTES ?= 4
+
 .PHONY: demo
-demo: $(VENV)/.extras-$(DEMO_EXTRAS) build ## the main job: curate clean/corrupted pairs from the built-in sample scenes into out/demo
-	$(VENV)/bin/morphgs curate --out out/demo
-	$(VENV)/bin/morphgs preview out/demo
+demo: $(VENV)/.extras-$(DEMO_EXTRAS) build ## curate pairs from the built-in scenes, train the tiny refiner for a few minutes, refine a held-out pair (out/demo)
+	$(VENV)/bin/morphgs curate --out out/demo/data --size 416x240 --pairs-per-scene 6 --test-fraction 0.5
+	$(VENV)/bin/morphgs preview out/demo/data
+	rm -rf out/demo/run out/demo/refined
+	$(VENV)/bin/morphgs train --data out/demo/data --out out/demo/run --max-steps $(DEMO_STEPS) \
+		--time-limit $(DEMO_MINUTES) --validate-every 100
+	$(VENV)/bin/morphgs refine out/demo/run out/demo/data/pairs/sample-0/morphological/0000 \
+		--out out/demo/refined --video
 
 .PHONY: lint
 lint: ## rustfmt and clippy (warnings are errors)

@@ -19,8 +19,11 @@ from morphgs._core import MorphgsError
 
 if sys.version_info >= (3, 11):
     import tomllib
-else:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
+else:  # pragma: no cover - Python 3.10 has no tomllib
+    try:
+        import tomli as tomllib
+    except ImportError as e:
+        raise ImportError("reading run configs on Python 3.10 needs tomli: pip install tomli") from e
 
 __all__ = ["ConfigError", "config_from_dict", "load_toml", "merge", "parse_overrides"]
 

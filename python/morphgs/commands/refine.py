@@ -12,8 +12,9 @@ def register(sub: Any) -> None:
         "refine", help="refine a clip (frames folder, MP4 or curated pair) with a trained run",
         description="Refine INPUT with the model of RUN: overlapping windows blended over their overlaps, then "
                     "colour correction (Reinhard transfer in CIELAB) against --color-ref or the input clip. "
-                    "Writes OUT/00000.png ... (and OUT/refined.mp4 with --video). A curated pair's corrupted "
-                    "frames are refined and PSNR/SSIM against its clean frames are printed.")
+                    "Writes OUT/frames/00000.png ... (and OUT/refined.mp4 with --video). A curated pair's corrupted "
+                    "frames are refined, and PSNR/SSIM against its clean frames are printed and written "
+                    "to OUT/metrics.json with a before/after/target strip OUT/preview.png.")
     p.add_argument("run", metavar="RUN", help="run folder (morphgs train --out)")
     p.add_argument("input", metavar="INPUT", help="folder of frames, a video, or a curated pair folder")
     p.add_argument("--out", required=True, help="output folder")
@@ -49,23 +50,43 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as e:
         raise SystemExit(f"morphgs refine: error: {e}; install the training extra: pip install 'morphgs[train]'") \
             from None
+    loaded = load_run(args.run, checkpoint=args.checkpoint, device=args.device)
     clip_path, clean_path = resolve_input(args.input)
     frames = media.read_clip(clip_path)
-    loaded = load_run(args.run, checkpoint=args.checkpoint, device=args.device)
     color_ref = media.read_clip(args.color_ref) if args.color_ref else None
     reference = media.read_clip(args.reference) if args.reference else None
     refined = refine_clip(loaded.model, frames, window=args.window, overlap=args.overlap, reference=reference,
                           color_correct=not args.no_color_correct, color_reference=color_ref, device=loaded.device,
                           autocast=args.bf16)
     out = Path(args.out)
-    media.write_frames(out, refined)
-    print(f"{out}: {len(refined)} refined frames ({loaded.config.model}, {loaded.checkpoint.name})")
+    media.write_frames(out / "frames", refined)
+    print(f"{out / 'frames'}: {len(refined)} refined frames ({loaded.config.model}, {loaded.checkpoint.name})")
     if args.video:
         print(f"{media.write_video(out / 'refined.mp4', refined, fps=args.fps)}")
     if clean_path is not None:
-        from morphgs.metrics import psnr, ssim
-
-        clean = media.read_clip(clean_path)
-        print(f"vs clean: PSNR {psnr(frames, clean):.2f} -> {psnr(refined, clean):.2f} dB, "
-              f"SSIM {ssim(frames, clean):.4f} -> {ssim(refined, clean):.4f} (input -> refined)")
+        report = pair_report(frames, refined, media.read_clip(clean_path), out)
+        print(f"vs clean: PSNR {report['psnr_input']:.2f} -> {report['psnr_refined']:.2f} dB, "
+              f"SSIM {report['ssim_input']:.4f} -> {report['ssim_refined']:.4f} (input -> refined); "
+              f"{out / 'preview.png'}")
     return 0
+
+
+def pair_report(corrupted: Any, refined: Any, clean: Any, out: Path) -> dict[str, float]:
+    """PSNR/SSIM of corrupted-vs-clean and refined-vs-clean (means over frames), written to
+    OUT/metrics.json, and a before/after/target strip with them to OUT/preview.png."""
+    import json
+
+    from PIL import Image
+
+    from morphgs.metrics import psnr, ssim
+    from morphgs.training.logs import preview_strip
+
+    report = {"frames": len(clean), "psnr_input": float(psnr(corrupted, clean)),
+              "psnr_refined": float(psnr(refined, clean)), "ssim_input": float(ssim(corrupted, clean)),
+              "ssim_refined": float(ssim(refined, clean))}
+    (out / "metrics.json").write_text(json.dumps(report, indent=1) + "\n", encoding="utf-8")
+    labels = [f"before: corrupted  PSNR {report['psnr_input']:.2f} dB  SSIM {report['ssim_input']:.4f}",
+              f"after: refined  PSNR {report['psnr_refined']:.2f} dB  SSIM {report['ssim_refined']:.4f}",
+              "target: clean"]
+    Image.fromarray(preview_strip([corrupted, refined, clean], labels=labels, frames=4)).save(out / "preview.png")
+    return report

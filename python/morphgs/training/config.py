@@ -46,7 +46,7 @@ class DataConfig:
 class OptimConfig:
     """[optim]: AdamW and its schedule (the paper's settings as defaults, lr aside)."""
 
-    lr: float = 5e-4
+    lr: float = 3e-4
     betas: tuple[float, float] = (0.9, 0.999)
     weight_decay: float = 1e-2
     eps: float = 1e-8

@@ -92,31 +92,42 @@ def train(
         (each names the path and the problem).
     """
     from accelerate import Accelerator
-    from accelerate.utils import set_seed
 
     run_dir = Path(out)
     resolved = _resolve(run_dir, model, config, overrides, resume, data)
     cfg = resolved.config
     data_dir = Path(data) if data is not None else _saved_data(run_dir) if resume else None
     accelerator = Accelerator(mixed_precision=_precision(cfg), gradient_accumulation_steps=cfg.optim.grad_accum,
-                              cpu=cfg.run.cpu, step_scheduler_with_optimizer=False)
+                              cpu=_use_cpu(cfg), step_scheduler_with_optimizer=False)
+    try:
+        return _run(accelerator, resolved, run_dir, data_dir, scenes, resume, progress, log)
+    finally:
+        _release(accelerator)
+
+
+def _run(accelerator: Any, resolved: ResolvedConfig, run_dir: Path, data_dir: Path | None, scenes: Sequence[Any],
+         resume: bool, progress: bool, log: Callable[[str], None] | None) -> TrainResult:
+    """The recipe, once accelerate is set up."""
+    from accelerate.utils import set_seed
+
+    cfg = resolved.config
     main = accelerator.is_main_process
     say = log or ((lambda m: print(m, file=sys.stderr, flush=True)) if main else (lambda m: None))
     rank, world, device = accelerator.process_index, accelerator.num_processes, accelerator.device
     if cfg.run.threads:
         torch.set_num_threads(cfg.run.threads)
 
-    # ---- the run folder (every process checks, then the main one writes) ----
+    # ---- data, then the run folder (every process checks, then the main one writes) ----
     _check_run_dir(run_dir, resume)
+    train_ds, val_ds = _datasets(cfg, data_dir, scenes, say)
     accelerator.wait_for_everyone()
     if main and not resume:
         _start_run_dir(run_dir, resolved, data_dir, scenes, accelerator)
     accelerator.wait_for_everyone()
 
-    # ---- data and model ----
+    # ---- the model ----
     ctx = ModelContext(frames=cfg.data.frames, size=cfg.data.size, reference=cfg.data.reference, training=True,
                        run_dir=run_dir, cache_dir=run_dir / "cache")
-    train_ds, val_ds = _datasets(cfg, data_dir, scenes, say)
     torch.manual_seed(cfg.seed)  # the same initial weights on every process
     refiner = create_model(cfg.model, cfg.model_config, ctx)
     train_ds = refiner.prepare_data(train_ds, ctx=ctx, accelerator=accelerator)
@@ -168,7 +179,7 @@ def train(
                 with accelerator.accumulate(model_p):
                     loss, step_logs = model_p(batch, generator=gen)
                     if not torch.isfinite(loss.detach()):
-                        raise TrainingError(f"{run_dir}: the loss is {loss.item()} at step {state.step + 1} "
+                        raise TrainingError(f"{run_dir}: the loss is {loss.detach().item()} at step {state.step + 1} "
                                             f"(lr {scheduler.get_last_lr()[0]:.3g}); lower [optim] lr")
                     accelerator.backward(loss)
                     if accelerator.sync_gradients and o.grad_clip > 0:
@@ -212,8 +223,17 @@ def train(
         result.checkpoint = found if found is not None else run_dir
     say(f"done: {state.step} steps in {result.seconds:.1f} s; checkpoint {result.checkpoint}")
     accelerator.wait_for_everyone()
-    accelerator.end_training()
     return result
+
+
+def _release(accelerator: Any) -> None:
+    """End the run's process group and forget accelerate's process-wide state, so that another
+    `train()` in the same process may use other settings (precision, accumulation)."""
+    from accelerate.state import AcceleratorState, GradientState
+
+    accelerator.end_training()
+    AcceleratorState._reset_state(reset_partial_state=True)
+    GradientState._reset_state()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -228,6 +248,13 @@ def _precision(cfg: TrainConfig) -> str:
     if torch.cuda.is_available() and not cfg.run.cpu:
         return "bf16" if torch.cuda.is_bf16_supported() else "no"
     return "bf16" if _cpu_has_bf16() else "no"
+
+
+def _use_cpu(cfg: TrainConfig) -> bool:
+    """CPU when asked, and for a multi-process launch (torchrun) on a machine without CUDA, so that
+    accelerate sets up gloo DDP over the processes instead of running each one alone."""
+    multi = int(os.environ.get("WORLD_SIZE", "1")) > 1
+    return cfg.run.cpu or (multi and not torch.cuda.is_available())
 
 
 def _cpu_has_bf16() -> bool:
