@@ -100,7 +100,8 @@ def test_overfits_two_clips_then_refines_a_pair(world: dict[str, Path], model: s
     assert "5 refined frames" in capsys.readouterr().out
     from PIL import Image
 
-    refined = np.stack([np.asarray(Image.open(f).convert("RGB")) for f in sorted(out.glob("[0-9]*.png"))])
+    frames = out / "frames" if (out / "frames").is_dir() else out
+    refined = np.stack([np.asarray(Image.open(f).convert("RGB")) for f in sorted(frames.glob("[0-9]*.png"))])
     corrupted = media.read_clip(pair / "corrupted")
     assert refined.shape == corrupted.shape == (5, 32, 32, 3)
     assert not np.array_equal(refined, corrupted)
