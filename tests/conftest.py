@@ -7,6 +7,10 @@ from pathlib import Path
 
 import pytest
 
+# no test may reach the Hugging Face hub: set before anything imports huggingface_hub (which
+# reads it once), so an accidental from_pretrained of a hub id fails fast
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
 REPO = Path(__file__).resolve().parents[1]
 FIXTURES = Path(os.environ.get("MORPHGS_FIXTURES", REPO / "tests" / "fixtures"))
 
