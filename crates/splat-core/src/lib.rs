@@ -21,3 +21,4 @@ pub mod blur;
 pub mod camera;
 pub mod image_out;
 pub mod raster;
+pub mod fit;
