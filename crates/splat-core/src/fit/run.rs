@@ -43,7 +43,7 @@ pub enum Flow {
 /// The caller's side of the loop.
 pub trait Hooks {
     /// Run `work` (one step, an evaluation): a binding runs it inside its thread pool.
-    fn parallel(&mut self, work: &mut dyn FnMut()) {
+    fn parallel(&mut self, work: &mut (dyn FnMut() + Send)) {
         work()
     }
     fn event(&mut self, e: Event<'_>) -> Flow;
