@@ -197,6 +197,13 @@ class FitConfig:
     # ---- checks and the native form ----
     def validate(self, *, source: str = "config") -> None:
         """Range checks the native side does not make (it checks the rest)."""
+        for obj, prefix in [(self, "")] + [(getattr(self, k), f"{k}.") for k in _SECTIONS]:
+            for f in dataclasses.fields(obj):
+                v = getattr(obj, f.name)
+                if isinstance(v, bool) or not isinstance(v, (int, float)):
+                    continue
+                if not math.isfinite(v) or v < 0:
+                    raise FitConfigError(f"{source}: {prefix}{f.name} must be a finite number >= 0, got {v}")
         if self.strategy not in ("default", "mcmc"):
             raise FitConfigError(f"{source}: strategy must be 'default' or 'mcmc', got {self.strategy!r}")
         if self.steps < 1:

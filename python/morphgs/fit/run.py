@@ -152,8 +152,9 @@ class _Logger:
     """Receives the native loop's callbacks: CSV rows, previews, the progress bar."""
 
     def __init__(self, run: Path, cfg: FitConfig, heldout_names: list[str], heldout_images: list[np.ndarray],
-                 bar: Any, user: Callable[[str, Any], Any] | None) -> None:
+                 bar: Any, user: Callable[[str, Any], Any] | None, verbose: bool) -> None:
         self.run, self.cfg, self.names, self.truth, self.bar, self.user = run, cfg, heldout_names, heldout_images, bar, user
+        self.verbose = verbose
         self.loss = open(run / "loss.csv", "a", encoding="utf-8", newline="")
         self.eval = open(run / "eval.csv", "a", encoding="utf-8", newline="")
         self.eval_views = open(run / "eval_views.csv", "a", encoding="utf-8", newline="")
@@ -165,12 +166,12 @@ class _Logger:
             for r in payload:
                 self.loss.write(",".join(_fmt(r[c]) for c in LOSS_COLUMNS) + "\n")
                 for what in ("duplicated", "split", "pruned", "relocated", "added"):
-                    if r[what]:
+                    if r[what] and self.verbose:
                         self.bar.write(f"step {r['step']}: {r['duplicated']} duplicated, {r['split']} split, "
                                        f"{r['pruned']} pruned, {r['relocated']} relocated, {r['added']} added "
                                        f"-> {r['gaussians']} Gaussians")
                         break
-                if r["reset"]:
+                if r["reset"] and self.verbose:
                     self.bar.write(f"step {r['step']}: opacities reset")
             self.loss.flush()
             if payload:
@@ -193,7 +194,8 @@ class _Logger:
             self.eval.flush()
             self.eval_views.flush()
             self.last_eval = payload
-            self.bar.write(f"step {payload['step']}: held-out PSNR {payload['psnr']:.3f} dB, SSIM {payload['ssim']:.4f}")
+            if self.verbose:
+                self.bar.write(f"step {payload['step']}: held-out PSNR {payload['psnr']:.3f} dB, SSIM {payload['ssim']:.4f}")
         elif kind == "checkpoint":
             pass
         if self.user is not None:
@@ -316,7 +318,7 @@ def fit(
     _truncate_csv(run / "eval_views.csv", start, EVAL_VIEW_COLUMNS)
 
     bar = progress_bar(cfg.steps, start, progress)
-    logger = _Logger(run, cfg, [posed.names[i] for i in sel.heldout], list(eval_imgs), bar, callback)
+    logger = _Logger(run, cfg, [posed.names[i] for i in sel.heldout], list(eval_imgs), bar, callback, progress)
     t_run = time.perf_counter()
     try:
         ended = trainer.run(cfg.steps, callback=logger, eval_every=cfg.output.eval_every if eval_imgs else 0,
