@@ -44,6 +44,30 @@ class Params:
         return ("means", "quats", "log_scales", "opacity_logits", "sh0", "sh_rest")
 
 
+def random_scene(n: int, degree: int, seed: int, *, spread: float = 1.0,
+                 log_scale: tuple[float, float] = (-4.0, -1.5)) -> morphgs.GaussianScene:
+    """n random Gaussians in [-spread, spread]^3 with SH degree `degree`."""
+    rng = np.random.default_rng(seed)
+    k = (degree + 1) ** 2 - 1
+    return morphgs.GaussianScene.from_arrays(
+        means=rng.uniform(-spread, spread, (n, 3)),
+        quats=rng.normal(size=(n, 4)),
+        log_scales=rng.uniform(*log_scale, (n, 3)),
+        opacity_logits=rng.normal(0.0, 2.0, n),
+        sh0=rng.normal(0.0, 0.8, (n, 3)),
+        sh_rest=rng.normal(0.0, 0.3, (n, k, 3)) if degree else None,
+    )
+
+
+def front_camera(width: int, height: int, *, distance: float = 4.0, cx: float | None = None,
+                 cy: float | None = None) -> morphgs.Camera:
+    """A camera at z = -distance looking along +z."""
+    c2w = np.eye(4)
+    c2w[2, 3] = -distance
+    return morphgs.Camera.from_c2w(c2w, fx=1.1 * width, fy=1.1 * width, width=width,
+                                   height=height, cx=cx, cy=cy)
+
+
 @dataclass
 class Setup:
     """A camera and the render options of one check."""
@@ -62,7 +86,7 @@ def rust_forward(p: Params, s: Setup) -> tuple[DiffRasterizer, tuple[np.ndarray,
     rgb, depth, alpha, _ = r.forward(
         *p.arrays(), s.cam.world_to_camera, s.cam.K, s.cam.width, s.cam.height,
         near=s.cam.near, far=s.cam.far, background=s.background, max_alpha=s.max_alpha,
-        sh_degree=s.sh_degree, antialiased=s.antialiased, depth=s.depth)
+        sh_degree=s.sh_degree, antialiased=s.antialiased, depth=s.depth, absgrad=True)
     return r, (rgb, depth, alpha)
 
 
@@ -82,12 +106,13 @@ def loss_weights(s: Setup, seed: int) -> dict[str, np.ndarray]:
 
 
 class Reference:
-    """L(params) in float64 with the Rust forward's blend decisions frozen."""
+    """L(params) in float64 (or `dtype`) with the Rust forward's blend decisions frozen."""
 
-    def __init__(self, p: Params, s: Setup, r: DiffRasterizer):
+    def __init__(self, p: Params, s: Setup, r: DiffRasterizer, *, dtype: str = "float64"):
         import torch
 
         self.torch = torch
+        self.dtype = getattr(torch, dtype)
         self.s = s
         pix, gid, clamped = r.contributions()
         order = np.argsort(pix, kind="stable")  # per pixel, blend order kept
@@ -103,11 +128,12 @@ class Reference:
 
     def tensors(self, p: Params, requires_grad: bool = True) -> dict:
         t = self.torch
-        return {n: t.tensor(a, dtype=t.float64, requires_grad=requires_grad)
+        return {n: t.tensor(a, dtype=self.dtype, requires_grad=requires_grad)
                 for n, a in zip(p.names, p.arrays())}
 
     def project(self, x: dict) -> dict:
-        """Per-Gaussian projected values (float64, with autograd)."""
+        """Per-Gaussian projected values (float64, with autograd); given colours (x["colors"],
+        post-activation) replace the SH colour."""
         t = self.torch
         from gsplat.cuda._torch_impl import (
             _fully_fused_projection,
@@ -118,8 +144,8 @@ class Reference:
         cam = self.s.cam
         covars, _ = _quat_scale_to_covar_preci(x["quats"], t.exp(x["log_scales"]),
                                                compute_covar=True, compute_preci=False)
-        viewmat = t.tensor(np.asarray(cam.world_to_camera), dtype=t.float64)[None]
-        ks = t.tensor(np.asarray(cam.K), dtype=t.float64)[None]
+        viewmat = t.tensor(np.asarray(cam.world_to_camera), dtype=self.dtype)[None]
+        ks = t.tensor(np.asarray(cam.K), dtype=self.dtype)[None]
         _, means2d, depths, conics, comp = _fully_fused_projection(
             x["means"], covars, viewmat, ks, cam.width, cam.height, eps2d=0.3,
             near_plane=cam.near, far_plane=cam.far, calc_compensations=self.s.antialiased)
@@ -127,11 +153,14 @@ class Reference:
         if self.s.antialiased:
             assert comp is not None
             opac = opac * t.clamp(comp[0] ** 2, min=0.005 ** 2).sqrt()
-        campos = t.linalg.inv(viewmat[0])[:3, 3]
-        coeffs = t.cat([x["sh0"][:, None, :], x["sh_rest"]], dim=1)
-        nb = (self.degree + 1) ** 2
-        rgb = _spherical_harmonics(self.degree, x["means"] - campos, coeffs[:, :nb])
-        colors = t.clamp_min(rgb + 0.5, 0.0)
+        if "colors" in x:
+            colors = x["colors"]
+        else:
+            campos = t.linalg.inv(viewmat[0])[:3, 3]
+            coeffs = t.cat([x["sh0"][:, None, :], x["sh_rest"]], dim=1)
+            nb = (self.degree + 1) ** 2
+            rgb = _spherical_harmonics(self.degree, x["means"] - campos, coeffs[:, :nb])
+            colors = t.clamp_min(rgb + 0.5, 0.0)
         return {"means2d": means2d[0], "conics": conics[0], "depths": depths[0],
                 "opacities": opac, "colors": colors}
 
@@ -141,8 +170,8 @@ class Reference:
         s, cam = self.s, self.s.cam
         gid = t.from_numpy(self.gid)
         pix = t.from_numpy(self.pix)
-        px = (pix % cam.width).double() + 0.5
-        py = (pix // cam.width).double() + 0.5
+        px = (pix % cam.width).to(self.dtype) + 0.5
+        py = (pix // cam.width).to(self.dtype) + 0.5
         m = g["means2d"][gid]
         dx, dy = m[:, 0] - px, m[:, 1] - py
         con = g["conics"][gid]
@@ -150,18 +179,18 @@ class Reference:
         alpha = g["opacities"][gid] * t.exp(-sigma)
         alpha = t.where(t.from_numpy(self.clamped), t.full_like(alpha, s.max_alpha), alpha)
         # dense (pixel, position) layout, padded with alpha 0
-        dense = t.zeros((self.npix, max(self.maxlen, 1)), dtype=t.float64)
+        dense = t.zeros((self.npix, max(self.maxlen, 1)), dtype=self.dtype)
         idx = (pix, t.from_numpy(self.slot))
         dense = dense.index_put(idx, alpha)
         one_minus = 1.0 - dense
         t_after = t.cumprod(one_minus, dim=1)
-        t_before = t.cat([t.ones((self.npix, 1), dtype=t.float64), t_after[:, :-1]], dim=1)
+        t_before = t.cat([t.ones((self.npix, 1), dtype=self.dtype), t_after[:, :-1]], dim=1)
         wts = (dense * t_before)[idx]
         t_final = t_after[:, -1]
         col = g["colors"][gid]
-        c = t.zeros((self.npix, 3), dtype=t.float64).index_add(0, pix, wts[:, None] * col)
-        d = t.zeros(self.npix, dtype=t.float64).index_add(0, pix, wts * g["depths"][gid])
-        bg = (t.tensor(s.background, dtype=t.float64) if background is None else background)
+        c = t.zeros((self.npix, 3), dtype=self.dtype).index_add(0, pix, wts[:, None] * col)
+        d = t.zeros(self.npix, dtype=self.dtype).index_add(0, pix, wts * g["depths"][gid])
+        bg = (t.tensor(s.background, dtype=self.dtype) if background is None else background)
         rgb = c + t_final[:, None] * bg
         a = 1.0 - t_final
         depth = d / t.clamp(a, min=1e-10) if s.depth == "expected" else d
@@ -171,9 +200,9 @@ class Reference:
     def loss(self, x: dict, w: dict, background=None):
         t = self.torch
         rgb, depth, alpha = self.blend(self.project(x), background)
-        return ((rgb * t.from_numpy(w["rgb"]).double()).sum()
-                + (depth * t.from_numpy(w["depth"]).double()).sum()
-                + (alpha * t.from_numpy(w["alpha"]).double()).sum())
+        return ((rgb * t.from_numpy(w["rgb"]).to(self.dtype)).sum()
+                + (depth * t.from_numpy(w["depth"]).to(self.dtype)).sum()
+                + (alpha * t.from_numpy(w["alpha"]).to(self.dtype)).sum())
 
     def grads(self, p: Params, w: dict) -> tuple[dict, dict]:
         """Autograd gradients of the parameters, and of the per-Gaussian projected values."""
@@ -182,11 +211,11 @@ class Reference:
         g = self.project(x)
         for v in g.values():
             v.retain_grad()
-        bg = t.tensor(self.s.background, dtype=t.float64, requires_grad=True)
+        bg = t.tensor(self.s.background, dtype=self.dtype, requires_grad=True)
         rgb, depth, alpha = self.blend(g, bg)
-        loss = ((rgb * t.from_numpy(w["rgb"]).double()).sum()
-                + (depth * t.from_numpy(w["depth"]).double()).sum()
-                + (alpha * t.from_numpy(w["alpha"]).double()).sum())
+        loss = ((rgb * t.from_numpy(w["rgb"]).to(self.dtype)).sum()
+                + (depth * t.from_numpy(w["depth"]).to(self.dtype)).sum()
+                + (alpha * t.from_numpy(w["alpha"]).to(self.dtype)).sum())
         loss.backward()
         out = {n: x[n].grad.numpy() for n in p.names}
         out["background"] = bg.grad.numpy()

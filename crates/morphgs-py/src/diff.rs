@@ -95,6 +95,7 @@ impl PyDiffRasterizer {
     ///     colors: optional (N,3) float32 colours used instead of SH.
     ///     depth: "expected" (D / max(alpha, 1e-10), as render) or "accumulated" (D).
     ///     slot_budget: most bytes of per-intersection gradient slots held at once.
+    ///     absgrad: have `backward` also sum |dL/dmean2d| per pixel (means2d_abs, grad2d_abs).
     ///
     /// Returns:
     ///     (rgb (H,W,3), depth (H,W), alpha (H,W), stats dict), float32.
@@ -104,7 +105,7 @@ impl PyDiffRasterizer {
     #[pyo3(signature = (means, quats, log_scales, opacity_logits, sh0, sh_rest, world_to_camera,
                         K, width, height, *, near = 0.01, far = 1e10, background = [0.0, 0.0, 0.0],
                         max_alpha = 0.99, sh_degree = None, antialiased = false, colors = None,
-                        depth = "expected", slot_budget = 256usize << 20))]
+                        depth = "expected", slot_budget = 256usize << 20, absgrad = false))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn forward<'py>(
         &self,
@@ -128,6 +129,7 @@ impl PyDiffRasterizer {
         colors: Option<PyReadonlyArray2<'py, f32>>,
         depth: &str,
         slot_budget: usize,
+        absgrad: bool,
     ) -> PyResult<(
         Bound<'py, PyArray3<f32>>,
         Bound<'py, PyArray2<f32>>,
@@ -178,6 +180,7 @@ impl PyDiffRasterizer {
             },
             depth,
             slot_budget,
+            absgrad,
         };
         let npix = width as usize * height as usize;
         let (mut rgb, mut dep, mut alpha) = (vec![0.0; npix * 3], vec![0.0; npix], vec![0.0; npix]);
@@ -340,18 +343,47 @@ impl PyDiffRasterizer {
         Ok(d)
     }
 
-    /// (N,2) int32 radii of the last forward's Gaussians (0 where culled), for `n` Gaussians.
-    fn radii<'py>(&self, py: Python<'py>, n: usize) -> PyResult<Bound<'py, PyArray2<i32>>> {
-        let ws = self.lock()?;
-        let mut r = vec![0i32; n * 2];
-        for (i, rad) in ws.radii() {
-            if i < n {
-                r[i * 2..i * 2 + 2].copy_from_slice(&rad);
-            }
-        }
-        Array2::from_shape_vec((n, 2), r)
-            .map_err(|e| PyValueError::new_err(e.to_string()))
-            .map(|a| a.into_pyarray(py))
+    /// The last forward's projection of every Gaussian (gsplat's `fully_fused_projection`
+    /// outputs): radii (N,2) int32 (0 where culled), means2d (N,2), depths (N,), conics (N,3),
+    /// opacities (N,) after compensation, colors (N,3).
+    ///
+    /// Raises:
+    ///     ValueError: no forward yet.
+    fn projection<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let p = self
+            .lock()?
+            .projection()
+            .ok_or_else(|| PyValueError::new_err("projection needs a forward first"))?;
+        let n = p.depths.len();
+        let bad = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
+        let d = PyDict::new(py);
+        d.set_item(
+            "radii",
+            Array2::from_shape_vec((n, 2), p.radii)
+                .map_err(bad)?
+                .into_pyarray(py),
+        )?;
+        d.set_item(
+            "means2d",
+            Array2::from_shape_vec((n, 2), p.means2d)
+                .map_err(bad)?
+                .into_pyarray(py),
+        )?;
+        d.set_item("depths", Array1::from_vec(p.depths).into_pyarray(py))?;
+        d.set_item(
+            "conics",
+            Array2::from_shape_vec((n, 3), p.conics)
+                .map_err(bad)?
+                .into_pyarray(py),
+        )?;
+        d.set_item("opacities", Array1::from_vec(p.opacities).into_pyarray(py))?;
+        d.set_item(
+            "colors",
+            Array2::from_shape_vec((n, 3), p.colors)
+                .map_err(bad)?
+                .into_pyarray(py),
+        )?;
+        Ok(d)
     }
 
     /// Every contributing (pixel, Gaussian) pair of the last forward in blend order per pixel:

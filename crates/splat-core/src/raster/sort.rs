@@ -272,6 +272,14 @@ impl TileBins {
             .map(move |c| &c.items[c.offsets[t] as usize..c.offsets[t + 1] as usize])
     }
 
+    /// Bytes of the lists (capacities).
+    pub(crate) fn bytes(&self) -> usize {
+        self.chunks
+            .iter()
+            .map(|c| (c.offsets.capacity() + c.items.capacity()) * 4)
+            .sum()
+    }
+
     /// Total Gaussian-tile intersections.
     pub(crate) fn intersections(&self) -> u64 {
         self.chunks.iter().map(|c| c.items.len() as u64).sum()

@@ -46,6 +46,9 @@ pub(crate) trait SlotSink {
     /// whether alpha was clamped at max_alpha.
     const RECORD: bool = false;
     fn contrib(&mut self, _r: usize, _l: usize, _pos: u32, _clamped: bool) {}
+    /// A hint that entry `pos`'s slot will be written soon.
+    #[inline(always)]
+    fn prefetch(&self, _pos: u32) {}
 }
 
 #[inline(always)]
@@ -111,7 +114,7 @@ pub(crate) fn finish_slot(acc: &[[f32; LANES]; 9], dx: &[f32; LANES]) -> [f32; s
 /// finished or whose rows all miss). `t_final` is the forward's state (for the live pixels).
 /// Returns the Gaussian-pixel evaluations (as the forward counts them).
 #[inline(always)]
-fn bwd_tile_impl<'a, const FMA: bool, S: SlotSink>(
+fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -151,6 +154,7 @@ fn bwd_tile_impl<'a, const FMA: bool, S: SlotSink>(
             }
             if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
                 prefetch(splats, ahead as usize);
+                sink.prefetch(ahead);
             }
             let s = &splats[gi as usize];
             let (mx, my) = (s.xy[0], s.xy[1]);
@@ -221,10 +225,12 @@ fn bwd_tile_impl<'a, const FMA: bool, S: SlotSink>(
                     acc[4][l] = select(m2, acc[4][l] + u, acc[4][l]);
                     acc[5][l] = select(m2, fmadd::<FMA>(u, dy, acc[5][l]), acc[5][l]);
                     acc[6][l] = select(m2, fmadd::<FMA>(u, dy2, acc[6][l]), acc[6][l]);
-                    let ax = (u * (adx[l] + bdy)).abs();
-                    let ay = (u * (bdx[l] + cdy)).abs();
-                    acc[7][l] = select(m2, acc[7][l] + ax, acc[7][l]);
-                    acc[8][l] = select(m2, acc[8][l] + ay, acc[8][l]);
+                    if ABS {
+                        let ax = (u * (adx[l] + bdy)).abs();
+                        let ay = (u * (bdx[l] + cdy)).abs();
+                        acc[7][l] = select(m2, acc[7][l] + ax, acc[7][l]);
+                        acc[8][l] = select(m2, acc[8][l] + ay, acc[8][l]);
+                    }
                     srow[l] = select(contrib, s_new, srow[l]);
                     trow[l] = select(contrib, tn, select(valid, -t, t));
                     if S::RECORD && contrib {
@@ -254,33 +260,73 @@ fn bwd_tile_impl<'a, const FMA: bool, S: SlotSink>(
 /// against bit for bit.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-pub(crate) fn bwd_tile_generic_fma<'a>(
+pub(crate) fn bwd_tile_generic_fma<'a, const ABS: bool, S: SlotSink>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
     splats: &[Splat],
     lists: impl Iterator<Item = &'a [u32]>,
     pix: &PixIn,
-    sink: &mut impl SlotSink,
+    sink: &mut S,
 ) -> u64 {
-    bwd_tile_impl::<true, _>(x0, y0, p, splats, lists, pix, sink)
+    bwd_tile_impl::<true, ABS, _>(x0, y0, p, splats, lists, pix, sink)
 }
 
-fn bwd_tile_scalar<'a>(
+fn bwd_tile_scalar<'a, const ABS: bool, S: SlotSink>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
     splats: &[Splat],
     lists: impl Iterator<Item = &'a [u32]>,
     pix: &PixIn,
-    sink: &mut impl SlotSink,
+    sink: &mut S,
 ) -> u64 {
-    bwd_tile_impl::<false, _>(x0, y0, p, splats, lists, pix, sink)
+    bwd_tile_impl::<false, ABS, _>(x0, y0, p, splats, lists, pix, sink)
 }
 
 /// The backward kernel matching the forward kernel `p.simd` (so the replay gives the forward's
-/// bits): AVX-512, AVX2 + FMA or plain.
+/// bits): AVX-512, AVX2 + FMA or plain; `absgrad` also sums |dL/dmean2d| per pixel.
 pub(crate) fn bwd_tile<'a>(
+    x0: u32,
+    y0: u32,
+    p: &BlendParams,
+    splats: &[Splat],
+    lists: impl Iterator<Item = &'a [u32]>,
+    pix: &PixIn,
+    sink: &mut impl SlotSink,
+    absgrad: bool,
+) -> u64 {
+    macro_rules! run {
+        ($abs:literal) => {
+            match p.simd {
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: `Simd::resolve` only yields Avx512 when the CPU has these features.
+                Simd::Avx512 => unsafe {
+                    super::blend_bwd_avx512::bwd_tile_avx512::<$abs, _>(
+                        x0, y0, p, splats, lists, pix, sink,
+                    )
+                },
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: `Simd::resolve` only yields Avx2 when the CPU has AVX2 and FMA.
+                Simd::Avx2 => unsafe {
+                    super::blend_bwd_avx2::bwd_tile_avx2::<$abs, _>(
+                        x0, y0, p, splats, lists, pix, sink,
+                    )
+                },
+                _ => bwd_tile_scalar::<$abs, _>(x0, y0, p, splats, lists, pix, sink),
+            }
+        };
+    }
+    if absgrad {
+        run!(true)
+    } else {
+        run!(false)
+    }
+}
+
+/// The generic kernel of the same rounding as `p.simd`'s (with FMA for the AVX kernels):
+/// the same results as [`bwd_tile`], one pair at a time (it can record contributions).
+pub(crate) fn bwd_tile_generic<'a>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -293,9 +339,9 @@ pub(crate) fn bwd_tile<'a>(
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `Simd::resolve` only yields Avx512 / Avx2 when the CPU has AVX2 and FMA.
         Simd::Avx512 | Simd::Avx2 => unsafe {
-            bwd_tile_generic_fma(x0, y0, p, splats, lists, pix, sink)
+            bwd_tile_generic_fma::<true, _>(x0, y0, p, splats, lists, pix, sink)
         },
-        _ => bwd_tile_scalar(x0, y0, p, splats, lists, pix, sink),
+        _ => bwd_tile_scalar::<true, _>(x0, y0, p, splats, lists, pix, sink),
     }
 }
 

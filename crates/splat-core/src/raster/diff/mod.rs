@@ -25,7 +25,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::blend::{self, BlendParams, TileOut, LANES};
-use super::project::{self, Projector, Splat};
+use super::project::{self, Projection, Projector, Splat};
 use super::sort::{self, TileBins};
 use super::{RenderOptions, RenderStats};
 use crate::camera::Camera;
@@ -33,9 +33,15 @@ use crate::error::{Error, Result};
 use crate::scene::SceneView;
 
 mod blend_bwd;
+#[cfg(target_arch = "x86_64")]
+mod blend_bwd_avx2;
+#[cfg(target_arch = "x86_64")]
+mod blend_bwd_avx512;
 mod densify;
 mod gauss_bwd;
 mod sh_bwd;
+#[cfg(test)]
+mod tests;
 
 pub use densify::DensifyStats;
 
@@ -51,7 +57,7 @@ pub(crate) mod slot {
     pub const VDX2: usize = 7;
     pub const VDXDY: usize = 8;
     pub const VDY2: usize = 9;
-    /// sum |dL/dmean2d| per pixel, per axis (gsplat's absgrad).
+    /// sum |dL/dmean2d| per pixel, per axis (gsplat's absgrad; zero unless asked for).
     pub const ABSX: usize = 10;
     pub const ABSY: usize = 11;
     pub const LEN: usize = 12;
@@ -78,6 +84,9 @@ pub struct DiffOptions {
     /// Most bytes of per-intersection slots held at once (bands of tile rows are processed in
     /// turn when a frame needs more; a band holds at least one tile row).
     pub slot_budget: usize,
+    /// Also sum |dL/dmean2d| per pixel (gsplat's absgrad, for AbsGS densification); about 15%
+    /// of the blend backward.
+    pub absgrad: bool,
 }
 
 impl Default for DiffOptions {
@@ -86,6 +95,7 @@ impl Default for DiffOptions {
             render: RenderOptions::default(),
             depth: DepthKind::Expected,
             slot_budget: 256 << 20,
+            absgrad: false,
         }
     }
 }
@@ -214,8 +224,14 @@ pub struct Workspace {
     /// Tile range (x0, x1, y0, y1) of each sorted splat.
     rects: Vec<[u16; 4]>,
     tiles: Vec<TileOut>,
+    /// First visible rank of each projection chunk: visible Gaussians in index order are
+    /// `parts` concatenated, rank = part_off[c] + j.
+    part_off: Vec<usize>,
+    /// Sorted position of each visible rank (the inverse of the depth order).
+    pos: Vec<u32>,
     band_start: Vec<u32>,
     slots: Vec<[f32; slot::LEN]>,
+    /// Summed slots per sorted splat.
     acc: Vec<[f32; slot::LEN]>,
 }
 
@@ -278,6 +294,19 @@ impl Workspace {
             &mut self.ids,
         );
         stats.visible = self.sorted.len() as u64;
+        self.part_off.clear();
+        let mut off = 0;
+        for part in &self.parts {
+            self.part_off.push(off);
+            off += part.len();
+        }
+        self.pos.clear();
+        self.pos.resize(self.sorted.len(), 0);
+        for (p, &(_, payload)) in self.keys.iter().enumerate() {
+            let c = (payload >> project::PROJECT_CHUNK_BITS) as usize;
+            let j = (payload & ((1 << project::PROJECT_CHUNK_BITS) - 1)) as usize;
+            self.pos[self.part_off[c] + j] = p as u32;
+        }
         if let Some(c) = colors {
             self.sorted
                 .par_iter_mut()
@@ -453,13 +482,19 @@ impl Workspace {
             v.reset(n);
         }
         let scatter = Scatter::new(out, view, densify, k, (sv.cam.width, sv.cam.height));
-        self.sorted
-            .par_chunks(GAUSS_CHUNK)
-            .zip(self.ids.par_chunks(GAUSS_CHUNK))
-            .zip(self.acc.par_chunks(GAUSS_CHUNK))
-            .for_each(|((ss, ids), accs)| {
-                for ((s, &i), acc) in ss.iter().zip(ids).zip(accs) {
-                    let g = gauss_bwd::gauss_backward(&ctx, i as usize, s, acc);
+        let (acc, part_off, pos) = (&self.acc, &self.part_off, &self.pos);
+        self.parts
+            .par_iter()
+            .zip(self.part_ids.par_iter())
+            .enumerate()
+            .for_each(|(c, (ss, ids))| {
+                let pos = &pos[part_off[c]..part_off[c] + ss.len()];
+                for (j, ((s, &i), &p)) in ss.iter().zip(ids).zip(pos).enumerate() {
+                    // the sums lie in depth order: fetch ahead (a cache miss each otherwise)
+                    if let Some(&ahead) = pos.get(j + ACC_PREFETCH) {
+                        prefetch_acc(acc, ahead as usize);
+                    }
+                    let g = gauss_bwd::gauss_backward(&ctx, i as usize, s, &acc[p as usize]);
                     // SAFETY: every Gaussian index occurs once among the visible splats.
                     unsafe { scatter.put(i as usize, s, &g, sv.degree) };
                 }
@@ -468,12 +503,64 @@ impl Workspace {
         Ok(stats)
     }
 
+    /// Every Gaussian's projection in the last forward (gsplat's `fully_fused_projection`
+    /// outputs with opacities after compensation and colours; radius 0 and zeros where culled).
+    pub fn projection(&self) -> Option<Projection> {
+        let sv = self.saved?;
+        let n = sv.n;
+        let mut p = Projection {
+            radii: vec![0; n * 2],
+            means2d: vec![0.0; n * 2],
+            depths: vec![0.0; n],
+            conics: vec![0.0; n * 3],
+            opacities: vec![0.0; n],
+            colors: vec![0.0; n * 3],
+        };
+        for (&i, s) in self.ids.iter().zip(&self.sorted) {
+            let i = i as usize;
+            p.radii[i * 2..i * 2 + 2].copy_from_slice(&[s.radius[0] as i32, s.radius[1] as i32]);
+            p.means2d[i * 2..i * 2 + 2].copy_from_slice(&s.xy);
+            p.depths[i] = s.depth;
+            p.conics[i * 3..i * 3 + 3].copy_from_slice(&s.conic);
+            p.opacities[i] = crate::fastmath::exp(s.ln_opacity);
+            p.colors[i * 3..i * 3 + 3].copy_from_slice(&s.rgb);
+        }
+        Some(p)
+    }
+
     /// The visible Gaussians of the last forward and their radii: (Gaussian index, [rx, ry]).
     pub fn radii(&self) -> impl Iterator<Item = (usize, [i32; 2])> + '_ {
         self.ids
             .iter()
             .zip(&self.sorted)
             .map(|(&i, s)| (i as usize, [s.radius[0] as i32, s.radius[1] as i32]))
+    }
+
+    /// Bytes the workspace holds (buffer capacities): what the forward's saved state and the
+    /// backward's slots and sums cost.
+    pub fn bytes(&self) -> usize {
+        use std::mem::size_of;
+        let v = |cap: usize, size: usize| cap * size;
+        v(self.sorted.capacity(), size_of::<Splat>())
+            + self
+                .parts
+                .iter()
+                .map(|p| v(p.capacity(), size_of::<Splat>()))
+                .sum::<usize>()
+            + self
+                .part_ids
+                .iter()
+                .map(|p| v(p.capacity(), 4))
+                .sum::<usize>()
+            + v(self.keys.capacity() + self.tmp.capacity(), 8)
+            + v(
+                self.ids.capacity() + self.pos.capacity() + self.band_start.capacity(),
+                4,
+            )
+            + v(self.rects.capacity(), 8)
+            + self.bins.bytes()
+            + v(self.tiles.capacity(), size_of::<TileOut>())
+            + v(self.slots.capacity() + self.acc.capacity(), SLOT_BYTES)
     }
 
     /// Every contributing (pixel, Gaussian) pair of the last forward, in blend order per pixel:
@@ -511,7 +598,7 @@ impl Workspace {
             let (x0, y0) = ((t % tiles_x) * LANES, (t / tiles_x) * LANES);
             rec.x0 = x0 as u32;
             rec.y0 = y0 as u32;
-            blend_bwd::bwd_tile(
+            blend_bwd::bwd_tile_generic(
                 x0 as u32,
                 y0 as u32,
                 &sv.blend,
@@ -616,6 +703,7 @@ impl Workspace {
                     bins.lists(t),
                     &pix,
                     &mut out,
+                    sv.opts.absgrad,
                 );
                 (evals, bg)
             })
@@ -647,14 +735,36 @@ impl Workspace {
                         .saturating_sub((rc[2] as u32).max(r0));
                     let len = (rows * (rc[1] as u32 - rc[0] as u32)) as usize;
                     let start = starts[p] as usize;
+                    let mut a = *acc;
                     for s in &slots[start..start + len] {
-                        for (a, v) in acc.iter_mut().zip(s) {
+                        for (a, v) in a.iter_mut().zip(s) {
                             *a += v;
                         }
                     }
+                    *acc = a;
                 }
             });
     }
+}
+
+/// How many Gaussians ahead the per-Gaussian pass prefetches its slot sums.
+const ACC_PREFETCH: usize = 12;
+
+/// Hint the CPU to load `acc[i]` (both cache lines it may span).
+#[inline(always)]
+fn prefetch_acc(acc: &[[f32; slot::LEN]], i: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(a) = acc.get(i) {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        let p = a.as_ptr() as *const i8;
+        // SAFETY: prefetching never faults, and both addresses lie inside `*a`.
+        unsafe {
+            _mm_prefetch::<_MM_HINT_T0>(p);
+            _mm_prefetch::<_MM_HINT_T0>(p.add(SLOT_BYTES - 1));
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (acc, i);
 }
 
 /// Visible Gaussians per per-Gaussian work unit (fixed, independent of the thread count).
@@ -690,14 +800,39 @@ struct TileSink<'a> {
     ty: u32,
 }
 
-impl blend_bwd::SlotSink for TileSink<'_> {
-    #[inline]
-    fn put(&mut self, pos: u32, vals: &[f32; slot::LEN]) {
+impl TileSink<'_> {
+    /// Slot index of entry `pos` (a splat of this tile): its tiles of the band, row-major.
+    #[inline(always)]
+    fn index(&self, pos: u32) -> usize {
         let rc = self.rects[pos as usize];
         let (x0, x1, y0) = (rc[0] as u32, rc[1] as u32, rc[2] as u32);
         let row0 = y0.max(self.r0);
-        let i = self.starts[pos as usize] as usize
-            + ((self.ty - row0) * (x1 - x0) + (self.tx - x0)) as usize;
+        self.starts[pos as usize] as usize
+            + ((self.ty - row0) * (x1 - x0) + (self.tx - x0)) as usize
+    }
+}
+
+impl blend_bwd::SlotSink for TileSink<'_> {
+    #[inline(always)]
+    fn prefetch(&self, pos: u32) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_ET0};
+            let i = self.index(pos);
+            if i < self.w.len {
+                // SAFETY: prefetching never faults; both addresses lie inside slot i.
+                unsafe {
+                    let p = self.w.base.add(i) as *const i8;
+                    _mm_prefetch::<_MM_HINT_ET0>(p);
+                    _mm_prefetch::<_MM_HINT_ET0>(p.add(SLOT_BYTES - 1));
+                }
+            }
+        }
+    }
+
+    #[inline]
+    fn put(&mut self, pos: u32, vals: &[f32; slot::LEN]) {
+        let i = self.index(pos);
         assert!(i < self.w.len, "slot index out of range");
         // SAFETY: i is in bounds (checked) and belongs to this (tile, splat) pair only: splat
         // pos's slots of the band are its tiles of rows [row0, r1) in row-major order.

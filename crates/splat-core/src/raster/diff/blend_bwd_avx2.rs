@@ -1,0 +1,373 @@
+//! The AVX2 + FMA blend-backward kernel: the AVX-512 kernel's organisation (see
+//! `blend_bwd_avx512.rs`) with each 16-pixel row as two 8-lane halves and lane masks held in
+//! vectors. Same operations in the same order as the generic kernel, so the same slot bits.
+use super::blend_bwd::{PixIn, SlotSink};
+use super::slot;
+use crate::raster::blend::{
+    prefetch, row_mask, BlendParams, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16, EXP_MAGIC, LANES,
+    PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
+};
+use crate::raster::project::{Splat, ALPHA_THRESHOLD};
+
+#[cfg(target_arch = "x86_64")]
+use std::arch::x86_64::*;
+
+/// Lanes of one AVX2 vector: a row is two halves.
+const HALF: usize = 8;
+
+#[derive(Clone, Copy)]
+#[repr(C, align(64))]
+struct Rows([[f32; LANES]; LANES]);
+
+#[derive(Clone, Copy, Default)]
+#[repr(C, align(64))]
+struct Row([f32; LANES]);
+
+/// The 16-lane sums of 12 rows given as (low, high) halves, each in the canonical
+/// halving-tree order (see `blend_bwd::hsum16`).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn hsum12(v: &[[__m256; 2]; 12]) -> [f32; slot::LEN] {
+    // i + 8
+    let h8: [__m256; 12] = std::array::from_fn(|i| _mm256_add_ps(v[i][0], v[i][1]));
+    // i + 4: pairs (x, y) -> [x lo4 + x hi4 | y lo4 + y hi4]
+    let mut s2 = [_mm256_setzero_ps(); 6];
+    for j in 0..6 {
+        let (x, y) = (h8[2 * j], h8[2 * j + 1]);
+        s2[j] = _mm256_add_ps(
+            _mm256_permute2f128_ps::<0x20>(x, y),
+            _mm256_permute2f128_ps::<0x31>(x, y),
+        );
+    }
+    // i + 2 within each 128-bit lane: [p0, p1, p2, p3] -> [p0 + p2, p1 + p3]
+    let mut s3 = [_mm256_setzero_ps(); 3];
+    for j in 0..3 {
+        let (x, y) = (s2[2 * j], s2[2 * j + 1]);
+        s3[j] = _mm256_add_ps(
+            _mm256_shuffle_ps::<0x44>(x, y),
+            _mm256_shuffle_ps::<0xEE>(x, y),
+        );
+    }
+    // i + 1: [a0, a1, b0, b1] -> [a0 + a1, b0 + b1]
+    let z = _mm256_setzero_ps();
+    let r0 = _mm256_add_ps(
+        _mm256_shuffle_ps::<0x88>(s3[0], s3[1]),
+        _mm256_shuffle_ps::<0xDD>(s3[0], s3[1]),
+    );
+    let r1 = _mm256_add_ps(
+        _mm256_shuffle_ps::<0x88>(s3[2], z),
+        _mm256_shuffle_ps::<0xDD>(s3[2], z),
+    );
+    let mut a = [0.0f32; 8];
+    let mut b = [0.0f32; 8];
+    // SAFETY: both arrays hold 8 floats.
+    unsafe {
+        _mm256_storeu_ps(a.as_mut_ptr(), r0);
+        _mm256_storeu_ps(b.as_mut_ptr(), r1);
+    }
+    // r0: 128-bit lane 0 = [v0, v2, v4, v6], lane 1 = [v1, v3, v5, v7];
+    // r1: lane 0 = [v8, v10, 0, 0], lane 1 = [v9, v11, 0, 0]
+    [
+        a[0], a[4], a[1], a[5], a[2], a[6], a[3], a[7], b[0], b[4], b[1], b[5],
+    ]
+}
+
+/// Replay one tile's list with AVX2 + FMA and emit every entry's slot.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
+    x0: u32,
+    y0: u32,
+    p: &BlendParams,
+    splats: &[Splat],
+    lists: impl Iterator<Item = &'a [u32]>,
+    pix: &PixIn,
+    sink: &mut S,
+) -> u64 {
+    let mut live = [0u32; LANES];
+    let mut alive: u32 = 0;
+    let cols = p.width.saturating_sub(x0).min(LANES as u32);
+    for (r, row) in live.iter_mut().enumerate() {
+        if y0 + (r as u32) < p.height && cols > 0 {
+            *row = (1u32 << cols) - 1;
+            alive |= 1 << r;
+        }
+    }
+    let lane_f = _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0);
+    let eight = _mm256_set1_ps(8.0);
+    let half = _mm256_set1_ps(0.5);
+    let x0v = _mm256_set1_ps(x0 as f32);
+    let px = [
+        _mm256_add_ps(_mm256_add_ps(x0v, lane_f), half),
+        _mm256_add_ps(_mm256_add_ps(x0v, _mm256_add_ps(lane_f, eight)), half),
+    ];
+    let y0f = y0 as f32;
+    let y0v = _mm256_set1_ps(y0f);
+    let py = [
+        _mm256_add_ps(_mm256_add_ps(y0v, lane_f), half),
+        _mm256_add_ps(_mm256_add_ps(y0v, _mm256_add_ps(lane_f, eight)), half),
+    ];
+    let (xl, xh) = ((x0 as f32) + 0.5, ((x0 + LANES as u32 - 1) as f32) + 0.5);
+    let (v_xl, v_xh) = (_mm256_set1_ps(xl), _mm256_set1_ps(xh));
+    let zero = _mm256_setzero_ps();
+    let one = _mm256_set1_ps(1.0);
+    let max_alpha = _mm256_set1_ps(p.max_alpha);
+    let thr = _mm256_set1_ps(ALPHA_THRESHOLD);
+    let t_min = _mm256_set1_ps(T_MIN);
+    let clamp = _mm256_set1_epi32(SIGMA_CLAMP.to_bits() as i32);
+    let magic = _mm256_set1_ps(EXP_MAGIC);
+    let k16 = _mm256_set1_ps(EXP_K16);
+    let (c_hi, c_lo) = (_mm256_set1_ps(EXP_C_HI), _mm256_set1_ps(EXP_C_LO));
+    let sixth = _mm256_set1_ps(-1.0 / 6.0);
+    let minus_one = _mm256_set1_ps(-1.0);
+    let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7FFF_FFFF));
+    // SAFETY: the table holds 16 u32.
+    let (tab_lo, tab_hi) = unsafe {
+        (
+            _mm256_loadu_si256(EXP2_16THS.as_ptr() as *const _),
+            _mm256_loadu_si256(EXP2_16THS.as_ptr().add(HALF) as *const _),
+        )
+    };
+    let lane_bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+    let mut tt = Rows([[1.0; LANES]; LANES]);
+    let mut ss = Rows([[0.0; LANES]; LANES]);
+    let (mut dy_r, mut bdy_r, mut cdy2_r, mut dy2_r, mut cdy_r) = (
+        Row::default(),
+        Row::default(),
+        Row::default(),
+        Row::default(),
+        Row::default(),
+    );
+    let t_ptr = tt.0.as_mut_ptr() as *mut f32;
+    let s_ptr = ss.0.as_mut_ptr() as *mut f32;
+    let g_ptr = [
+        pix.g[0].as_ptr() as *const f32,
+        pix.g[1].as_ptr() as *const f32,
+        pix.g[2].as_ptr() as *const f32,
+        pix.g[3].as_ptr() as *const f32,
+    ];
+    let q_ptr = pix.q.as_ptr() as *const f32;
+    let mut evals = 0u64;
+    let mut done = alive == 0;
+    for list in lists {
+        for (k, &gi) in list.iter().enumerate() {
+            if done {
+                sink.put(gi, &[0.0; slot::LEN]);
+                continue;
+            }
+            if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
+                prefetch(splats, ahead as usize);
+                sink.prefetch(ahead);
+            }
+            let s = &splats[gi as usize];
+            let (mx, my) = (s.xy[0], s.xy[1]);
+            let [ca, cb, cc] = s.conic;
+            let range = row_mask(my, s.half_height, y0f);
+            let v_mx = _mm256_set1_ps(mx);
+            let mut ok = 0u32;
+            for h in 0..2 {
+                let dy = _mm256_sub_ps(_mm256_set1_ps(my), py[h]);
+                let bdy = _mm256_mul_ps(_mm256_set1_ps(cb), dy);
+                let dy2 = _mm256_mul_ps(dy, dy);
+                let disc = _mm256_sub_ps(
+                    _mm256_set1_ps(s.two_a_level),
+                    _mm256_mul_ps(dy2, _mm256_set1_ps(s.conic_det)),
+                );
+                let sq = _mm256_sqrt_ps(disc);
+                let inv_a = _mm256_set1_ps(s.inv_a);
+                let left = _mm256_sub_ps(v_mx, _mm256_mul_ps(_mm256_sub_ps(sq, bdy), inv_a));
+                let right = _mm256_add_ps(v_mx, _mm256_mul_ps(_mm256_add_ps(sq, bdy), inv_a));
+                let m = _mm256_and_ps(
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(disc, zero),
+                    _mm256_and_ps(
+                        _mm256_cmp_ps::<_CMP_NGT_UQ>(left, v_xh),
+                        _mm256_cmp_ps::<_CMP_NLT_UQ>(right, v_xl),
+                    ),
+                );
+                ok |= (_mm256_movemask_ps(m) as u32) << (h * HALF);
+                let cdy2 = _mm256_mul_ps(_mm256_mul_ps(_mm256_set1_ps(0.5 * cc), dy), dy);
+                let cdy = _mm256_mul_ps(_mm256_set1_ps(cc), dy);
+                // SAFETY: each row array holds 16 floats, 32-byte aligned at h * 8.
+                unsafe {
+                    _mm256_store_ps(dy_r.0.as_mut_ptr().add(h * HALF), dy);
+                    _mm256_store_ps(bdy_r.0.as_mut_ptr().add(h * HALF), bdy);
+                    _mm256_store_ps(cdy2_r.0.as_mut_ptr().add(h * HALF), cdy2);
+                    _mm256_store_ps(dy2_r.0.as_mut_ptr().add(h * HALF), dy2);
+                    _mm256_store_ps(cdy_r.0.as_mut_ptr().add(h * HALF), cdy);
+                }
+            }
+            let mut todo = range & alive & ok;
+            let half_a = _mm256_set1_ps(0.5 * ca);
+            let (va_, vb_) = (_mm256_set1_ps(ca), _mm256_set1_ps(cb));
+            let dx = [_mm256_sub_ps(v_mx, px[0]), _mm256_sub_ps(v_mx, px[1])];
+            let adx2 = [
+                _mm256_mul_ps(_mm256_mul_ps(half_a, dx[0]), dx[0]),
+                _mm256_mul_ps(_mm256_mul_ps(half_a, dx[1]), dx[1]),
+            ];
+            let adx = [_mm256_mul_ps(va_, dx[0]), _mm256_mul_ps(va_, dx[1])];
+            let bdx = [_mm256_mul_ps(vb_, dx[0]), _mm256_mul_ps(vb_, dx[1])];
+            let ln_op = _mm256_set1_ps(s.ln_opacity);
+            let col = [
+                _mm256_set1_ps(s.rgb[0]),
+                _mm256_set1_ps(s.rgb[1]),
+                _mm256_set1_ps(s.rgb[2]),
+                _mm256_set1_ps(s.depth),
+            ];
+            let mut acc = [[zero; 2]; 9];
+            while todo != 0 {
+                let r = todo.trailing_zeros() as usize;
+                todo &= todo - 1;
+                evals += LANES as u64;
+                let (bdy, cdy2) = (_mm256_set1_ps(bdy_r.0[r]), _mm256_set1_ps(cdy2_r.0[r]));
+                let (dyv, dy2v) = (_mm256_set1_ps(dy_r.0[r]), _mm256_set1_ps(dy2_r.0[r]));
+                let cdy = _mm256_set1_ps(cdy_r.0[r]);
+                let mut row_live = 0u32;
+                for h in 0..2 {
+                    let o = r * LANES + h * HALF;
+                    // SAFETY: r < 16, h < 2: o..o + 8 lies inside each 256-float array, 32-byte
+                    // aligned.
+                    let (t, sr, g0, g1, g2, g3, q) = unsafe {
+                        (
+                            _mm256_load_ps(t_ptr.add(o)),
+                            _mm256_load_ps(s_ptr.add(o)),
+                            _mm256_load_ps(g_ptr[0].add(o)),
+                            _mm256_load_ps(g_ptr[1].add(o)),
+                            _mm256_load_ps(g_ptr[2].add(o)),
+                            _mm256_load_ps(g_ptr[3].add(o)),
+                            _mm256_load_ps(q_ptr.add(o)),
+                        )
+                    };
+                    let lbits = (live[r] >> (h * HALF)) & 0xFF;
+                    let lv = _mm256_castsi256_ps(_mm256_cmpeq_epi32(
+                        _mm256_and_si256(_mm256_set1_epi32(lbits as i32), lane_bits),
+                        lane_bits,
+                    ));
+                    let sigma = _mm256_add_ps(_mm256_fmadd_ps(bdy, dx[h], adx2[h]), cdy2);
+                    let sg =
+                        _mm256_castsi256_ps(_mm256_min_epu32(_mm256_castps_si256(sigma), clamp));
+                    let u = _mm256_sub_ps(sg, ln_op);
+                    let tk = _mm256_fnmadd_ps(u, k16, magic);
+                    let kf = _mm256_sub_ps(tk, magic);
+                    let rr = _mm256_fmadd_ps(kf, c_hi, u);
+                    let rr = _mm256_fmadd_ps(kf, c_lo, rr);
+                    let y = _mm256_fmadd_ps(rr, sixth, half);
+                    let y = _mm256_fmadd_ps(y, rr, minus_one);
+                    let y = _mm256_fmadd_ps(y, rr, one);
+                    let ti = _mm256_castps_si256(tk);
+                    let tab = _mm256_blendv_ps(
+                        _mm256_castsi256_ps(_mm256_permutevar8x32_epi32(tab_lo, ti)),
+                        _mm256_castsi256_ps(_mm256_permutevar8x32_epi32(tab_hi, ti)),
+                        _mm256_castsi256_ps(_mm256_slli_epi32::<28>(ti)),
+                    );
+                    let scale = _mm256_add_epi32(
+                        _mm256_castps_si256(tab),
+                        _mm256_slli_epi32::<23>(_mm256_srli_epi32::<4>(ti)),
+                    );
+                    let e = _mm256_mul_ps(y, _mm256_castsi256_ps(scale));
+                    let alpha = _mm256_min_ps(e, max_alpha);
+                    let valid = _mm256_and_ps(lv, _mm256_cmp_ps::<_CMP_GE_OQ>(alpha, thr));
+                    let w = _mm256_mul_ps(alpha, t);
+                    let tn = _mm256_sub_ps(t, w);
+                    let contrib = _mm256_and_ps(valid, _mm256_cmp_ps::<_CMP_GT_OQ>(tn, t_min));
+                    let m2 = _mm256_and_ps(contrib, _mm256_cmp_ps::<_CMP_LT_OQ>(e, max_alpha));
+                    let gc = _mm256_mul_ps(g0, col[0]);
+                    let gc = _mm256_fmadd_ps(g1, col[1], gc);
+                    let gc = _mm256_fmadd_ps(g2, col[2], gc);
+                    let gc = _mm256_fmadd_ps(g3, col[3], gc);
+                    let s_new = _mm256_fmadd_ps(gc, w, sr);
+                    let ra = _mm256_div_ps(one, _mm256_sub_ps(one, alpha));
+                    let tq = _mm256_mul_ps(_mm256_sub_ps(q, s_new), ra);
+                    let va = _mm256_fmsub_ps(gc, t, tq);
+                    let uu = _mm256_mul_ps(e, va);
+                    let a = &mut acc;
+                    a[0][h] = _mm256_blendv_ps(a[0][h], _mm256_fmadd_ps(w, g0, a[0][h]), contrib);
+                    a[1][h] = _mm256_blendv_ps(a[1][h], _mm256_fmadd_ps(w, g1, a[1][h]), contrib);
+                    a[2][h] = _mm256_blendv_ps(a[2][h], _mm256_fmadd_ps(w, g2, a[2][h]), contrib);
+                    a[3][h] = _mm256_blendv_ps(a[3][h], _mm256_fmadd_ps(w, g3, a[3][h]), contrib);
+                    a[4][h] = _mm256_blendv_ps(a[4][h], _mm256_add_ps(a[4][h], uu), m2);
+                    a[5][h] = _mm256_blendv_ps(a[5][h], _mm256_fmadd_ps(uu, dyv, a[5][h]), m2);
+                    a[6][h] = _mm256_blendv_ps(a[6][h], _mm256_fmadd_ps(uu, dy2v, a[6][h]), m2);
+                    if ABS {
+                        let ax =
+                            _mm256_and_ps(_mm256_mul_ps(uu, _mm256_add_ps(adx[h], bdy)), abs_mask);
+                        let ay =
+                            _mm256_and_ps(_mm256_mul_ps(uu, _mm256_add_ps(bdx[h], cdy)), abs_mask);
+                        a[7][h] = _mm256_blendv_ps(a[7][h], _mm256_add_ps(a[7][h], ax), m2);
+                        a[8][h] = _mm256_blendv_ps(a[8][h], _mm256_add_ps(a[8][h], ay), m2);
+                    }
+                    // SAFETY: see above
+                    unsafe {
+                        _mm256_store_ps(t_ptr.add(o), _mm256_blendv_ps(t, tn, contrib));
+                        _mm256_store_ps(s_ptr.add(o), _mm256_blendv_ps(sr, s_new, contrib));
+                    }
+                    // valid lanes that do not contribute stop
+                    let lv = _mm256_or_ps(_mm256_andnot_ps(valid, lv), contrib);
+                    row_live |= (_mm256_movemask_ps(lv) as u32) << (h * HALF);
+                }
+                live[r] = row_live;
+                if row_live == 0 {
+                    alive &= !(1 << r);
+                    if alive == 0 {
+                        done = true;
+                        break;
+                    }
+                }
+            }
+            let mut v = [[zero; 2]; 12];
+            for h in 0..2 {
+                let a = &acc;
+                v[0][h] = a[0][h];
+                v[1][h] = a[1][h];
+                v[2][h] = a[2][h];
+                v[3][h] = a[3][h];
+                v[4][h] = a[4][h];
+                v[5][h] = _mm256_mul_ps(dx[h], a[4][h]);
+                v[6][h] = a[5][h];
+                v[7][h] = _mm256_mul_ps(_mm256_mul_ps(dx[h], dx[h]), a[4][h]);
+                v[8][h] = _mm256_mul_ps(dx[h], a[5][h]);
+                v[9][h] = a[6][h];
+                v[10][h] = a[7][h];
+                v[11][h] = a[8][h];
+            }
+            sink.put(gi, &hsum12(&v));
+        }
+    }
+    evals
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::raster::diff::blend_bwd::hsum16;
+
+    #[test]
+    fn hsum12_gives_each_rows_canonical_sum_bit_for_bit() {
+        if !std::is_x86_feature_detected!("avx2") || !std::is_x86_feature_detected!("fma") {
+            return;
+        }
+        let mut h = 0x0bad_cafe_dead_beefu64;
+        let mut next = || {
+            h ^= h << 13;
+            h ^= h >> 7;
+            h ^= h << 17;
+            let m = (h >> 40) as f32 / (1u64 << 24) as f32 - 0.5;
+            m * 2f32.powi(((h >> 20) % 24) as i32 - 12)
+        };
+        for _ in 0..200 {
+            let vals: Vec<[f32; 16]> = (0..12).map(|_| std::array::from_fn(|_| next())).collect();
+            // SAFETY: AVX2 is present (checked above); each array holds 16 floats.
+            let got = unsafe {
+                let v: [[__m256; 2]; 12] = std::array::from_fn(|i| {
+                    [
+                        _mm256_loadu_ps(vals[i].as_ptr()),
+                        _mm256_loadu_ps(vals[i].as_ptr().add(8)),
+                    ]
+                });
+                hsum12(&v)
+            };
+            for i in 0..12 {
+                assert_eq!(got[i].to_bits(), hsum16(&vals[i]).to_bits(), "row {i}");
+            }
+        }
+    }
+}

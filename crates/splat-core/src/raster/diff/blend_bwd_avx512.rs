@@ -1,0 +1,329 @@
+//! The AVX-512 blend-backward kernel (`core::arch` intrinsics): the operations of the generic
+//! kernel (`blend_bwd::bwd_tile_impl::<true, _>`) in the same order, so the same slot bits.
+//! One splat at a time: its per-lane terms and its 9 per-lane accumulators stay in registers
+//! while the rows it reaches are replayed (each row's transmittance and running colour are
+//! loaded and stored back); the 16-lane sums of the 12 slot values are done together by a
+//! transposing halving tree, the canonical order of `blend_bwd::hsum16`.
+use super::blend_bwd::{PixIn, SlotSink};
+use super::slot;
+use crate::raster::blend::{
+    prefetch, row_mask, BlendParams, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16, EXP_MAGIC, LANES,
+    PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
+};
+use crate::raster::project::{Splat, ALPHA_THRESHOLD};
+
+#[cfg(target_arch = "x86_64")]
+use std::arch::x86_64::*;
+
+/// Rows of 16 floats, 64-byte aligned.
+#[derive(Clone, Copy)]
+#[repr(C, align(64))]
+struct Rows([[f32; LANES]; LANES]);
+
+#[derive(Clone, Copy, Default)]
+#[repr(C, align(64))]
+struct Row([f32; LANES]);
+
+/// The 16-lane sums of 12 vectors, each in the canonical halving-tree order (i + 8, i + 4,
+/// i + 2, i + 1), computed together: lane 4k + m of the result holds vector k + 4m's sum
+/// (k < 4, m < 3).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
+fn hsum12(v: &[__m512; 12]) -> [f32; slot::LEN] {
+    // i + 8: pairs (a, b) -> [a lo8 + a hi8, b lo8 + b hi8]
+    let mut s1 = [_mm512_setzero_ps(); 6];
+    for i in 0..6 {
+        let (a, b) = (v[2 * i], v[2 * i + 1]);
+        s1[i] = _mm512_add_ps(
+            _mm512_shuffle_f32x4::<0x44>(a, b),
+            _mm512_shuffle_f32x4::<0xEE>(a, b),
+        );
+    }
+    // i + 4: pairs ([A8, B8], [C8, D8]) -> [A4, B4, C4, D4]
+    let mut s2 = [_mm512_setzero_ps(); 3];
+    for j in 0..3 {
+        let (x, y) = (s1[2 * j], s1[2 * j + 1]);
+        s2[j] = _mm512_add_ps(
+            _mm512_shuffle_f32x4::<0x88>(x, y),
+            _mm512_shuffle_f32x4::<0xDD>(x, y),
+        );
+    }
+    // i + 2 within each 128-bit quarter: [p0, p1, p2, p3] -> [p0 + p2, p1 + p3]
+    let z = _mm512_setzero_ps();
+    let h2 = |x: __m512, y: __m512| {
+        _mm512_add_ps(
+            _mm512_shuffle_ps::<0x44>(x, y),
+            _mm512_shuffle_ps::<0xEE>(x, y),
+        )
+    };
+    let s3a = h2(s2[0], s2[1]);
+    let s3b = h2(s2[2], z);
+    // i + 1: [a0, a1, b0, b1] -> [a0 + a1, b0 + b1]
+    let r = _mm512_add_ps(
+        _mm512_shuffle_ps::<0x88>(s3a, s3b),
+        _mm512_shuffle_ps::<0xDD>(s3a, s3b),
+    );
+    let mut lanes = Row::default();
+    // SAFETY: `lanes` holds 16 aligned floats.
+    unsafe { _mm512_store_ps(lanes.0.as_mut_ptr(), r) };
+    let mut out = [0.0f32; slot::LEN];
+    for k in 0..4 {
+        out[k] = lanes.0[4 * k];
+        out[k + 4] = lanes.0[4 * k + 1];
+        out[k + 8] = lanes.0[4 * k + 2];
+    }
+    out
+}
+
+/// Replay one tile's list with AVX-512 and emit every entry's slot (see the generic kernel).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
+pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
+    x0: u32,
+    y0: u32,
+    p: &BlendParams,
+    splats: &[Splat],
+    lists: impl Iterator<Item = &'a [u32]>,
+    pix: &PixIn,
+    sink: &mut S,
+) -> u64 {
+    // live lanes per row; rows and lanes outside the image start done
+    let mut live = [0u16; LANES];
+    let mut alive: u32 = 0;
+    let cols = p.width.saturating_sub(x0).min(LANES as u32);
+    for (r, row) in live.iter_mut().enumerate() {
+        if y0 + (r as u32) < p.height {
+            *row = ((1u32 << cols) - 1) as u16;
+            if cols > 0 {
+                alive |= 1 << r;
+            }
+        }
+    }
+    let lane_f = _mm512_setr_ps(
+        0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0,
+    );
+    let px = _mm512_add_ps(
+        _mm512_add_ps(_mm512_set1_ps(x0 as f32), lane_f),
+        _mm512_set1_ps(0.5),
+    );
+    let y0f = y0 as f32;
+    let py = _mm512_add_ps(
+        _mm512_add_ps(_mm512_set1_ps(y0f), lane_f),
+        _mm512_set1_ps(0.5),
+    );
+    let (xl, xh) = ((x0 as f32) + 0.5, ((x0 + LANES as u32 - 1) as f32) + 0.5);
+    let (v_xl, v_xh) = (_mm512_set1_ps(xl), _mm512_set1_ps(xh));
+    let zero = _mm512_setzero_ps();
+    let one = _mm512_set1_ps(1.0);
+    let max_alpha = _mm512_set1_ps(p.max_alpha);
+    let thr = _mm512_set1_ps(ALPHA_THRESHOLD);
+    let t_min = _mm512_set1_ps(T_MIN);
+    let clamp = _mm512_set1_epi32(SIGMA_CLAMP.to_bits() as i32);
+    let magic = _mm512_set1_ps(EXP_MAGIC);
+    let k16 = _mm512_set1_ps(EXP_K16);
+    let (c_hi, c_lo) = (_mm512_set1_ps(EXP_C_HI), _mm512_set1_ps(EXP_C_LO));
+    let (sixth, half) = (_mm512_set1_ps(-1.0 / 6.0), _mm512_set1_ps(0.5));
+    let minus_one = _mm512_set1_ps(-1.0);
+    let abs_mask = _mm512_set1_epi32(0x7FFF_FFFF);
+    // SAFETY: the table holds 16 u32.
+    let table = unsafe { _mm512_loadu_si512(EXP2_16THS.as_ptr() as *const _) };
+    let mut tt = Rows([[1.0; LANES]; LANES]);
+    let mut ss = Rows([[0.0; LANES]; LANES]);
+    let (mut dy_r, mut bdy_r, mut cdy2_r, mut dy2_r, mut cdy_r) = (
+        Row::default(),
+        Row::default(),
+        Row::default(),
+        Row::default(),
+        Row::default(),
+    );
+    let t_ptr = tt.0.as_mut_ptr() as *mut f32;
+    let s_ptr = ss.0.as_mut_ptr() as *mut f32;
+    let g_ptr = [0, 1, 2, 3].map(|c| pix.g[c].as_ptr() as *const f32);
+    let q_ptr = pix.q.as_ptr() as *const f32;
+    let mut evals = 0u64;
+    let mut done = alive == 0;
+    for list in lists {
+        for (k, &gi) in list.iter().enumerate() {
+            if done {
+                sink.put(gi, &[0.0; slot::LEN]);
+                continue;
+            }
+            if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
+                prefetch(splats, ahead as usize);
+                sink.prefetch(ahead);
+            }
+            let s = &splats[gi as usize];
+            let (mx, my) = (s.xy[0], s.xy[1]);
+            let [ca, cb, cc] = s.conic;
+            // the rows it reaches: the forward's contour test of all 16 rows at once
+            let range = row_mask(my, s.half_height, y0f);
+            let v_mx = _mm512_set1_ps(mx);
+            let dy = _mm512_sub_ps(_mm512_set1_ps(my), py);
+            let bdy = _mm512_mul_ps(_mm512_set1_ps(cb), dy);
+            let dy2 = _mm512_mul_ps(dy, dy);
+            let disc = _mm512_sub_ps(
+                _mm512_set1_ps(s.two_a_level),
+                _mm512_mul_ps(dy2, _mm512_set1_ps(s.conic_det)),
+            );
+            let ok = _mm512_cmp_ps_mask::<_CMP_GE_OQ>(disc, zero);
+            let sq = _mm512_sqrt_ps(disc);
+            let inv_a = _mm512_set1_ps(s.inv_a);
+            let left = _mm512_sub_ps(v_mx, _mm512_mul_ps(_mm512_sub_ps(sq, bdy), inv_a));
+            let right = _mm512_add_ps(v_mx, _mm512_mul_ps(_mm512_add_ps(sq, bdy), inv_a));
+            let ok = _mm512_mask_cmp_ps_mask::<_CMP_NGT_UQ>(ok, left, v_xh);
+            let ok = _mm512_mask_cmp_ps_mask::<_CMP_NLT_UQ>(ok, right, v_xl);
+            let mut todo = range & alive & ok as u32;
+            let cdy2 = _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(0.5 * cc), dy), dy);
+            let cdy = _mm512_mul_ps(_mm512_set1_ps(cc), dy);
+            // SAFETY: each row array holds 16 aligned floats.
+            unsafe {
+                _mm512_store_ps(dy_r.0.as_mut_ptr(), dy);
+                _mm512_store_ps(bdy_r.0.as_mut_ptr(), bdy);
+                _mm512_store_ps(cdy2_r.0.as_mut_ptr(), cdy2);
+                _mm512_store_ps(dy2_r.0.as_mut_ptr(), dy2);
+                _mm512_store_ps(cdy_r.0.as_mut_ptr(), cdy);
+            }
+            // per-lane terms
+            let dx = _mm512_sub_ps(v_mx, px);
+            let adx2 = _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(0.5 * ca), dx), dx);
+            let adx = _mm512_mul_ps(_mm512_set1_ps(ca), dx);
+            let bdx = _mm512_mul_ps(_mm512_set1_ps(cb), dx);
+            let ln_op = _mm512_set1_ps(s.ln_opacity);
+            let col = [s.rgb[0], s.rgb[1], s.rgb[2], s.depth].map(|v| _mm512_set1_ps(v));
+            let mut acc = [zero; 9];
+            while todo != 0 {
+                let r = todo.trailing_zeros() as usize;
+                todo &= todo - 1;
+                evals += LANES as u64;
+                let o = r * LANES;
+                // SAFETY: r < 16, so o..o + 16 lies inside each 256-float array.
+                let (t, sr, g0, g1, g2, g3, q) = unsafe {
+                    (
+                        _mm512_load_ps(t_ptr.add(o)),
+                        _mm512_load_ps(s_ptr.add(o)),
+                        _mm512_load_ps(g_ptr[0].add(o)),
+                        _mm512_load_ps(g_ptr[1].add(o)),
+                        _mm512_load_ps(g_ptr[2].add(o)),
+                        _mm512_load_ps(g_ptr[3].add(o)),
+                        _mm512_load_ps(q_ptr.add(o)),
+                    )
+                };
+                let lv = live[r];
+                let sigma = _mm512_add_ps(
+                    _mm512_fmadd_ps(_mm512_set1_ps(bdy_r.0[r]), dx, adx2),
+                    _mm512_set1_ps(cdy2_r.0[r]),
+                );
+                // e = exp(ln_op - sigma), exactly as blend::opacity_exp::<true>
+                let sg = _mm512_castsi512_ps(_mm512_min_epu32(_mm512_castps_si512(sigma), clamp));
+                let u = _mm512_sub_ps(sg, ln_op);
+                let tk = _mm512_fnmadd_ps(u, k16, magic);
+                let kf = _mm512_sub_ps(tk, magic);
+                let rr = _mm512_fmadd_ps(kf, c_hi, u);
+                let rr = _mm512_fmadd_ps(kf, c_lo, rr);
+                let y = _mm512_fmadd_ps(rr, sixth, half);
+                let y = _mm512_fmadd_ps(y, rr, minus_one);
+                let y = _mm512_fmadd_ps(y, rr, one);
+                let ti = _mm512_castps_si512(tk);
+                let scale = _mm512_add_epi32(
+                    _mm512_permutexvar_epi32(ti, table),
+                    _mm512_slli_epi32::<23>(_mm512_srli_epi32::<4>(ti)),
+                );
+                let e = _mm512_mul_ps(y, _mm512_castsi512_ps(scale));
+                let alpha = _mm512_min_ps(e, max_alpha);
+                let valid = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(lv, alpha, thr);
+                let w = _mm512_mul_ps(alpha, t);
+                let tn = _mm512_sub_ps(t, w);
+                let contrib = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(valid, tn, t_min);
+                let unclamped = _mm512_mask_cmp_ps_mask::<_CMP_LT_OQ>(contrib, e, max_alpha);
+                // dL/dalpha = (g . c) T - (Q - S) / (1 - alpha)
+                let gc = _mm512_mul_ps(g0, col[0]);
+                let gc = _mm512_fmadd_ps(g1, col[1], gc);
+                let gc = _mm512_fmadd_ps(g2, col[2], gc);
+                let gc = _mm512_fmadd_ps(g3, col[3], gc);
+                let s_new = _mm512_fmadd_ps(gc, w, sr);
+                let ra = _mm512_div_ps(one, _mm512_sub_ps(one, alpha));
+                let tq = _mm512_mul_ps(_mm512_sub_ps(q, s_new), ra);
+                let va = _mm512_fmsub_ps(gc, t, tq);
+                let uu = _mm512_mul_ps(e, va);
+                acc[0] = _mm512_mask3_fmadd_ps(w, g0, acc[0], contrib);
+                acc[1] = _mm512_mask3_fmadd_ps(w, g1, acc[1], contrib);
+                acc[2] = _mm512_mask3_fmadd_ps(w, g2, acc[2], contrib);
+                acc[3] = _mm512_mask3_fmadd_ps(w, g3, acc[3], contrib);
+                acc[4] = _mm512_mask_add_ps(acc[4], unclamped, acc[4], uu);
+                acc[5] = _mm512_mask3_fmadd_ps(uu, _mm512_set1_ps(dy_r.0[r]), acc[5], unclamped);
+                acc[6] = _mm512_mask3_fmadd_ps(uu, _mm512_set1_ps(dy2_r.0[r]), acc[6], unclamped);
+                if ABS {
+                    let ax = _mm512_mul_ps(uu, _mm512_add_ps(adx, _mm512_set1_ps(bdy_r.0[r])));
+                    let ay = _mm512_mul_ps(uu, _mm512_add_ps(bdx, _mm512_set1_ps(cdy_r.0[r])));
+                    let ax =
+                        _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(ax), abs_mask));
+                    let ay =
+                        _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(ay), abs_mask));
+                    acc[7] = _mm512_mask_add_ps(acc[7], unclamped, acc[7], ax);
+                    acc[8] = _mm512_mask_add_ps(acc[8], unclamped, acc[8], ay);
+                }
+                // SAFETY: see above
+                unsafe {
+                    _mm512_store_ps(t_ptr.add(o), _mm512_mask_mov_ps(t, contrib, tn));
+                    _mm512_store_ps(s_ptr.add(o), _mm512_mask_mov_ps(sr, contrib, s_new));
+                }
+                // valid lanes that do not contribute stop
+                let lv = (lv & !valid) | contrib;
+                live[r] = lv;
+                if lv == 0 {
+                    alive &= !(1 << r);
+                    if alive == 0 {
+                        done = true;
+                        break;
+                    }
+                }
+            }
+            // slot: [c0..c3, V0, dx V0, V1, dx^2 V0, dx V1, V2, |x|, |y|]
+            let w5 = _mm512_mul_ps(dx, acc[4]);
+            let w7 = _mm512_mul_ps(_mm512_mul_ps(dx, dx), acc[4]);
+            let w8 = _mm512_mul_ps(dx, acc[5]);
+            let v = [
+                acc[0], acc[1], acc[2], acc[3], acc[4], w5, acc[5], w7, w8, acc[6], acc[7], acc[8],
+            ];
+            sink.put(gi, &hsum12(&v));
+        }
+    }
+    evals
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::raster::diff::blend_bwd::hsum16;
+
+    #[test]
+    fn hsum12_gives_each_vectors_canonical_sum_bit_for_bit() {
+        if !std::is_x86_feature_detected!("avx512f")
+            || !std::is_x86_feature_detected!("avx512dq")
+            || !std::is_x86_feature_detected!("avx512bw")
+            || !std::is_x86_feature_detected!("avx512vl")
+        {
+            return;
+        }
+        let mut h = 0x1234_5678_9abc_def0u64;
+        let mut next = || {
+            h ^= h << 13;
+            h ^= h >> 7;
+            h ^= h << 17;
+            // magnitudes over many binades, so the summation order shows in the bits
+            let m = (h >> 40) as f32 / (1u64 << 24) as f32 - 0.5;
+            m * 2f32.powi(((h >> 20) % 24) as i32 - 12)
+        };
+        for _ in 0..200 {
+            let vals: Vec<[f32; 16]> = (0..12).map(|_| std::array::from_fn(|_| next())).collect();
+            // SAFETY: the features are present (checked above); each array holds 16 floats.
+            let got = unsafe {
+                let v: [__m512; 12] = std::array::from_fn(|i| _mm512_loadu_ps(vals[i].as_ptr()));
+                hsum12(&v)
+            };
+            for i in 0..12 {
+                assert_eq!(got[i].to_bits(), hsum16(&vals[i]).to_bits(), "vector {i}");
+            }
+        }
+    }
+}

@@ -1,0 +1,403 @@
+//! Tests of the differentiable rasterizer's mechanics: same forward bits as `render_into`, the
+//! SIMD backward kernels against the generic one bit for bit, and gradients that do not depend
+//! on the thread count or the banding. (The gradients' values are checked against torch
+//! autograd and finite differences in tests/test_backward_*.py.)
+use super::*;
+use crate::raster::{render_into, Simd};
+use crate::Scene;
+
+fn rng(seed: u64) -> impl FnMut() -> f32 {
+    let mut h = seed | 1;
+    move || {
+        h ^= h << 13;
+        h ^= h >> 7;
+        h ^= h << 17;
+        (h >> 40) as f32 / (1u64 << 24) as f32
+    }
+}
+
+/// A cloud in front of the camera, SH degree `degree`, with large and opaque Gaussians mixed in
+/// (alpha at max_alpha, early termination).
+fn scene(n: usize, degree: u8, seed: u64) -> Scene {
+    let mut s = Scene::empty(degree);
+    let k = s.sh_rest_k() * 3;
+    let mut next = rng(seed);
+    for i in 0..n {
+        s.means
+            .extend([next() * 2.0 - 1.0, next() * 2.0 - 1.0, next() * 2.0 - 1.0]);
+        s.quats
+            .extend([1.0, next() - 0.5, next() - 0.5, next() - 0.5]);
+        let big = if i % 41 == 0 { 1.5 } else { 0.0 };
+        s.log_scales.extend([
+            -3.5 - next() + big,
+            -3.5 - next() + big,
+            -3.0 - next() + big,
+        ]);
+        s.opacity_logits
+            .push(if i % 7 == 0 { 8.0 } else { next() * 6.0 - 3.0 });
+        s.sh0.extend([next() - 0.5, next() - 0.5, next() - 0.5]);
+        s.sh_rest.extend((0..k).map(|_| 0.3 * (next() - 0.5)));
+    }
+    s.normalize_quats();
+    s
+}
+
+fn camera(width: u32, height: u32) -> Camera {
+    let mut m = [[0.0; 4]; 4];
+    for (i, row) in m.iter_mut().enumerate() {
+        row[i] = 1.0;
+    }
+    m[2][3] = 4.0;
+    Camera::new(
+        1.2 * width as f64,
+        1.2 * width as f64,
+        0.47 * width as f64,
+        0.55 * height as f64,
+        width,
+        height,
+        m,
+    )
+}
+
+struct Frame {
+    rgb: Vec<f32>,
+    depth: Vec<f32>,
+    alpha: Vec<f32>,
+}
+
+fn forward(ws: &mut Workspace, s: &Scene, cam: &Camera, opts: &DiffOptions) -> Frame {
+    let n = cam.width as usize * cam.height as usize;
+    let mut f = Frame {
+        rgb: vec![0.0; n * 3],
+        depth: vec![0.0; n],
+        alpha: vec![0.0; n],
+    };
+    ws.forward(
+        &s.view(),
+        cam,
+        opts,
+        None,
+        &mut f.rgb,
+        &mut f.depth,
+        &mut f.alpha,
+    )
+    .expect("forward");
+    f
+}
+
+fn image_grads(cam: &Camera, seed: u64) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let n = cam.width as usize * cam.height as usize;
+    let mut next = rng(seed);
+    (
+        (0..n * 3).map(|_| next() - 0.5).collect(),
+        (0..n).map(|_| 0.2 * (next() - 0.5)).collect(),
+        (0..n).map(|_| next() - 0.5).collect(),
+    )
+}
+
+/// Every gradient's bits, in a fixed order.
+fn grad_bits(g: &Gradients, d: &DensifyStats) -> Vec<u32> {
+    let mut v = Vec::new();
+    for a in [
+        &g.means,
+        &g.quats,
+        &g.log_scales,
+        &g.opacity_logits,
+        &g.sh0,
+        &g.sh_rest,
+        &g.scales,
+        &g.opacities,
+        &d.grad2d,
+        &d.grad2d_abs,
+        &d.count,
+        &d.max_radius,
+    ] {
+        v.extend(a.iter().map(|x| x.to_bits()));
+    }
+    v.extend(g.background.iter().map(|x| x.to_bits()));
+    v
+}
+
+fn backward_bits(s: &Scene, cam: &Camera, opts: &DiffOptions, seed: u64) -> (Vec<u32>, u64) {
+    let mut ws = Workspace::default();
+    forward(&mut ws, s, cam, opts);
+    let (r, d, a) = image_grads(cam, seed);
+    let mut g = Gradients::default();
+    g.reset(s.len(), s.sh_rest_k(), false);
+    let mut dens = DensifyStats::default();
+    dens.reset(s.len());
+    let st = ws
+        .backward(
+            &s.view(),
+            None,
+            &ImageGrads {
+                rgb: Some(&r),
+                depth: Some(&d),
+                alpha: Some(&a),
+            },
+            &mut g,
+            None,
+            Some(&mut dens),
+        )
+        .expect("backward");
+    assert!(g.means.iter().all(|v| v.is_finite()));
+    (grad_bits(&g, &dens), st.evaluations)
+}
+
+#[test]
+fn forward_gives_render_into_bits() {
+    let s = scene(4000, 1, 3);
+    let cam = camera(100, 70);
+    for antialiased in [false, true] {
+        let opts = DiffOptions {
+            render: RenderOptions {
+                antialiased,
+                background: [0.2, 0.4, 0.9],
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let mut ws = Workspace::default();
+        let f = forward(&mut ws, &s, &cam, &opts);
+        let n = 100 * 70;
+        let (mut rgb, mut depth, mut alpha) = (vec![0.0; n * 3], vec![0.0; n], vec![0.0; n]);
+        render_into(
+            &s.view(),
+            &cam,
+            &opts.render,
+            &mut rgb,
+            &mut depth,
+            &mut alpha,
+        )
+        .expect("render");
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&f.rgb), bits(&rgb));
+        assert_eq!(bits(&f.depth), bits(&depth));
+        assert_eq!(bits(&f.alpha), bits(&alpha));
+        // a second forward on the same workspace (reused buffers) gives the same bits
+        let g = forward(&mut ws, &s, &cam, &opts);
+        assert_eq!(bits(&g.rgb), bits(&rgb));
+    }
+}
+
+#[test]
+fn gradients_are_identical_for_any_thread_count() {
+    let s = scene(5000, 2, 5);
+    let cam = camera(96, 80);
+    let opts = DiffOptions::default();
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .expect("pool")
+            .install(|| backward_bits(&s, &cam, &opts, 11))
+    };
+    let (a, b, c) = (run(1), run(3), run(8));
+    assert!(a.1 > 0);
+    assert_eq!(a, b);
+    assert_eq!(a, c);
+}
+
+#[test]
+fn gradients_do_not_depend_on_the_banding() {
+    let s = scene(3000, 0, 8);
+    let cam = camera(80, 100);
+    let one = DiffOptions::default();
+    // a budget below one tile row's slots: one band per tile row
+    let tiny = DiffOptions {
+        slot_budget: 1,
+        ..Default::default()
+    };
+    let mid = DiffOptions {
+        slot_budget: 3000 * SLOT_BYTES,
+        ..Default::default()
+    };
+    let want = backward_bits(&s, &cam, &one, 2);
+    assert_eq!(backward_bits(&s, &cam, &tiny, 2), want);
+    assert_eq!(backward_bits(&s, &cam, &mid, 2), want);
+    let mut ws = Workspace::default();
+    forward(&mut ws, &s, &cam, &tiny);
+    assert_eq!(ws.bands(1).len(), 7); // 100 px = 7 tile rows
+    assert!(ws.bands(3000 * SLOT_BYTES).len() > 1);
+    assert_eq!(ws.bands(usize::MAX).len(), 1);
+}
+
+/// Collects every slot a kernel emits, in order.
+#[derive(Default, PartialEq, Debug)]
+struct VecSink(Vec<(u32, [u32; slot::LEN])>);
+
+impl blend_bwd::SlotSink for VecSink {
+    fn put(&mut self, pos: u32, vals: &[f32; slot::LEN]) {
+        self.0.push((pos, vals.map(f32::to_bits)));
+    }
+}
+
+/// Every tile of several frames through each x86 kernel: the explicit AVX2 and AVX-512 kernels
+/// must emit the generic kernel's slots bit for bit, and count the same evaluations.
+#[cfg(target_arch = "x86_64")]
+#[test]
+fn explicit_kernels_give_the_generic_kernels_slots_tile_by_tile() {
+    if Simd::Avx2.resolve() != Simd::Avx2 && Simd::Avx512.resolve() != Simd::Avx512 {
+        return;
+    }
+    let mut checked = 0;
+    let mut nonzero = 0;
+    for (n, max_alpha, w, h, aa, abs) in [
+        (3000, 0.99, 100, 70, false, true),
+        (20000, 0.999, 100, 70, false, false),
+        (8000, 0.99, 61, 45, true, true),
+    ] {
+        let s = scene(n, 3, n as u64);
+        let cam = camera(w, h);
+        let opts = DiffOptions {
+            render: RenderOptions {
+                max_alpha,
+                antialiased: aa,
+                background: [0.3, 0.1, 0.7],
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let mut ws = Workspace::default();
+        forward(&mut ws, &s, &cam, &opts);
+        let sv = ws.saved.expect("saved");
+        let (r, d, a) = image_grads(&cam, 99);
+        let grads = ImageGrads {
+            rgb: Some(&r),
+            depth: Some(&d),
+            alpha: Some(&a),
+        };
+        let tiles_x = ws.bins.tiles_x as usize;
+        for t in 0..ws.tiles.len() {
+            let (x0, y0) = ((t % tiles_x) * LANES, (t / tiles_x) * LANES);
+            let mut pix = blend_bwd::PixIn::default();
+            blend_bwd::tile_inputs(
+                x0,
+                y0,
+                w as usize,
+                h as usize,
+                &ws.tiles[t],
+                &grads,
+                sv.blend.background,
+                true,
+                &mut pix,
+            );
+            let lists = || ws.bins.lists(t);
+            // the kernel instance for this absgrad setting
+            macro_rules! call {
+                ($($f:ident)::+, $out:expr) => {
+                    if abs {
+                        $($f)::+::<true, _>(x0 as u32, y0 as u32, &sv.blend, &ws.sorted, lists(), &pix, $out)
+                    } else {
+                        $($f)::+::<false, _>(x0 as u32, y0 as u32, &sv.blend, &ws.sorted, lists(), &pix, $out)
+                    }
+                };
+            }
+            let mut want = VecSink::default();
+            // SAFETY: AVX2 and FMA are present (checked above; AVX-512 implies both).
+            let we = unsafe { call!(blend_bwd::bwd_tile_generic_fma, &mut want) };
+            nonzero += want
+                .0
+                .iter()
+                .filter(|(_, v)| v.iter().any(|&b| b != 0))
+                .count();
+            let mut got = Vec::new();
+            if Simd::Avx2.resolve() == Simd::Avx2 {
+                let mut o = VecSink::default();
+                // SAFETY: AVX2 and FMA are present.
+                let e = unsafe { call!(blend_bwd_avx2::bwd_tile_avx2, &mut o) };
+                got.push(("avx2", o, e));
+            }
+            if Simd::Avx512.resolve() == Simd::Avx512 {
+                let mut o = VecSink::default();
+                // SAFETY: the AVX-512 features are present.
+                let e = unsafe { call!(blend_bwd_avx512::bwd_tile_avx512, &mut o) };
+                got.push(("avx512", o, e));
+            }
+            for (name, o, e) in got {
+                assert_eq!(e, we, "{name} evaluations, tile {t}");
+                assert_eq!(o.0.len(), want.0.len(), "{name} slots, tile {t}");
+                for (i, (a, b)) in o.0.iter().zip(&want.0).enumerate() {
+                    assert_eq!(a, b, "{name} tile {t} entry {i}");
+                }
+                checked += 1;
+            }
+        }
+    }
+    assert!(
+        checked > 50 && nonzero > 1000,
+        "{checked} tiles, {nonzero} slots"
+    );
+}
+
+/// The kernel of each SIMD level gives finite gradients close to the others (the plain kernel
+/// rounds without FMA, so only closeness is expected from it).
+#[test]
+fn simd_levels_give_close_gradients() {
+    let s = scene(3000, 1, 21);
+    let cam = camera(90, 60);
+    let run = |simd: Simd| {
+        let opts = DiffOptions {
+            render: RenderOptions {
+                simd,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let (bits, evals) = backward_bits(&s, &cam, &opts, 4);
+        (
+            bits.into_iter().map(f32::from_bits).collect::<Vec<_>>(),
+            evals,
+        )
+    };
+    let (base, e0) = run(Simd::Scalar);
+    let scale = base.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    for simd in [Simd::Avx2, Simd::Avx512] {
+        let (got, e) = run(simd);
+        assert_eq!(e, e0);
+        let err = got
+            .iter()
+            .zip(&base)
+            .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        assert!(
+            err <= 1e-3 * scale,
+            "{}: {err} of {scale}",
+            simd.resolve().name()
+        );
+    }
+}
+
+#[test]
+fn backward_checks_its_inputs() {
+    let s = scene(100, 0, 1);
+    let cam = camera(32, 32);
+    let mut ws = Workspace::default();
+    let mut g = Gradients::default();
+    g.reset(s.len(), 0, false);
+    let none = ImageGrads::default();
+    assert!(ws
+        .backward(&s.view(), None, &none, &mut g, None, None)
+        .is_err());
+    forward(&mut ws, &s, &cam, &DiffOptions::default());
+    let short = vec![0.0f32; 10];
+    let bad = ImageGrads {
+        rgb: Some(&short),
+        ..Default::default()
+    };
+    assert!(ws
+        .backward(&s.view(), None, &bad, &mut g, None, None)
+        .is_err());
+    let other = scene(50, 0, 2);
+    assert!(ws
+        .backward(&other.view(), None, &none, &mut g, None, None)
+        .is_err());
+    let mut wrong = Gradients::default();
+    wrong.reset(7, 0, false);
+    assert!(ws
+        .backward(&s.view(), None, &none, &mut wrong, None, None)
+        .is_err());
+    // zero image gradients give zero parameter gradients
+    ws.backward(&s.view(), None, &none, &mut g, None, None)
+        .expect("backward");
+    assert!(g.means.iter().chain(&g.sh0).all(|&v| v == 0.0));
+}
