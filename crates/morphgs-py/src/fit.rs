@@ -15,8 +15,8 @@ use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 use splat_core::camera::Camera;
 use splat_core::fit::{
-    self, checkpoint, init, DefaultStrategy, Event, FitConfig, Flow, Hooks, McmcStrategy,
-    RunEnd, RunOptions, StepRecord, Strategy, Trainer, View,
+    self, checkpoint, init, DefaultStrategy, Event, FitConfig, Flow, Hooks, McmcStrategy, RunEnd,
+    RunOptions, StepRecord, Strategy, Trainer, View,
 };
 use splat_core::raster::RenderOptions;
 
@@ -297,8 +297,9 @@ impl Hooks for PyHooks {
                 } => {
                     let mut f = self.flush(py);
                     let d = PyDict::new(py);
-                    let arr = Array3::from_shape_vec((height as usize, width as usize, 3), rgb.to_vec())
-                        .map(|a| a.into_pyarray(py));
+                    let arr =
+                        Array3::from_shape_vec((height as usize, width as usize, 3), rgb.to_vec())
+                            .map(|a| a.into_pyarray(py));
                     let filled = (|| -> PyResult<()> {
                         d.set_item("step", step)?;
                         d.set_item("view", view)?;
@@ -325,7 +326,10 @@ impl Hooks for PyHooks {
                 }
                 Event::Eval { step, psnr, ssim } => {
                     let d = PyDict::new(py);
-                    let ok = d.set_item("step", step).and(d.set_item("psnr", psnr)).and(d.set_item("ssim", ssim));
+                    let ok = d
+                        .set_item("step", step)
+                        .and(d.set_item("psnr", psnr))
+                        .and(d.set_item("ssim", ssim));
                     match ok {
                         Ok(()) => self.call(py, "eval", d.into_any()),
                         Err(err) => {
@@ -527,7 +531,12 @@ impl PyTrainer {
 
     /// Write a checkpoint of the current state now (atomically).
     #[pyo3(signature = (path, *, fingerprint = None))]
-    fn save_checkpoint(&self, py: Python<'_>, path: PathBuf, fingerprint: Option<Vec<u8>>) -> PyResult<()> {
+    fn save_checkpoint(
+        &self,
+        py: Python<'_>,
+        path: PathBuf,
+        fingerprint: Option<Vec<u8>>,
+    ) -> PyResult<()> {
         let ck = self.lock()?.checkpoint(&fingerprint.unwrap_or_default());
         detach(py, || checkpoint::save(&path, &ck))
     }
@@ -551,9 +560,9 @@ impl PyTrainer {
         height: u32,
     ) -> PyResult<Bound<'py, PyArray3<f32>>> {
         let (w, k) = (
-            world_to_camera
-                .as_slice()
-                .map_err(|_| PyValueError::new_err("world_to_camera must be a C-contiguous (4,4) array"))?,
+            world_to_camera.as_slice().map_err(|_| {
+                PyValueError::new_err("world_to_camera must be a C-contiguous (4,4) array")
+            })?,
             K.as_slice()
                 .map_err(|_| PyValueError::new_err("K must be a C-contiguous (3,3) array"))?,
         );
@@ -569,9 +578,9 @@ impl PyTrainer {
 
 impl PyTrainer {
     fn lock(&self) -> PyResult<std::sync::MutexGuard<'_, Trainer>> {
-        self.inner
-            .try_lock()
-            .map_err(|_| PyRuntimeError::new_err("this Trainer is running (or failed during a run)"))
+        self.inner.try_lock().map_err(|_| {
+            PyRuntimeError::new_err("this Trainer is running (or failed during a run)")
+        })
     }
 }
 
@@ -591,17 +600,21 @@ fn _fit_init_scene(
     sh_degree: u8,
 ) -> PyResult<PyGaussianScene> {
     let (p, c) = (
-        points
-            .as_slice()
-            .map_err(|_| PyValueError::new_err("points must be a C-contiguous (N,3) float32 array"))?,
-        colors
-            .as_slice()
-            .map_err(|_| PyValueError::new_err("colors must be a C-contiguous (N,3) float32 array"))?,
+        points.as_slice().map_err(|_| {
+            PyValueError::new_err("points must be a C-contiguous (N,3) float32 array")
+        })?,
+        colors.as_slice().map_err(|_| {
+            PyValueError::new_err("colors must be a C-contiguous (N,3) float32 array")
+        })?,
     );
     if sh_degree > 3 {
-        return Err(PyValueError::new_err(format!("sh_degree must be 0..=3, got {sh_degree}")));
+        return Err(PyValueError::new_err(format!(
+            "sh_degree must be 0..=3, got {sh_degree}"
+        )));
     }
-    let s = detach(py, || init::scene_from_points(p, c, opacity, scale, sh_degree))?;
+    let s = detach(py, || {
+        init::scene_from_points(p, c, opacity, scale, sh_degree)
+    })?;
     PyGaussianScene::from_core(py, s)
 }
 
@@ -617,13 +630,19 @@ fn _fit_random_points<'py>(
     seed: u64,
 ) -> PyResult<(Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<f32>>)> {
     if n > 100_000_000 {
-        return Err(PyValueError::new_err(format!("{n} random points is too many")));
+        return Err(PyValueError::new_err(format!(
+            "{n} random points is too many"
+        )));
     }
     let (p, c) = py.detach(|| crate::pool::install(|| init::random_points(n, lo, hi, seed)));
     let bad = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
     Ok((
-        Array2::from_shape_vec((n, 3), p).map_err(bad)?.into_pyarray(py),
-        Array2::from_shape_vec((n, 3), c).map_err(bad)?.into_pyarray(py),
+        Array2::from_shape_vec((n, 3), p)
+            .map_err(bad)?
+            .into_pyarray(py),
+        Array2::from_shape_vec((n, 3), c)
+            .map_err(bad)?
+            .into_pyarray(py),
     ))
 }
 
@@ -645,13 +664,24 @@ fn _fit_loss<'py>(
         )));
     }
     let (r, t) = (
-        render.as_slice().map_err(|_| PyValueError::new_err("render must be C-contiguous"))?,
-        target.as_slice().map_err(|_| PyValueError::new_err("target must be C-contiguous"))?,
+        render
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("render must be C-contiguous"))?,
+        target
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("target must be C-contiguous"))?,
     );
     let mut g = vec![0.0f32; r.len()];
     let terms = py.detach(|| {
         crate::pool::install(|| {
-            fit::loss::LossWorkspace::default().loss_and_grad(r, t, sh[1], sh[0], ssim_lambda, &mut g)
+            fit::loss::LossWorkspace::default().loss_and_grad(
+                r,
+                t,
+                sh[1],
+                sh[0],
+                ssim_lambda,
+                &mut g,
+            )
         })
     });
     let arr = Array3::from_shape_vec((sh[0], sh[1], 3), g)

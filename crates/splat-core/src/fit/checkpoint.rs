@@ -184,7 +184,10 @@ pub fn load(path: &Path, fingerprint: &[u8]) -> Result<Checkpoint> {
     let n = r.u64("the Gaussian count")? as usize;
     let sh_degree = r.take(1, "the SH degree")?[0];
     if sh_degree > 3 {
-        return Err(Error::format(path, format!("SH degree {sh_degree} out of range")));
+        return Err(Error::format(
+            path,
+            format!("SH degree {sh_degree} out of range"),
+        ));
     }
     let k = sh_rest_count(sh_degree) * 3;
     let widths = [3usize, 4, 3, 1, 3, k];
@@ -208,11 +211,19 @@ pub fn load(path: &Path, fingerprint: &[u8]) -> Result<Checkpoint> {
         let value = r.f32s(n * w, NAMES[g])?;
         let m = r.f32s(n * w, NAMES[g])?;
         let v = r.f32s(n * w, NAMES[g])?;
-        groups.push(Group { width: w, value, m, v });
+        groups.push(Group {
+            width: w,
+            value,
+            m,
+            v,
+        });
     }
     let slen = r.u32("the statistics length")? as usize;
     if slen != 0 && slen != n {
-        return Err(Error::format(path, "statistics length does not match the Gaussians"));
+        return Err(Error::format(
+            path,
+            "statistics length does not match the Gaussians",
+        ));
     }
     let mut stats = DensifyStats::default();
     stats.reset(n);

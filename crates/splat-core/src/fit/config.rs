@@ -253,9 +253,8 @@ impl FitConfig {
     /// The means learning rate at (0-based) step `step`: lr * scene_scale * final^(step/steps).
     pub fn lr_means(&self, step: u32) -> f32 {
         let frac = step.min(self.steps) as f64 / self.steps as f64;
-        (self.lr.means as f64
-            * self.scene_scale as f64
-            * (self.lr.means_final as f64).powf(frac)) as f32
+        (self.lr.means as f64 * self.scene_scale as f64 * (self.lr.means_final as f64).powf(frac))
+            as f32
     }
 
     /// Learning rates of the six arrays at `step` (order of [`super::params::NAMES`]).

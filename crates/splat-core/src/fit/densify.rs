@@ -274,7 +274,10 @@ mod tests {
         let (mut p, mut st) = setup();
         let cfg = DefaultStrategy::default();
         let rep = post_step(&cfg, &mut p, &mut st, 600, 1.0, 0);
-        assert_eq!((rep.duplicated, rep.split, rep.pruned, rep.reset), (1, 1, 1, false));
+        assert_eq!(
+            (rep.duplicated, rep.split, rep.pruned, rep.reset),
+            (1, 1, 1, false)
+        );
         // order: rest [0, 2, 3, dup(0)] minus pruned 2 -> [0, 3, dup0], then the two children of 1
         assert_eq!(p.len(), 5);
         let xs: Vec<f32> = (0..5).map(|i| p.groups[MEANS].value[i * 3]).collect();

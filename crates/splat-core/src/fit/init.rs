@@ -26,8 +26,16 @@ struct KdTree<'a> {
 
 #[derive(Clone, Copy)]
 enum Node {
-    Leaf { start: u32, end: u32 },
-    Split { axis: u8, value: f32, left: u32, right: u32 },
+    Leaf {
+        start: u32,
+        end: u32,
+    },
+    Split {
+        axis: u8,
+        value: f32,
+        left: u32,
+        right: u32,
+    },
 }
 
 impl<'a> KdTree<'a> {
@@ -98,7 +106,8 @@ impl<'a> KdTree<'a> {
                             continue;
                         }
                         let o = self.pts[i as usize];
-                        let d = (p[0] - o[0]).powi(2) + (p[1] - o[1]).powi(2) + (p[2] - o[2]).powi(2);
+                        let d =
+                            (p[0] - o[0]).powi(2) + (p[1] - o[1]).powi(2) + (p[2] - o[2]).powi(2);
                         if d < best[2] {
                             best[2] = d;
                             if best[2] < best[1] {
@@ -117,7 +126,11 @@ impl<'a> KdTree<'a> {
                     right,
                 } => {
                     let d = p[axis as usize] - value;
-                    let (near, far) = if d < 0.0 { (left, right) } else { (right, left) };
+                    let (near, far) = if d < 0.0 {
+                        (left, right)
+                    } else {
+                        (right, left)
+                    };
                     stack.push((far, bound.max(d * d)));
                     stack.push((near, bound));
                 }
@@ -179,10 +192,7 @@ pub fn scene_from_points(
             "initial opacity must be in (0, 1) and the scale factor positive, got {opacity} and {scale_factor}"
         )));
     }
-    let pts: Vec<[f32; 3]> = points
-        .chunks_exact(3)
-        .map(|c| [c[0], c[1], c[2]])
-        .collect();
+    let pts: Vec<[f32; 3]> = points.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
     let d2 = knn3_mean_sq(&pts);
     let mut s = Scene::zeroed(n, sh_degree);
     s.means.copy_from_slice(points);
@@ -232,15 +242,15 @@ mod tests {
         for i in (0..700).step_by(37) {
             let mut d: Vec<f32> = (0..700)
                 .filter(|&j| j != i)
-                .map(|j| {
-                    (0..3)
-                        .map(|a| (pts[i][a] - pts[j][a]).powi(2))
-                        .sum::<f32>()
-                })
+                .map(|j| (0..3).map(|a| (pts[i][a] - pts[j][a]).powi(2)).sum::<f32>())
                 .collect();
             d.sort_by(|a, b| a.total_cmp(b));
             let want = (d[0] + d[1] + d[2]) / 3.0;
-            assert!((got[i] - want).abs() <= 1e-6 * want.max(1e-7), "{i}: {} vs {want}", got[i]);
+            assert!(
+                (got[i] - want).abs() <= 1e-6 * want.max(1e-7),
+                "{i}: {} vs {want}",
+                got[i]
+            );
         }
     }
 

@@ -51,8 +51,14 @@ impl LossWorkspace {
         let n = width * height * 3;
         // SSIM first: it writes its gradient (times -lambda), the L1 part is added after.
         let ssim = if ssim_lambda != 0.0 {
-            self.ssim
-                .ssim(pred, target, width, height, false, Some((grad, -ssim_lambda)))
+            self.ssim.ssim(
+                pred,
+                target,
+                width,
+                height,
+                false,
+                Some((grad, -ssim_lambda)),
+            )
         } else {
             grad.fill(0.0);
             1.0
@@ -97,7 +103,13 @@ impl LossWorkspace {
 
     /// Evaluation metrics of a render against its target: (PSNR dB, SSIM), the render clamped to
     /// [0, 1].
-    pub fn metrics(&mut self, pred: &[f32], target: &[f32], width: usize, height: usize) -> (f64, f64) {
+    pub fn metrics(
+        &mut self,
+        pred: &[f32],
+        target: &[f32],
+        width: usize,
+        height: usize,
+    ) -> (f64, f64) {
         let row = width * 3;
         let se: f64 = pred
             .par_chunks(row)

@@ -71,7 +71,11 @@ fn rewrite_sources(p: &mut Params, draws: &[usize], min_opacity: f32) {
 /// Move dead Gaussians onto live ones; returns how many moved.
 fn relocate(cfg: &McmcStrategy, p: &mut Params, step: u32, seed: u64) -> u32 {
     let n = p.len();
-    let opac: Vec<f32> = p.groups[OPACITY].value.iter().map(|&l| sigmoid(l)).collect();
+    let opac: Vec<f32> = p.groups[OPACITY]
+        .value
+        .iter()
+        .map(|&l| sigmoid(l))
+        .collect();
     let dead: Vec<usize> = (0..n).filter(|&i| opac[i] <= cfg.min_opacity).collect();
     let alive: Vec<usize> = (0..n).filter(|&i| opac[i] > cfg.min_opacity).collect();
     if dead.is_empty() || alive.is_empty() {
@@ -103,7 +107,11 @@ fn add(cfg: &McmcStrategy, p: &mut Params, step: u32, seed: u64) -> u32 {
     if target <= n {
         return 0;
     }
-    let opac: Vec<f32> = p.groups[OPACITY].value.iter().map(|&l| sigmoid(l)).collect();
+    let opac: Vec<f32> = p.groups[OPACITY]
+        .value
+        .iter()
+        .map(|&l| sigmoid(l))
+        .collect();
     let src = multinomial(&opac, target - n, seed, OP_ADD, step as u64);
     if src.is_empty() {
         return 0;
@@ -161,7 +169,13 @@ fn inject_noise(p: &mut Params, scaler: f32, step: u32, seed: u64) {
 
 /// The strategy's work after the optimiser step of `step`; `lr_means` is the position learning
 /// rate after the step (gsplat passes the scheduler's next rate).
-pub fn post_step(cfg: &McmcStrategy, p: &mut Params, step: u32, lr_means: f32, seed: u64) -> RefineReport {
+pub fn post_step(
+    cfg: &McmcStrategy,
+    p: &mut Params,
+    step: u32,
+    lr_means: f32,
+    seed: u64,
+) -> RefineReport {
     let mut rep = RefineReport::default();
     if step < cfg.refine_stop && step > cfg.refine_start && step.is_multiple_of(cfg.refine_every) {
         rep.relocated = relocate(cfg, p, step, seed);
@@ -263,7 +277,10 @@ mod tests {
         assert_eq!(rep.added, 1);
         assert_eq!(p.len(), 41);
         // nobody is dead any more: the dead rows copied live (rewritten) sources
-        assert!(p.groups[OPACITY].value.iter().all(|&l| sigmoid(l) > cfg.min_opacity));
+        assert!(p.groups[OPACITY]
+            .value
+            .iter()
+            .all(|&l| sigmoid(l) > cfg.min_opacity));
         // relocated rows sit on live Gaussians' positions (x = 1, 2, 3, 5, ...)
         for d in (0..40).step_by(4) {
             let x = p.groups[MEANS].value[d * 3];

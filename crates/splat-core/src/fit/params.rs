@@ -16,6 +16,7 @@
 //! exactly zero and is skipped.
 use rayon::prelude::*;
 
+use crate::raster::Simd;
 use crate::scene::{sh_rest_count, SceneView};
 
 /// Index of each array in [`Params::groups`].
@@ -217,41 +218,95 @@ impl Params {
             if active == 0 || g.value.is_empty() {
                 continue;
             }
-            let eps = adam.eps;
-            let update = |p: &mut f32, m: &mut f32, v: &mut f32, gr: f32| {
-                *m = b1 * *m + (1.0 - b1) * gr;
-                *v = b2 * *v + (1.0 - b2) * gr * gr;
-                let denom = v.sqrt() / bc2_sqrt + eps;
-                *p -= step_size * *m / denom;
+            let k = AdamStep {
+                b1,
+                b2,
+                step_size,
+                bc2_sqrt,
+                eps: adam.eps,
+                width,
+                active,
             };
             let chunk = if active == width {
                 ADAM_CHUNK
             } else {
                 (ADAM_CHUNK / width).max(1) * width
             };
+            let level = Simd::Auto.resolve();
             g.value
                 .par_chunks_mut(chunk)
                 .zip(g.m.par_chunks_mut(chunk))
                 .zip(g.v.par_chunks_mut(chunk))
                 .zip(grad.par_chunks(chunk))
-                .for_each(|(((p, m), v), gr)| {
-                    if active == width {
-                        for (((p, m), v), &gr) in p.iter_mut().zip(m).zip(v).zip(gr) {
-                            update(p, m, v, gr);
-                        }
-                    } else {
-                        for (((p, m), v), gr) in p
-                            .chunks_mut(width)
-                            .zip(m.chunks_mut(width))
-                            .zip(v.chunks_mut(width))
-                            .zip(gr.chunks(width))
-                        {
-                            for j in 0..active {
-                                update(&mut p[j], &mut m[j], &mut v[j], gr[j]);
-                            }
-                        }
-                    }
-                });
+                .for_each(|(((p, m), v), gr)| k.run(level, p, m, v, gr));
+        }
+    }
+}
+
+/// One array's Adam update over a chunk of whole rows.
+#[derive(Clone, Copy)]
+struct AdamStep {
+    b1: f32,
+    b2: f32,
+    step_size: f32,
+    bc2_sqrt: f32,
+    eps: f32,
+    width: usize,
+    active: usize,
+}
+
+impl AdamStep {
+    #[inline(always)]
+    fn update(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
+        let (b1, b2) = (self.b1, self.b2);
+        for (((p, m), v), &gr) in p.iter_mut().zip(m).zip(v).zip(g) {
+            *m = b1 * *m + (1.0 - b1) * gr;
+            *v = b2 * *v + (1.0 - b2) * gr * gr;
+            let denom = v.sqrt() / self.bc2_sqrt + self.eps;
+            *p -= self.step_size * *m / denom;
+        }
+    }
+
+    #[inline(always)]
+    fn chunk(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
+        if self.active == self.width {
+            self.update(p, m, v, g);
+        } else {
+            let (w, a) = (self.width, self.active);
+            for (((p, m), v), g) in p
+                .chunks_mut(w)
+                .zip(m.chunks_mut(w))
+                .zip(v.chunks_mut(w))
+                .zip(g.chunks(w))
+            {
+                self.update(&mut p[..a], &mut m[..a], &mut v[..a], &g[..a]);
+            }
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+    unsafe fn chunk_avx512(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
+        self.chunk(p, m, v, g)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn chunk_avx2(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
+        self.chunk(p, m, v, g)
+    }
+
+    /// The update with the widest kernel the CPU has (plain multiplies, adds, divides and
+    /// square roots, no FMA contraction: every kernel gives the same bits).
+    fn run(&self, level: Simd, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
+        match level {
+            // SAFETY: `Simd::resolve` checked the CPU has these features.
+            #[cfg(target_arch = "x86_64")]
+            Simd::Avx512 => unsafe { self.chunk_avx512(p, m, v, g) },
+            // SAFETY: as above
+            #[cfg(target_arch = "x86_64")]
+            Simd::Avx2 => unsafe { self.chunk_avx2(p, m, v, g) },
+            _ => self.chunk(p, m, v, g),
         }
     }
 }
@@ -284,7 +339,8 @@ mod tests {
         // reference in f64: with a constant gradient m_hat = g and v_hat = g^2 exactly, so each
         // step moves by lr * sign(g) (up to eps)
         for i in 0..n {
-            let want = before[i] as f64 - 3.0 * 0.01 * (g[i] as f64).signum() * (g[i] != 0.0) as u8 as f64;
+            let want =
+                before[i] as f64 - 3.0 * 0.01 * (g[i] as f64).signum() * (g[i] != 0.0) as u8 as f64;
             assert!((p.groups[MEANS].value[i] as f64 - want).abs() < 1e-5, "{i}");
         }
         // zero gradient and zero moments: no change

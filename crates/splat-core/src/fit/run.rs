@@ -28,9 +28,17 @@ pub enum Event<'a> {
         height: u32,
     },
     /// All held-out views scored: mean PSNR and SSIM.
-    Eval { step: u32, psnr: f64, ssim: f64 },
-    BeforeCheckpoint { step: u32 },
-    Checkpoint { step: u32 },
+    Eval {
+        step: u32,
+        psnr: f64,
+        ssim: f64,
+    },
+    BeforeCheckpoint {
+        step: u32,
+    },
+    Checkpoint {
+        step: u32,
+    },
 }
 
 /// Continue, or stop after writing a checkpoint.
@@ -136,7 +144,8 @@ pub fn run(t: &mut Trainer, opts: &RunOptions, hooks: &mut dyn Hooks) -> Result<
         let mut stop = hooks.event(Event::Step(&rec)) == Flow::Stop;
         let last = s == until;
         if !t.eval_views().is_empty()
-            && ((opts.eval_every > 0 && s.is_multiple_of(opts.eval_every)) || (last && opts.eval_every > 0))
+            && ((opts.eval_every > 0 && s.is_multiple_of(opts.eval_every))
+                || (last && opts.eval_every > 0))
         {
             stop |= evaluate(t, hooks)? == Flow::Stop;
         }

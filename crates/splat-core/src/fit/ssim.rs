@@ -15,10 +15,17 @@
 //! ```
 //!
 //! (A1 = 2 mu_x mu_y + C1, A2 = 2 s_xy + C2, B1 = mu_x^2 + mu_y^2 + C1, B2 = s_xx + s_yy + C2;
-//! the zero-padded blur is its own adjoint because the window is symmetric). Rows are processed
-//! in parallel and every output value is computed in a fixed order, so results are the same bits
-//! for any thread count; the mean is summed per row in f64, rows in order.
+//! the zero-padded blur is its own adjoint because the window is symmetric).
+//!
+//! Four passes, each parallel over image rows (all three channels of a row in one task): (1)
+//! split the channels and blur x, y, x^2, y^2, xy horizontally; (2) blur them vertically, form
+//! S and the three partials; (3) blur the partials horizontally; (4) blur them vertically and
+//! combine into the gradient. Every value is computed in a fixed order with plain multiplies
+//! and adds (no FMA contraction), so the AVX-512, AVX2 and plain builds of the row kernels, and
+//! any thread count, give the same bits; the mean is summed per row in f64, rows in order.
 use rayon::prelude::*;
+
+use crate::raster::Simd;
 
 /// Window radius (11 taps).
 pub const RADIUS: usize = 5;
@@ -38,79 +45,276 @@ pub fn window() -> [f32; TAPS] {
     w.map(|v| (v / s) as f32)
 }
 
-/// Rows per parallel work unit of the passes.
-const ROWS: usize = 8;
-
-/// Scratch planes of the SSIM passes, reused across calls.
+/// Scratch planes of the SSIM passes, reused. Layout "row-planar": image row y holds its three
+/// channel rows one after another, value (y, c, x) at (3 y + c) W + x, so every pass splits its
+/// outputs into disjoint per-row blocks.
 #[derive(Default)]
 pub struct SsimWorkspace {
+    /// The prediction and the target, split into channel rows.
     x: Vec<f32>,
     y: Vec<f32>,
-    tmp: Vec<f32>,
-    mu_x: Vec<f32>,
-    mu_y: Vec<f32>,
-    e_xx: Vec<f32>,
-    e_yy: Vec<f32>,
-    e_xy: Vec<f32>,
-    a: Vec<f32>,
-    b: Vec<f32>,
-    c: Vec<f32>,
+    /// Horizontal blurs of x, y, x^2, y^2, xy (pass 1), then of the partials (pass 3).
+    h: [Vec<f32>; 5],
+    /// The partials g dS/dmu_x, g dS/de_xx, g dS/de_xy (pass 2).
+    p: [Vec<f32>; 3],
     row_sums: Vec<f64>,
+    /// Which row kernels run (all give the same bits).
+    pub simd: Simd,
 }
 
-/// Zero-padded separable blur of a `w` x `h` plane: horizontal into `tmp`, vertical into `dst`.
-fn blur(src: &[f32], dst: &mut [f32], tmp: &mut [f32], w: usize, h: usize, k: &[f32; TAPS]) {
-    tmp.par_chunks_mut(w * ROWS)
-        .enumerate()
-        .for_each(|(c, out)| {
-            let mut pad = vec![0.0f32; w + 2 * RADIUS];
-            for (r, orow) in out.chunks_mut(w).enumerate() {
-                let y = c * ROWS + r;
-                pad[RADIUS..RADIUS + w].copy_from_slice(&src[y * w..(y + 1) * w]);
-                orow.fill(0.0);
-                for (t, &kt) in k.iter().enumerate() {
-                    for (o, p) in orow.iter_mut().zip(&pad[t..t + w]) {
-                        *o += kt * p;
-                    }
-                }
-            }
-        });
-    let tmp = &*tmp;
-    dst.par_chunks_mut(w * ROWS)
-        .enumerate()
-        .for_each(|(c, out)| {
-            for (r, orow) in out.chunks_mut(w).enumerate() {
-                let y = c * ROWS + r;
-                orow.fill(0.0);
-                for (t, &kt) in k.iter().enumerate() {
-                    let yy = y as isize + t as isize - RADIUS as isize;
-                    if yy < 0 || yy >= h as isize {
-                        continue;
-                    }
-                    let irow = &tmp[yy as usize * w..(yy as usize + 1) * w];
-                    for (o, p) in orow.iter_mut().zip(irow) {
-                        *o += kt * p;
-                    }
-                }
-            }
-        });
-}
-
-fn resize(v: &mut Vec<f32>, n: usize) {
-    v.clear();
-    v.resize(n, 0.0);
-}
-
-/// `src` (H*W*3 interleaved) channel `ch` into the plane `dst`, optionally clamped to [0, 1].
-fn plane(src: &[f32], ch: usize, dst: &mut Vec<f32>, clamp: bool) {
-    dst.clear();
-    dst.extend(src.iter().skip(ch).step_by(3).map(|&v| {
-        if clamp {
-            v.clamp(0.0, 1.0)
-        } else {
-            v
+/// Zero-padded 11-tap blur of one row: `out[i] = sum_t k[t] src[i + t - 5]`, summed in tap
+/// order in a register per output value.
+#[inline(always)]
+fn hblur(src: &[f32], pad: &mut [f32], out: &mut [f32], k: &[f32; TAPS]) {
+    let w = src.len();
+    pad[..RADIUS].fill(0.0);
+    pad[RADIUS..RADIUS + w].copy_from_slice(src);
+    pad[RADIUS + w..RADIUS + w + RADIUS].fill(0.0);
+    let pad = &pad[..w + 2 * RADIUS];
+    for (i, o) in out[..w].iter_mut().enumerate() {
+        let p = &pad[i..i + TAPS];
+        let mut s = 0.0f32;
+        for t in 0..TAPS {
+            s += k[t] * p[t];
         }
-    }));
+        *o = s;
+    }
+}
+
+/// Vertical 11-tap blur of channel `c` at image row `y` of a row-planar buffer (rows outside
+/// the image are zeros), summed in tap order in a register per output value.
+#[inline(always)]
+fn vblur(
+    plane: &[f32],
+    w: usize,
+    h: usize,
+    c: usize,
+    y: usize,
+    zeros: &[f32],
+    out: &mut [f32],
+    k: &[f32; TAPS],
+) {
+    let rows: [&[f32]; TAPS] = std::array::from_fn(|t| {
+        let yy = y as isize + t as isize - RADIUS as isize;
+        if yy < 0 || yy >= h as isize {
+            &zeros[..w]
+        } else {
+            let at = (yy as usize * 3 + c) * w;
+            &plane[at..at + w]
+        }
+    });
+    for (i, o) in out[..w].iter_mut().enumerate() {
+        let mut s = 0.0f32;
+        for t in 0..TAPS {
+            s += k[t] * rows[t][i];
+        }
+        *o = s;
+    }
+}
+
+/// Pass 1 for one image row: split the channels (clamping the prediction when asked) and blur
+/// x, y, x^2, y^2, xy horizontally. Slices are the row's blocks (3W values).
+#[inline(always)]
+fn pass1_row(
+    pred: &[f32],
+    target: &[f32],
+    clamp: bool,
+    xr: &mut [f32],
+    yr: &mut [f32],
+    h: [&mut [f32]; 5],
+    k: &[f32; TAPS],
+) {
+    let w = pred.len() / 3;
+    let mut pad = vec![0.0f32; w + 2 * RADIUS];
+    let mut tmp = vec![0.0f32; w];
+    let [h0, h1, h2, h3, h4] = h;
+    for c in 0..3 {
+        let r = c * w..(c + 1) * w;
+        let (xs, ys) = (&mut xr[r.clone()], &mut yr[r.clone()]);
+        for i in 0..w {
+            let v = pred[i * 3 + c];
+            xs[i] = if clamp { v.clamp(0.0, 1.0) } else { v };
+            ys[i] = target[i * 3 + c];
+        }
+        hblur(xs, &mut pad, &mut h0[r.clone()], k);
+        hblur(ys, &mut pad, &mut h1[r.clone()], k);
+        for i in 0..w {
+            tmp[i] = xs[i] * xs[i];
+        }
+        hblur(&tmp, &mut pad, &mut h2[r.clone()], k);
+        for i in 0..w {
+            tmp[i] = ys[i] * ys[i];
+        }
+        hblur(&tmp, &mut pad, &mut h3[r.clone()], k);
+        for i in 0..w {
+            tmp[i] = xs[i] * ys[i];
+        }
+        hblur(&tmp, &mut pad, &mut h4[r], k);
+    }
+}
+
+/// Pass 2 for image row `y`: vertical blurs, the SSIM map (returns its row sum) and, with `gs`,
+/// the partials times gs into the row's blocks `p`.
+#[inline(always)]
+fn pass2_row(
+    h: [&[f32]; 5],
+    wh: (usize, usize),
+    y: usize,
+    gs: Option<f32>,
+    p: [&mut [f32]; 3],
+    k: &[f32; TAPS],
+) -> f64 {
+    let (w, hh) = wh;
+    let mut v = [
+        vec![0.0f32; w],
+        vec![0.0f32; w],
+        vec![0.0f32; w],
+        vec![0.0f32; w],
+        vec![0.0f32; w],
+    ];
+    let [pa, pb, pc] = p;
+    let mut srow = vec![0.0f32; w];
+    let zeros = vec![0.0f32; w];
+    let mut sum = 0.0f64;
+    for c in 0..3 {
+        for (m, out) in v.iter_mut().enumerate() {
+            vblur(h[m], w, hh, c, y, &zeros, out, k);
+        }
+        let [v0, v1, v2, v3, v4] = &v;
+        let (v0, v1, v2, v3, v4) = (&v0[..w], &v1[..w], &v2[..w], &v3[..w], &v4[..w]);
+        let (pa, pb, pc) = (
+            &mut pa[c * w..(c + 1) * w],
+            &mut pb[c * w..(c + 1) * w],
+            &mut pc[c * w..(c + 1) * w],
+        );
+        let srow = &mut srow[..w];
+        // the map into a row buffer (vectorised), the f64 row sum after it (in order)
+        match gs {
+            Some(g) => {
+                for i in 0..w {
+                    let (ux, uy) = (v0[i], v1[i]);
+                    let sxx = v2[i] - ux * ux;
+                    let syy = v3[i] - uy * uy;
+                    let sxy = v4[i] - ux * uy;
+                    let a1 = 2.0 * ux * uy + C1;
+                    let a2 = 2.0 * sxy + C2;
+                    let b1 = ux * ux + uy * uy + C1;
+                    let b2 = sxx + syy + C2;
+                    let s = (a1 * a2) / (b1 * b2);
+                    srow[i] = s;
+                    let d_mu = s * (2.0 * uy / a1 - 2.0 * uy / a2 - 2.0 * ux / b1 + 2.0 * ux / b2);
+                    pa[i] = g * d_mu;
+                    pb[i] = g * (-s / b2);
+                    pc[i] = g * (2.0 * s / a2);
+                }
+            }
+            None => {
+                for i in 0..w {
+                    let (ux, uy) = (v0[i], v1[i]);
+                    let a1 = 2.0 * ux * uy + C1;
+                    let a2 = 2.0 * (v4[i] - ux * uy) + C2;
+                    let b1 = ux * ux + uy * uy + C1;
+                    let b2 = (v2[i] - ux * ux) + (v3[i] - uy * uy) + C2;
+                    srow[i] = (a1 * a2) / (b1 * b2);
+                }
+            }
+        }
+        let mut row = 0.0f64;
+        for &s in srow.iter() {
+            row += s as f64;
+        }
+        sum += row;
+    }
+    sum
+}
+
+/// Pass 3 for one image row: horizontal blurs of the partials (row blocks in, row blocks out).
+#[inline(always)]
+fn pass3_row(p: [&[f32]; 3], h: [&mut [f32]; 3], k: &[f32; TAPS]) {
+    let w = p[0].len() / 3;
+    let mut pad = vec![0.0f32; w + 2 * RADIUS];
+    for (src, dst) in p.into_iter().zip(h) {
+        for c in 0..3 {
+            hblur(
+                &src[c * w..(c + 1) * w],
+                &mut pad,
+                &mut dst[c * w..(c + 1) * w],
+                k,
+            );
+        }
+    }
+}
+
+/// Pass 4 for image row `y`: vertical blurs of the blurred partials, combined with the row's x
+/// and y blocks into the gradient row (interleaved RGB).
+#[inline(always)]
+fn pass4_row(
+    h: [&[f32]; 3],
+    x: &[f32],
+    yv: &[f32],
+    wh: (usize, usize),
+    y: usize,
+    out: &mut [f32],
+    k: &[f32; TAPS],
+) {
+    let (w, hh) = wh;
+    let mut v = [vec![0.0f32; w], vec![0.0f32; w], vec![0.0f32; w]];
+    let zeros = vec![0.0f32; w];
+    for c in 0..3 {
+        for (m, o) in v.iter_mut().enumerate() {
+            vblur(h[m], w, hh, c, y, &zeros, o, k);
+        }
+        for i in 0..w {
+            out[i * 3 + c] = v[0][i] + 2.0 * x[c * w + i] * v[1][i] + yv[c * w + i] * v[2][i];
+        }
+    }
+}
+
+/// The row kernels compiled for one instruction set (the same source, so the same bits).
+macro_rules! kernels {
+    ($name:ident $(, $feat:literal)?) => {
+        mod $name {
+            use super::*;
+            $(#[target_feature(enable = $feat)])?
+            pub(super) unsafe fn pass1(pred: &[f32], target: &[f32], clamp: bool, xr: &mut [f32], yr: &mut [f32], h: [&mut [f32]; 5], k: &[f32; TAPS]) {
+                pass1_row(pred, target, clamp, xr, yr, h, k)
+            }
+            $(#[target_feature(enable = $feat)])?
+            pub(super) unsafe fn pass2(h: [&[f32]; 5], wh: (usize, usize), y: usize, gs: Option<f32>, p: [&mut [f32]; 3], k: &[f32; TAPS]) -> f64 {
+                pass2_row(h, wh, y, gs, p, k)
+            }
+            $(#[target_feature(enable = $feat)])?
+            pub(super) unsafe fn pass3(p: [&[f32]; 3], h: [&mut [f32]; 3], k: &[f32; TAPS]) {
+                pass3_row(p, h, k)
+            }
+            $(#[target_feature(enable = $feat)])?
+            pub(super) unsafe fn pass4(h: [&[f32]; 3], x: &[f32], yv: &[f32], wh: (usize, usize), y: usize, out: &mut [f32], k: &[f32; TAPS]) {
+                pass4_row(h, x, yv, wh, y, out, k)
+            }
+        }
+    };
+}
+
+kernels!(plain);
+#[cfg(target_arch = "x86_64")]
+kernels!(avx2, "avx2,fma");
+#[cfg(target_arch = "x86_64")]
+kernels!(avx512, "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma");
+
+/// Call kernel `$f` of the resolved level.
+macro_rules! dispatch {
+    ($level:expr, $f:ident($($a:expr),*)) => {
+        // SAFETY: a kernel runs only when the CPU has its features (`Simd::resolve` checked).
+        unsafe {
+            match $level {
+                #[cfg(target_arch = "x86_64")]
+                Simd::Avx512 => avx512::$f($($a),*),
+                #[cfg(target_arch = "x86_64")]
+                Simd::Avx2 => avx2::$f($($a),*),
+                _ => plain::$f($($a),*),
+            }
+        }
+    };
 }
 
 impl SsimWorkspace {
@@ -124,7 +328,7 @@ impl SsimWorkspace {
         width: usize,
         height: usize,
         clamp: bool,
-        mut grad: Option<(&mut [f32], f32)>,
+        grad: Option<(&mut [f32], f32)>,
     ) -> f64 {
         let (w, h) = (width, height);
         let n = w * h;
@@ -134,86 +338,89 @@ impl SsimWorkspace {
             return 1.0;
         }
         let k = window();
-        for v in [
-            &mut self.tmp,
-            &mut self.mu_x,
-            &mut self.mu_y,
-            &mut self.e_xx,
-            &mut self.e_yy,
-            &mut self.e_xy,
-            &mut self.a,
-            &mut self.b,
-            &mut self.c,
-        ] {
-            resize(v, n);
+        let level = self.simd.resolve();
+        let row = 3 * w;
+        for v in [&mut self.x, &mut self.y]
+            .into_iter()
+            .chain(self.h.iter_mut())
+            .chain(self.p.iter_mut())
+        {
+            v.resize(3 * n, 0.0);
         }
-        let mut total = 0.0f64;
-        // d(mean SSIM)/dS(p) for one pixel of one channel
-        let g = 1.0 / (3.0 * n as f64);
-        for ch in 0..3 {
-            plane(pred, ch, &mut self.x, clamp);
-            plane(target, ch, &mut self.y, false);
-            blur(&self.x, &mut self.mu_x, &mut self.tmp, w, h, &k);
-            blur(&self.y, &mut self.mu_y, &mut self.tmp, w, h, &k);
-            let sq: Vec<f32> = self.x.par_iter().map(|v| v * v).collect();
-            blur(&sq, &mut self.e_xx, &mut self.tmp, w, h, &k);
-            let sq: Vec<f32> = self.y.par_iter().map(|v| v * v).collect();
-            blur(&sq, &mut self.e_yy, &mut self.tmp, w, h, &k);
-            let xy: Vec<f32> = self
-                .x
-                .par_iter()
-                .zip(self.y.par_iter())
-                .map(|(a, b)| a * b)
-                .collect();
-            blur(&xy, &mut self.e_xy, &mut self.tmp, w, h, &k);
-            let want = grad.is_some();
-            let (mx, my, exx, eyy, exy) = (&self.mu_x, &self.mu_y, &self.e_xx, &self.e_yy, &self.e_xy);
-            let gs = (g * grad.as_ref().map_or(0.0, |g| g.1 as f64)) as f32;
-            self.row_sums.clear();
-            self.a
-                .par_chunks_mut(w)
-                .zip(self.b.par_chunks_mut(w))
-                .zip(self.c.par_chunks_mut(w))
-                .enumerate()
-                .map(|(y, ((ra, rb), rc))| {
-                    let mut sum = 0.0f64;
-                    for x in 0..w {
-                        let i = y * w + x;
-                        let (ux, uy) = (mx[i], my[i]);
-                        let sxx = exx[i] - ux * ux;
-                        let syy = eyy[i] - uy * uy;
-                        let sxy = exy[i] - ux * uy;
-                        let a1 = 2.0 * ux * uy + C1;
-                        let a2 = 2.0 * sxy + C2;
-                        let b1 = ux * ux + uy * uy + C1;
-                        let b2 = sxx + syy + C2;
-                        let s = (a1 * a2) / (b1 * b2);
-                        sum += s as f64;
-                        if want {
-                            let d_mu = s
-                                * (2.0 * uy / a1 - 2.0 * uy / a2 - 2.0 * ux / b1 + 2.0 * ux / b2);
-                            ra[x] = gs * d_mu;
-                            rb[x] = gs * (-s / b2);
-                            rc[x] = gs * (2.0 * s / a2);
-                        }
-                    }
-                    sum
-                })
-                .collect_into_vec(&mut self.row_sums);
-            total += self.row_sums.iter().sum::<f64>();
-            if let Some((out, _)) = grad.as_mut() {
-                // reuse the statistics planes for the blurred partials
-                blur(&self.a, &mut self.mu_x, &mut self.tmp, w, h, &k);
-                blur(&self.b, &mut self.e_xx, &mut self.tmp, w, h, &k);
-                blur(&self.c, &mut self.e_xy, &mut self.tmp, w, h, &k);
-                let (ga, gb, gc, xs, ys) = (&self.mu_x, &self.e_xx, &self.e_xy, &self.x, &self.y);
-                out.par_chunks_mut(3 * w).enumerate().for_each(|(y, row)| {
-                    for x in 0..w {
-                        let i = y * w + x;
-                        row[x * 3 + ch] = ga[i] + 2.0 * xs[i] * gb[i] + ys[i] * gc[i];
-                    }
+        // pass 1
+        {
+            let [h0, h1, h2, h3, h4] = &mut self.h;
+            (
+                pred.par_chunks(row),
+                target.par_chunks(row),
+                self.x.par_chunks_mut(row),
+                self.y.par_chunks_mut(row),
+                h0.par_chunks_mut(row),
+                h1.par_chunks_mut(row),
+                h2.par_chunks_mut(row),
+                h3.par_chunks_mut(row),
+                h4.par_chunks_mut(row),
+            )
+                .into_par_iter()
+                .with_min_len(4)
+                .for_each(|(p, t, xr, yr, a, b, c, d, e)| {
+                    dispatch!(level, pass1(p, t, clamp, xr, yr, [a, b, c, d, e], &k))
                 });
+        }
+        // pass 2
+        let g = 1.0 / (3.0 * n as f64);
+        let gs = grad.as_ref().map(|(_, s)| (g * *s as f64) as f32);
+        {
+            let hv = [
+                &self.h[0][..],
+                &self.h[1][..],
+                &self.h[2][..],
+                &self.h[3][..],
+                &self.h[4][..],
+            ];
+            let [p0, p1, p2] = &mut self.p;
+            (
+                p0.par_chunks_mut(row),
+                p1.par_chunks_mut(row),
+                p2.par_chunks_mut(row),
+            )
+                .into_par_iter()
+                .enumerate()
+                .with_min_len(4)
+                .map(|(y, (a, b, c))| dispatch!(level, pass2(hv, (w, h), y, gs, [a, b, c], &k)))
+                .collect_into_vec(&mut self.row_sums);
+        }
+        let total: f64 = self.row_sums.iter().sum();
+        if let Some((out, _)) = grad {
+            // pass 3: the partials' horizontal blurs into h[0..3]
+            {
+                let [h0, h1, h2, _, _] = &mut self.h;
+                let [p0, p1, p2] = &self.p;
+                (
+                    p0.par_chunks(row),
+                    p1.par_chunks(row),
+                    p2.par_chunks(row),
+                    h0.par_chunks_mut(row),
+                    h1.par_chunks_mut(row),
+                    h2.par_chunks_mut(row),
+                )
+                    .into_par_iter()
+                    .with_min_len(4)
+                    .for_each(|(a, b, c, d, e, f)| {
+                        dispatch!(level, pass3([a, b, c], [d, e, f], &k))
+                    });
             }
+            // pass 4
+            let hv = [&self.h[0][..], &self.h[1][..], &self.h[2][..]];
+            (
+                out.par_chunks_mut(row),
+                self.x.par_chunks(row),
+                self.y.par_chunks(row),
+            )
+                .into_par_iter()
+                .enumerate()
+                .with_min_len(4)
+                .for_each(|(y, (o, xr, yr))| dispatch!(level, pass4(hv, xr, yr, (w, h), y, o, &k)));
         }
         total / (3 * n) as f64
     }
@@ -275,22 +482,30 @@ mod tests {
     }
 
     #[test]
-    fn same_bits_for_any_thread_count() {
+    fn same_bits_for_any_thread_count_and_kernel() {
         let (w, h) = (67, 45);
         let x = image(w, h, 5);
         let y = image(w, h, 6);
-        let run = |t: usize| {
+        let run = |t: usize, simd: Simd| {
             rayon::ThreadPoolBuilder::new()
                 .num_threads(t)
                 .build()
                 .expect("pool")
                 .install(|| {
-                    let mut ws = SsimWorkspace::default();
+                    let mut ws = SsimWorkspace {
+                        simd,
+                        ..SsimWorkspace::default()
+                    };
                     let mut g = vec![0.0f32; w * h * 3];
                     let s = ws.ssim(&x, &y, w, h, false, Some((&mut g, 1.0)));
-                    (s.to_bits(), g.iter().map(|v| v.to_bits()).collect::<Vec<_>>())
+                    (
+                        s.to_bits(),
+                        g.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                    )
                 })
         };
-        assert_eq!(run(1), run(3));
+        let base = run(1, Simd::Scalar);
+        assert_eq!(base, run(3, Simd::Auto));
+        assert_eq!(base, run(2, Simd::Avx2));
     }
 }

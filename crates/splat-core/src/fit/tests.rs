@@ -45,7 +45,15 @@ fn cameras(k: usize, w: u32, h: u32) -> Vec<Camera> {
                 m[i][3] = -(row[0] * eye[0] + row[1] * eye[1] + row[2] * eye[2]);
             }
             m[3][3] = 1.0;
-            Camera::new(w as f64 * 0.9, w as f64 * 0.9, w as f64 / 2.0, h as f64 / 2.0, w, h, m)
+            Camera::new(
+                w as f64 * 0.9,
+                w as f64 * 0.9,
+                w as f64 / 2.0,
+                h as f64 / 2.0,
+                w,
+                h,
+                m,
+            )
         })
         .collect()
 }
@@ -55,8 +63,19 @@ fn views(s: &Scene, cams: &[Camera]) -> Vec<View> {
         .map(|c| {
             let npix = (c.width * c.height) as usize;
             let (mut rgb, mut d, mut a) = (vec![0.0; npix * 3], vec![0.0; npix], vec![0.0; npix]);
-            render_into(&s.view(), c, &RenderOptions::default(), &mut rgb, &mut d, &mut a).expect("render");
-            let img = rgb.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+            render_into(
+                &s.view(),
+                c,
+                &RenderOptions::default(),
+                &mut rgb,
+                &mut d,
+                &mut a,
+            )
+            .expect("render");
+            let img = rgb
+                .iter()
+                .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+                .collect();
             View::new(*c, img).expect("view")
         })
         .collect()
@@ -76,7 +95,11 @@ fn setup(strategy: Strategy) -> (FitConfig, Vec<View>, Vec<View>, Scene) {
     }
     let (p, c) = init::random_points(300, [-1.0; 3], [1.0; 3], 5);
     // gsplat's trainer: init_opa 0.1 (default), 0.5 (mcmc)
-    let opacity = if matches!(strategy, Strategy::Mcmc(_)) { 0.5 } else { 0.1 };
+    let opacity = if matches!(strategy, Strategy::Mcmc(_)) {
+        0.5
+    } else {
+        0.1
+    };
     let init = init::scene_from_points(&p, &c, opacity, 1.0, 1).expect("init");
     let cfg = FitConfig {
         steps: 400,
@@ -131,9 +154,15 @@ fn fitting_raises_held_out_psnr_with_both_strategies() {
             until: 400,
             ..RunOptions::default()
         };
-        assert_eq!(run(&mut t, &opts, &mut Quiet).expect("run"), RunEnd::Finished);
+        assert_eq!(
+            run(&mut t, &opts, &mut Quiet).expect("run"),
+            RunEnd::Finished
+        );
         let after = mean_psnr(&mut t);
-        assert!(after > before + 6.0 && after > 20.0, "{strategy:?}: {before} -> {after}");
+        assert!(
+            after > before + 6.0 && after > 20.0,
+            "{strategy:?}: {before} -> {after}"
+        );
     }
 }
 
@@ -204,7 +233,9 @@ fn a_hook_stop_writes_a_checkpoint_and_returns() {
         checkpoint_every: 1000,
         ..RunOptions::default()
     };
-    assert_eq!(run(&mut t, &opts, &mut StopAt(17)).expect("run"), RunEnd::Stopped);
+    assert_eq!(
+        run(&mut t, &opts, &mut StopAt(17)).expect("run"),
+        RunEnd::Stopped
+    );
     assert_eq!(checkpoint::load(&path, b"").expect("load").step, 17);
 }
-

@@ -107,7 +107,8 @@ fn with_degree(scene: &SceneView<'_>, degree: u8) -> Scene {
         let mut rest = vec![0.0f32; n * k1 * 3];
         let k = k0.min(k1) * 3;
         for i in 0..n {
-            rest[i * k1 * 3..i * k1 * 3 + k].copy_from_slice(&scene.sh_rest[i * k0 * 3..i * k0 * 3 + k]);
+            rest[i * k1 * 3..i * k1 * 3 + k]
+                .copy_from_slice(&scene.sh_rest[i * k0 * 3..i * k0 * 3 + k]);
         }
         s.sh_rest = rest;
         s.sh_degree = degree;
@@ -118,7 +119,12 @@ fn with_degree(scene: &SceneView<'_>, degree: u8) -> Scene {
 impl Trainer {
     /// A trainer at step 0 from an initial scene (its SH bands cut or zero-padded to the
     /// config's degree).
-    pub fn new(cfg: FitConfig, train: Vec<View>, eval: Vec<View>, init: &SceneView<'_>) -> Result<Self> {
+    pub fn new(
+        cfg: FitConfig,
+        train: Vec<View>,
+        eval: Vec<View>,
+        init: &SceneView<'_>,
+    ) -> Result<Self> {
         cfg.validate()?;
         init.validate()?;
         if init.is_empty() {
@@ -132,7 +138,12 @@ impl Trainer {
     }
 
     /// A trainer restored from a checkpoint (taken with the same config and data).
-    pub fn restore(cfg: FitConfig, train: Vec<View>, eval: Vec<View>, ck: Checkpoint) -> Result<Self> {
+    pub fn restore(
+        cfg: FitConfig,
+        train: Vec<View>,
+        eval: Vec<View>,
+        ck: Checkpoint,
+    ) -> Result<Self> {
         cfg.validate()?;
         if ck.params.sh_degree != cfg.sh_degree {
             return Err(Error::InvalidArgument(format!(
@@ -155,9 +166,7 @@ impl Trainer {
             return Err(Error::InvalidArgument("no training view was given".into()));
         }
         if params.is_empty() {
-            return Err(Error::InvalidArgument(
-                "the scene has no Gaussians".into(),
-            ));
+            return Err(Error::InvalidArgument("the scene has no Gaussians".into()));
         }
         let n = params.len();
         let stats = match stats {
@@ -168,6 +177,8 @@ impl Trainer {
                 s
             }
         };
+        let mut loss = LossWorkspace::default();
+        loss.ssim.simd = cfg.render.simd;
         Ok(Trainer {
             cfg,
             train,
@@ -177,7 +188,7 @@ impl Trainer {
             step,
             order: None,
             ws: Workspace::default(),
-            loss: LossWorkspace::default(),
+            loss,
             grads: Gradients::default(),
             rgb: Vec::new(),
             depth: Vec::new(),
@@ -259,9 +270,12 @@ impl Trainer {
         let vi = self.view_at(s);
         let ropts = self.render_options();
         let degree = ropts.sh_degree.unwrap_or(0);
+        let absgrad =
+            matches!(&self.cfg.strategy, Strategy::Default(d) if d.absgrad && s < d.refine_stop);
         let opts = DiffOptions {
             render: ropts,
             depth: DepthKind::Expected,
+            absgrad,
             ..DiffOptions::default()
         };
         let view = &self.train[vi];
@@ -289,9 +303,14 @@ impl Trainer {
         for (t, &p) in self.target.iter_mut().zip(&view.image) {
             *t = p as f32 * (1.0 / 255.0);
         }
-        let mut terms =
-            self.loss
-                .loss_and_grad(&self.rgb, &self.target, w, h, self.cfg.ssim_lambda, &mut self.v_rgb);
+        let mut terms = self.loss.loss_and_grad(
+            &self.rgb,
+            &self.target,
+            w,
+            h,
+            self.cfg.ssim_lambda,
+            &mut self.v_rgb,
+        );
         let t2 = Instant::now();
         let n = self.params.len();
         self.grads.reset(n, self.params.view().sh_rest_k(), false);
@@ -303,15 +322,29 @@ impl Trainer {
             rgb: Some(&self.v_rgb),
             ..ImageGrads::default()
         };
-        self.ws
-            .backward(&self.params.view(), None, &grads, &mut self.grads, None, densify)?;
+        self.ws.backward(
+            &self.params.view(),
+            None,
+            &grads,
+            &mut self.grads,
+            None,
+            densify,
+        )?;
         if let Strategy::Mcmc(m) = &self.cfg.strategy {
             let g = &mut self.grads;
-            terms.loss += mcmc::add_regularisers(m, &self.params, &mut g.opacity_logits, &mut g.log_scales);
+            terms.loss +=
+                mcmc::add_regularisers(m, &self.params, &mut g.opacity_logits, &mut g.log_scales);
         }
         let t3 = Instant::now();
         let g = &self.grads;
-        let grads: [&[f32]; GROUPS] = [&g.means, &g.quats, &g.log_scales, &g.opacity_logits, &g.sh0, &g.sh_rest];
+        let grads: [&[f32]; GROUPS] = [
+            &g.means,
+            &g.quats,
+            &g.log_scales,
+            &g.opacity_logits,
+            &g.sh0,
+            &g.sh_rest,
+        ];
         self.params
             .adam_step(grads, self.cfg.lrs(s), s as u64 + 1, &self.cfg.adam, degree);
         let t4 = Instant::now();
@@ -325,7 +358,13 @@ impl Trainer {
                 self.cfg.seed,
             ),
             Strategy::Mcmc(m) => {
-                let r = mcmc::post_step(m, &mut self.params, s, self.cfg.lr_means(s + 1), self.cfg.seed);
+                let r = mcmc::post_step(
+                    m,
+                    &mut self.params,
+                    s,
+                    self.cfg.lr_means(s + 1),
+                    self.cfg.seed,
+                );
                 if self.stats.count.len() != self.params.len() {
                     self.stats.reset(self.params.len());
                 }
@@ -357,7 +396,8 @@ impl Trainer {
     /// Render `cam` with the current parameters (the SH degree in use).
     pub fn render(&self, cam: &Camera) -> Result<Vec<f32>> {
         let npix = cam.width as usize * cam.height as usize;
-        let (mut rgb, mut depth, mut alpha) = (vec![0.0; npix * 3], vec![0.0; npix], vec![0.0; npix]);
+        let (mut rgb, mut depth, mut alpha) =
+            (vec![0.0; npix * 3], vec![0.0; npix], vec![0.0; npix]);
         render_into(
             &self.params.view(),
             cam,
@@ -371,7 +411,10 @@ impl Trainer {
 
     /// Render every held-out view and score it (PSNR and SSIM of the render clamped to
     /// [0, 1]); `each` sees (view index, metrics, render).
-    pub fn evaluate(&mut self, mut each: impl FnMut(usize, &EvalView, &[f32])) -> Result<Vec<EvalView>> {
+    pub fn evaluate(
+        &mut self,
+        mut each: impl FnMut(usize, &EvalView, &[f32]),
+    ) -> Result<Vec<EvalView>> {
         let mut out = Vec::with_capacity(self.eval.len());
         let mut target = Vec::new();
         for i in 0..self.eval.len() {
@@ -379,9 +422,9 @@ impl Trainer {
             let v = &self.eval[i];
             target.clear();
             target.extend(v.image.iter().map(|&p| p as f32 * (1.0 / 255.0)));
-            let (p, s) = self
-                .loss
-                .metrics(&rgb, &target, v.cam.width as usize, v.cam.height as usize);
+            let (p, s) =
+                self.loss
+                    .metrics(&rgb, &target, v.cam.width as usize, v.cam.height as usize);
             let e = EvalView { psnr: p, ssim: s };
             each(i, &e, &rgb);
             out.push(e);
