@@ -14,6 +14,7 @@ use splat_core::raster::{render_into, RenderOptions};
 use splat_core::scene::SH_C0;
 use splat_core::Scene;
 
+#[allow(dead_code)] // the shared module also holds helpers other benches use
 mod garden;
 use garden::garden;
 

@@ -187,7 +187,7 @@ pub fn scene_from_points(
             i / 3
         )));
     }
-    if !(opacity > 0.0 && opacity < 1.0) || !(scale_factor > 0.0 && scale_factor.is_finite()) {
+    if !(opacity > 0.0 && opacity < 1.0 && scale_factor > 0.0 && scale_factor.is_finite()) {
         return Err(Error::InvalidArgument(format!(
             "initial opacity must be in (0, 1) and the scale factor positive, got {opacity} and {scale_factor}"
         )));

@@ -284,7 +284,7 @@ mod tests {
         // relocated rows sit on live Gaussians' positions (x = 1, 2, 3, 5, ...)
         for d in (0..40).step_by(4) {
             let x = p.groups[MEANS].value[d * 3];
-            assert!(x as usize % 4 != 0, "row {d} still at {x}");
+            assert!(!(x as usize).is_multiple_of(4), "row {d} still at {x}");
         }
         // the cap holds
         let rep = post_step(&cfg, &mut p, 700, 0.0, 1);

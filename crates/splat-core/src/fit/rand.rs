@@ -45,7 +45,7 @@ pub fn multinomial(weights: &[f32], count: usize, seed: u64, op: u32, step: u64)
         s += w.max(0.0) as f64;
         cum.push(s);
     }
-    if !(s > 0.0) {
+    if s.is_nan() || s <= 0.0 {
         return Vec::new();
     }
     let k = key(seed, op, step);

@@ -143,10 +143,8 @@ pub fn run(t: &mut Trainer, opts: &RunOptions, hooks: &mut dyn Hooks) -> Result<
         let s = rec.step;
         let mut stop = hooks.event(Event::Step(&rec)) == Flow::Stop;
         let last = s == until;
-        if !t.eval_views().is_empty()
-            && ((opts.eval_every > 0 && s.is_multiple_of(opts.eval_every))
-                || (last && opts.eval_every > 0))
-        {
+        let eval_due = opts.eval_every > 0 && (last || s.is_multiple_of(opts.eval_every));
+        if eval_due && !t.eval_views().is_empty() {
             stop |= evaluate(t, hooks)? == Flow::Stop;
         }
         let due = opts.checkpoint_every > 0 && s.is_multiple_of(opts.checkpoint_every);
