@@ -13,14 +13,16 @@ Sections:
   each), with the per-stage split and the process CPU time per step.
 - quality: the same fit for `--quality-steps` steps with the default recipe: held-out PSNR/SSIM
   (every 8th view) and the Gaussian count over the steps.
-- sparse: a 200k-Gaussian synthetic scene captured by a 300-view orbit (test views: index % 8 == 0;
-  S_K = every K-th view of the other 262), fitted with the `sparse` preset; held-out PSNR and
-  seconds per K; the S_80 preview image is written with --write-docs.
-- opensplat: OpenSplat's published CPU run on this machine type (opensplat_cpu.md section 3: 40
-  views of the synthetic room at 320x240, 8 held out, 20,000 points from the ground truth): the
-  same data fitted by morphgs for 300 steps (no densification) and 1,500 steps (densify from step
-  100 every 100 until 750), s/step and held-out PSNR beside OpenSplat's figures (cited, not
-  re-measured).
+- sparse: a 200k-Gaussian synthetic scene captured by 300 views along a 180-degree arc of its
+  room orbit (test views: index % 8 == 0; S_K = every K-th view of the other 262), fitted with the
+  `sparse` preset; held-out PSNR and seconds per K; the S_80 preview image is written with
+  --write-docs.
+- opensplat: the dataset of OpenSplat's CPU measurements on this machine type (opensplat_cpu.md
+  section 3: 40 views of the synthetic room at 320x240, 8 held out, 20,000 points from the ground
+  truth) fitted by morphgs for 300 steps (no densification) and 1,500 steps (densify from step
+  100 every 100 until 750): s/step and held-out PSNR. With --opensplat BIN (a CPU build of
+  WebODM/OpenSplat, see docs/fit.md) OpenSplat runs on the same data in the same session;
+  its published figures are printed as well.
 
 Wall times on a shared machine are noisy; the process CPU time per step is printed beside them
 (at 2 threads, wall >= CPU / 2).
@@ -207,25 +209,28 @@ def sparse_capture(n_gaussians: int, size: tuple[int, int], views: int):
 
     scene = synthetic.scene(n_gaussians, sh_degree=3, seed=0)
     o = synthetic.suggested_orbit()
-    cams = trajectory.orbit(o.center, o.radius, o.height - o.center[2], views, start_degrees=0.0,
-                            arc_degrees=360.0 * (views - 1) / views, fov_y_degrees=50.0, resolution=size)
+    # a 180-degree arc facing the walls (a capture that moves past the objects, as a DL3DV video
+    # does), not a full orbit: every held-out view lies between training views
+    cams = trajectory.orbit(o.center, o.radius, o.height - o.center[2], views, start_degrees=90.0,
+                            arc_degrees=180.0, fov_y_degrees=50.0, resolution=size)
     return scene, cams, morphgs
 
 
-def section_sparse(tmp: Path, quick: bool, size: tuple[int, int], steps: int, write_docs: bool) -> None:
+def section_sparse(tmp: Path, quick: bool, size: tuple[int, int], steps: int, write_docs: bool,
+                   ks: tuple[int, ...] = (20, 40, 80)) -> None:
     from morphgs.fit import FitConfig
 
     n, views = (20_000, 64) if quick else (200_000, 300)
     scene, cams, morphgs = sparse_capture(n, size, views)
     test = [i for i in range(views) if i % 8 == 0]
     traj = [i for i in range(views) if i % 8]
-    ks = (2, 4, 8) if quick else (20, 40, 80)
+    ks = (2, 4, 8) if quick else ks
     steps = 40 if quick else steps
-    print(f"\n## sparse-view fits of a {n:,}-Gaussian synthetic scene, {views}-view orbit capture at "
+    print(f"\n## sparse-view fits of a {n:,}-Gaussian synthetic scene, {views}-view capture (180-degree arc) at "
           f"{size[0]}x{size[1]}, sparse preset ({steps} steps, MCMC cap 300k), 2 threads "
           f"(load average {_load()})")
     print(f"{'S_K':>5} {'views':>5} {'held-out PSNR':>13} {'SSIM':>7} {'Gaussians':>9} {'seconds':>8}")
-    s80 = None
+    s80: tuple[int, np.ndarray] | None = None
     for k in ks:
         train = traj[::k]
         order = train + test
@@ -239,13 +244,25 @@ def section_sparse(tmp: Path, quick: bool, size: tuple[int, int], steps: int, wr
                       holdout=list(range(len(train), len(order))), init="random")
         print(f"{'S_' + str(k):>5} {len(train):>5} {res['psnr']:>13.3f} {res['ssim']:>7.4f} {res['gaussians']:>9} "
               f"{res['wall']:>8.0f}")
-        s80 = tmp / f"run{k}" / "preview.png"
-    if write_docs and s80 is not None and not quick:
-        shutil.copy(s80, REPO / "docs" / "fit_s80_preview.png")
-        print("wrote docs/fit_s80_preview.png (held-out view: S_80 reconstruction | ground truth)")
+        if k == ks[-1]:
+            # the held-out view farthest (along the capture) from every training view
+            far = max(test, key=lambda i: min(abs(i - t) for t in train))
+            fitted = morphgs.load(next((tmp / f"run{k}" / "point_cloud").glob("iteration_*/point_cloud.ply")))
+            cam = cams[far]
+            img = np.concatenate([np.rint(np.clip(morphgs.render(fitted, cam).rgb, 0, 1) * 255).astype(np.uint8),
+                                  morphgs.render(scene, cam).to_uint8()], axis=1)
+            s80 = (far, img)
+    if write_docs and s80 is not None and not quick and ks[-1] == 80:
+        from morphgs._core import _write_png
+
+        _write_png(REPO / "docs" / "fit_s80_preview.png", np.ascontiguousarray(s80[1]))
+        print(f"wrote docs/fit_s80_preview.png (capture view {s80[0]}, held out: S_80 reconstruction | ground truth)")
 
 
-def section_opensplat(tmp: Path, quick: bool) -> None:
+def opensplat_dataset(tmp: Path, quick: bool) -> tuple[Path, object, list[int]]:
+    """opensplat_cpu.md's dataset: 40 views of the synthetic room (100k Gaussians) at 320x240 on
+    its orbit, views i % 5 == 0 held out, 20,000 points sampled from the ground-truth centres
+    (opacity >= 0.1) with their colours as the initial cloud."""
     import morphgs
     from fit_helpers import write_point_ply
     from morphgs import synthetic
@@ -262,26 +279,92 @@ def section_opensplat(tmp: Path, quick: bool) -> None:
     keep = np.flatnonzero(np.asarray(scene.opacities) >= 0.1)
     idx = rng.choice(keep, size=min(20_000, keep.size), replace=False)
     write_point_ply(data / "init.ply", np.asarray(scene.means)[idx], np.clip(np.asarray(scene.colors)[idx], 0, 1))
-    held = [i for i in range(views) if i % 5 == 0]
-    print(f"\n## side by side with OpenSplat (CPU): the opensplat_cpu.md dataset, {views} views {w}x{h}, "
-          f"{len(held)} held out, 20,000 points from the ground truth (load average {_load()})")
-    print(f"{'run':<44} {'s/step wall':>11} {'CPU s/step':>10} {'PSNR':>7} {'Gaussians':>9}")
-    runs = [("300 steps, defaults", {"steps": 300 if not quick else 30}),
-            ("1500 steps, densify 100..750/100",
-             {"steps": 1500 if not quick else 60,
-              "default": {"refine_start": 100, "refine_every": 100, "refine_stop": 750, "reset_every": 3000}})]
-    for label, cfg in runs:
+    return data, cams, [i for i in range(views) if i % 5 == 0]
+
+
+def heldout_psnr(ply: Path, data: Path, cams, held: list[int], max_alpha: float) -> float:
+    """Mean per-view PSNR of a PLY's renders (clamped) against the dataset's held-out images."""
+    import morphgs
+    from morphgs.media import _read_image
+
+    scene = morphgs.load(ply)
+    sub = morphgs.Cameras.from_list([cams[i] for i in held])  # type: ignore[index]
+    r = np.clip(morphgs.render(scene, sub, max_alpha=max_alpha).rgb, 0, 1)
+    gt = np.stack([_read_image(data / "images" / f"view_{i:04d}.png") for i in held]).astype(np.float32) / 255
+    mse = ((r - gt) ** 2).mean(axis=(1, 2, 3))
+    return float(np.mean(10 * np.log10(1 / mse)))
+
+
+def run_opensplat(binary: str, data: Path, cams, held: list[int], out: Path, args: list[str], threads: int) -> dict:
+    """OpenSplat on the training views of `data` (its own transforms.json): s/it from the times of
+    its per-step lines (steps 2.. onwards), CPU time of the process, held-out PSNR of its PLY
+    (rendered by morphgs with max_alpha 0.999, OpenSplat's cap)."""
+    import resource
+
+    osd = out / "osdata"
+    (osd / "images").mkdir(parents=True, exist_ok=True)
+    meta = json.loads((data / "transforms.json").read_text())
+    frames = [f for i, f in enumerate(meta["frames"]) if i not in set(held)]
+    for f in frames:
+        shutil.copy(data / f["file_path"], osd / f["file_path"])
+    shutil.copy(data / "init.ply", osd / "init.ply")
+    c0 = cams[0]  # type: ignore[index]
+    tf = {"camera_model": "OPENCV", "fl_x": c0.fx, "fl_y": c0.fy, "cx": c0.cx, "cy": c0.cy, "w": c0.width,
+          "h": c0.height, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "ply_file_path": "init.ply",
+          "frames": [{"file_path": f["file_path"], "transform_matrix": f["transform_matrix"]} for f in frames]}
+    (osd / "transforms.json").write_text(json.dumps(tf))
+    ply = out / "opensplat.ply"
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads))
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    p = subprocess.Popen([binary, str(osd), "-o", str(ply), *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                         text=True, env=env)
+    times = []
+    assert p.stdout is not None
+    for line in p.stdout:
+        if line.startswith("Step "):
+            times.append(time.perf_counter())
+    p.wait()
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if p.returncode != 0 or not ply.exists():
+        raise RuntimeError(f"OpenSplat failed ({p.returncode})")
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    steps = len(times)
+    return {"s_per_step": (times[-1] - times[0]) / max(steps - 1, 1), "cpu_per_step": cpu / max(steps, 1),
+            "wall": wall, "psnr": heldout_psnr(ply, data, cams, held, 0.999), "steps": steps}
+
+
+def section_opensplat(tmp: Path, quick: bool, binary: str | None) -> None:
+    data, cams, held = opensplat_dataset(tmp, quick)
+    c0 = cams[0]  # type: ignore[index]
+    print(f"\n## side by side with OpenSplat (CPU): the opensplat_cpu.md dataset, {len(cams)} views "  # type: ignore[arg-type]
+          f"{c0.width}x{c0.height}, {len(held)} held out, 20,000 points from the ground truth (load average {_load()})")
+    print(f"{'run':<50} {'s/step wall':>11} {'CPU s/step':>10} {'PSNR':>7} {'Gaussians':>9}")
+    n300, n1500 = (30, 60) if quick else (300, 1500)
+    runs = [(f"{n300} steps, defaults", {"steps": n300}, ["-n", str(n300)]),
+            (f"{n1500} steps, densify from 100 every 100 to {n1500 // 2}",
+             {"steps": n1500, "default": {"refine_start": 100, "refine_every": 100, "refine_stop": n1500 // 2}},
+             ["-n", str(n1500), "--densify-from", "100", "--refine-every", "100"])]
+    for label, cfg, os_args in runs:
         cfg = dict(cfg, output={"eval_every": cfg["steps"], "checkpoint_every": 0, "progress_every": 0.5})
         for threads in (2, 1):
             res = run_fit(data, tmp / f"os-{cfg['steps']}-{threads}", cfg, threads=threads, holdout=held, init="points")
-            print(f"{'morphgs ' + label + f' ({threads} thr)':<44} {1 / res['steps_per_s']:>11.4f} "
+            print(f"{'morphgs ' + label + f' ({threads} thr)':<50} {1 / res['steps_per_s']:>11.4f} "
                   f"{res['cpu'] / res['steps']:>10.4f} {res['psnr']:>7.2f} {res['gaussians']:>9}")
-    print(f"{'OpenSplat -n 300 (cited: 2 cores idle; 1 core)':<44} {'0.149-0.175':>11} {OPENSPLAT['s_per_it_1core']:>10} "
+            if binary:
+                o = run_opensplat(binary, data, cams, held, tmp / f"osrun-{cfg['steps']}-{threads}", os_args, threads)
+                import morphgs
+
+                n = len(morphgs.load(tmp / f"osrun-{cfg['steps']}-{threads}" / "opensplat.ply"))
+                print(f"{'OpenSplat ' + label + f' ({threads} thr)':<50} {o['s_per_step']:>11.4f} "
+                      f"{o['cpu_per_step']:>10.4f} {o['psnr']:>7.2f} {n:>9}")
+    print(f"{'OpenSplat -n 300, cited (opensplat_cpu.md)':<50} {'0.149-0.175':>11} {OPENSPLAT['s_per_it_1core']:>10} "
           f"{OPENSPLAT['psnr_300']:>7.2f} {20000:>9}")
-    print(f"{'OpenSplat -n 1500 densify (cited: 1 core)':<44} {'':>11} {'0.26-0.30':>10} {OPENSPLAT['psnr_1500']:>7.2f} "
+    print(f"{'OpenSplat -n 1500 densify, cited (1 core)':<50} {'':>11} {'0.26-0.30':>10} {OPENSPLAT['psnr_1500']:>7.2f} "
           f"{OPENSPLAT['gaussians_1500']:>9}")
     print("OpenSplat makes 153 Adam updates in 300 iterations and 766 in 1,500 (its cadence); morphgs one per step. "
-          "OpenSplat's PSNRs were taken with max_alpha 0.999 (its cap), morphgs's with its own 0.99.")
+          "OpenSplat's PSNRs use max_alpha 0.999 (its cap), morphgs's its own 0.99.")
 
 
 def main() -> None:
@@ -295,7 +378,10 @@ def main() -> None:
     ap.add_argument("--quality-steps", type=int, default=2000)
     ap.add_argument("--sparse-size", default="416x240")
     ap.add_argument("--sparse-steps", type=int, default=3000)
+    ap.add_argument("--sparse-k", default="20,40,80", help="the K of S_K, comma-separated (20,40,80)")
     ap.add_argument("--write-docs", action="store_true", help="write docs/fit_s80_preview.png")
+    ap.add_argument("--opensplat", default=None, metavar="BIN",
+                    help="an OpenSplat binary (CPU build) to run on the same data (else its figures are cited)")
     ap.add_argument("--dir", default=None, help="scratch folder (default: a temporary one, removed)")
     a = ap.parse_args()
     if a.worker:
@@ -311,9 +397,10 @@ def main() -> None:
         if "quality" in sections:
             section_quality(tmp, a.quick, a.quality_steps)
         if "sparse" in sections:
-            section_sparse(tmp, a.quick, (96, 64) if a.quick else size, a.sparse_steps, a.write_docs)  # type: ignore[arg-type]
+            section_sparse(tmp, a.quick, (96, 64) if a.quick else size, a.sparse_steps, a.write_docs,  # type: ignore[arg-type]
+                           tuple(int(k) for k in a.sparse_k.split(",")))
         if "opensplat" in sections:
-            section_opensplat(tmp, a.quick)
+            section_opensplat(tmp, a.quick, a.opensplat)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

@@ -166,7 +166,9 @@ def test_config_file_round_trip_and_errors(tmp_path: Path) -> None:
 def test_cli_prints_the_pinned_defaults_and_refuses_bad_arguments(tmp_path: Path) -> None:
     out = subprocess.run([sys.executable, "-m", "morphgs.cli", "fit", "--print-config"], capture_output=True,
                          text=True, check=True).stdout
-    cfg = FitConfig.from_dict(__import__("tomllib").loads(out))
+    from morphgs.fit.config import _toml_loads
+
+    cfg = FitConfig.from_dict(_toml_loads(out))
     assert cfg == FitConfig()
     assert "means = 0.00016" in out and "opacity_reset = true" in out
     r = subprocess.run([sys.executable, "-m", "morphgs.cli", "fit", str(tmp_path / "nothing"), "--out",

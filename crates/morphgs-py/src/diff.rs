@@ -290,7 +290,7 @@ impl PyDiffRasterizer {
         let d = PyDict::new(py);
         let bad = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
         let put2 = |name: &str, v: Vec<f32>, cols: usize| -> PyResult<()> {
-            let rows = if cols == 0 { 0 } else { v.len() / cols };
+            let rows = v.len().checked_div(cols).unwrap_or(0);
             d.set_item(
                 name,
                 Array2::from_shape_vec((rows, cols), v)

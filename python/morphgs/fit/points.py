@@ -92,7 +92,9 @@ def _ply(p: Path) -> tuple[np.ndarray, np.ndarray]:
     nl = head.find(b"\n", end)
     body_at = nl + 1 if nl >= 0 else len(head)
     lines = head[:end].decode("ascii", errors="replace").splitlines()
-    fmt, elements, current = None, [], None
+    fmt: str | None = None
+    elements: list[tuple[str, int, list[tuple[str, str]]]] = []
+    current: tuple[str, int, list[tuple[str, str]]] | None = None
     for line in lines[1:]:
         t = line.split()
         if not t or t[0] in ("comment", "obj_info"):
@@ -101,7 +103,7 @@ def _ply(p: Path) -> tuple[np.ndarray, np.ndarray]:
             fmt = t[1]
         elif t[0] == "element" and len(t) == 3:
             try:
-                current = [t[1], int(t[2]), []]
+                current = (t[1], int(t[2]), [])
             except ValueError:
                 raise FitDataError(f"{p}: bad element line {line!r}") from None
             elements.append(current)

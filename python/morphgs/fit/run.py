@@ -292,15 +292,15 @@ def fit(
     ply = run / "point_cloud" / f"iteration_{cfg.steps}" / "point_cloud.ply"
     tw2c, tk = _stack(train_cams)
     ew2c, ek = _stack(eval_cams) if len(eval_cams) else (None, None)
-    common = dict(config=native, eval_images=list(eval_imgs), eval_world_to_camera=ew2c, eval_K=ek)
+    common: dict[str, Any] = dict(config=native, eval_images=list(eval_imgs), eval_world_to_camera=ew2c, eval_K=ek)
     fp = fingerprint.encode()
     if ck_path.is_file() and resume:
-        trainer = _core.Trainer.restore(ck_path, list(train_imgs), tw2c, tk, fingerprint=fp, **common)
+        trainer = _core.Trainer.restore(ck_path, train_imgs, tw2c, tk, fingerprint=fp, **common)
         init_desc = json.loads(id_path.read_text(encoding="utf-8")).get("init", init_key) if id_path.is_file() else init_key
     else:
         centers = np.stack([c.center for c in train_cams])
         scene0, init_desc = initial_scene(init, posed, centers, cfg, scene_scale=scale)
-        trainer = _core.Trainer(scene0, list(train_imgs), tw2c, tk, **common)
+        trainer = _core.Trainer(scene0, train_imgs, tw2c, tk, **common)
         _write_atomic(run / "config.toml", cfg.to_toml())
         names = posed.names
         _write_atomic(run / "views.json", json.dumps({
@@ -312,6 +312,9 @@ def fit(
             all_cams, [names[i] for i in sel.train + sel.heldout]), indent=1) + "\n")
         _write_atomic(id_path, json.dumps({"fingerprint": fingerprint, "init": init_desc, "scene_scale": scale,
                                            "identity": ident}, indent=1, sort_keys=True) + "\n")
+    # the trainer holds its own copy of the pixels; keep only what the final preview needs
+    first_train = (train_imgs[0], train_cams[0])
+    del train_imgs
     start = trainer.step
     _truncate_csv(run / "loss.csv", start, LOSS_COLUMNS)
     _truncate_csv(run / "eval.csv", start, EVAL_COLUMNS)
@@ -344,18 +347,19 @@ def fit(
     if eval_imgs:
         cam, truth = eval_cams[0], eval_imgs[0]
     else:
-        cam, truth = train_cams[0], train_imgs[0]
+        truth, cam = first_train
     rgb = trainer.render(np.ascontiguousarray(cam.world_to_camera, np.float64),
                          np.ascontiguousarray(cam.K, np.float64), cam.width, cam.height)
     _core._write_png(run / "preview.png", _preview(rgb, truth))
-    summary = {"steps": trainer.step, "gaussians": len(scene), "heldout_psnr": psnr, "heldout_ssim": ssim,
+    rate = done_steps / run_s if done_steps and run_s > 0 else None
+    summary: dict[str, Any] = {"steps": trainer.step, "gaussians": len(scene), "heldout_psnr": psnr, "heldout_ssim": ssim,
                "train_views": len(sel.train), "heldout_views": len(sel.heldout), "scene_scale": scale,
                "init": init_desc, "strategy": cfg.strategy, "ply": str(ply.relative_to(run)),
                "seconds_this_call": round(time.perf_counter() - t_start, 3),
                "steps_this_call": done_steps,
-               "steps_per_second": round(done_steps / run_s, 4) if done_steps and run_s > 0 else None,
+               "steps_per_second": round(rate, 4) if rate is not None else None,
                "threads": _core.num_threads(), "morphgs_version": morphgs.__version__}
     if ended == "finished":
         _write_atomic(run / "fit.json", json.dumps(summary, indent=1) + "\n")
     return FitResult(run, ply, scene, trainer.step, sel.train, sel.heldout, psnr, ssim, len(scene),
-                     time.perf_counter() - t_start, summary["steps_per_second"], summary)
+                     time.perf_counter() - t_start, round(rate, 4) if rate is not None else None, summary)
