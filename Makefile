@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 # Each target installs only the extras (pyproject's [project.optional-dependencies]) it uses.
 DEMO_EXTRAS ?= curate,video,train
-TEST_EXTRAS ?= test,reference,video,ray,curate,export,metrics,train,diffusion
+TEST_EXTRAS ?= test,reference,video,ray,curate,export,metrics,train,diffusion,fit
 BENCH_EXTRAS ?= $(TEST_EXTRAS)
 
 .PHONY: help

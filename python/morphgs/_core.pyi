@@ -188,3 +188,63 @@ def _perturb(
     seed: int,
     return_mask: bool = False,
 ) -> GaussianScene | tuple[GaussianScene, npt.NDArray[np.bool_]]: ...
+
+# ---- fit (morphgs.fit) ----
+_FitCallback = Any  # (kind: str, payload: Any) -> Any
+
+@final
+class Trainer:
+    def __new__(
+        cls,
+        scene: GaussianScene,
+        images: list[npt.NDArray[np.uint8]],
+        world_to_camera: npt.NDArray[np.float64],
+        K: npt.NDArray[np.float64],
+        *,
+        config: dict[str, Any],
+        eval_images: list[npt.NDArray[np.uint8]] | None = None,
+        eval_world_to_camera: npt.NDArray[np.float64] | None = None,
+        eval_K: npt.NDArray[np.float64] | None = None,
+    ) -> Trainer: ...
+    @staticmethod
+    def restore(
+        path: _Path,
+        images: list[npt.NDArray[np.uint8]],
+        world_to_camera: npt.NDArray[np.float64],
+        K: npt.NDArray[np.float64],
+        *,
+        config: dict[str, Any],
+        fingerprint: bytes,
+        eval_images: list[npt.NDArray[np.uint8]] | None = None,
+        eval_world_to_camera: npt.NDArray[np.float64] | None = None,
+        eval_K: npt.NDArray[np.float64] | None = None,
+    ) -> Trainer: ...
+    @property
+    def step(self) -> int: ...
+    def __len__(self) -> int: ...
+    def scene(self) -> GaussianScene: ...
+    def view_at(self, step: int) -> int: ...
+    def run(
+        self,
+        until: int,
+        *,
+        callback: _FitCallback | None = None,
+        eval_every: int = 0,
+        checkpoint: _Path | None = None,
+        checkpoint_every: int = 0,
+        fingerprint: bytes | None = None,
+        progress_every: float = 0.5,
+    ) -> str: ...
+    def save_checkpoint(self, path: _Path, *, fingerprint: bytes | None = None) -> None: ...
+    def evaluate(self) -> list[tuple[float, float]]: ...
+    def render(
+        self, world_to_camera: npt.NDArray[np.float64], K: npt.NDArray[np.float64], width: int, height: int
+    ) -> _F32: ...
+
+def _fit_init_scene(
+    points: _F32, colors: _F32, *, opacity: float, scale: float, sh_degree: int
+) -> GaussianScene: ...
+def _fit_random_points(
+    n: int, lo: Sequence[float], hi: Sequence[float], *, seed: int
+) -> tuple[_F32, _F32]: ...
+def _fit_loss(render: _F32, target: _F32, *, ssim_lambda: float = 0.2) -> tuple[float, float, float, _F32]: ...

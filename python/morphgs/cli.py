@@ -16,6 +16,7 @@ _COMMAND_MODULES = (
     "morphgs.commands.info",
     "morphgs.commands.curate",
     "morphgs.commands.export",
+    "morphgs.commands.fit",
     "morphgs.commands.export_difix",
     "morphgs.commands.preview",
     "morphgs.commands.train",

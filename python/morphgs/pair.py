@@ -33,7 +33,8 @@ def _as_cameras(cameras: Camera | Cameras | Sequence[Camera]) -> Cameras:
 class Corruption:
     """What a pair does to the clean scene: a perturbation config, or the 2D blur baseline."""
 
-    kind: str  # "perturb" | "blur2d"
+    kind: str  # "perturb" | "blur2d" | "sparse" (the corrupted scene is a sparse-view fit, see
+    # morphgs.curation.sparse; `corrupt_scene` cannot make it)
     config: dict[str, Any]
     perturb_config: Any = None
     blur_sigma: float = 0.0
@@ -47,6 +48,8 @@ class Corruption:
         kind = getattr(config, "kind", None)
         params = getattr(config, "params", None)
         if isinstance(kind, str) and isinstance(params, dict):  # ConfigSpec
+            if kind == "sparse":
+                return cls("sparse", {"kind": "sparse", **params})
             if kind == "blur2d":
                 return cls.make({"kind": "blur2d", **params})
             config = params
@@ -66,7 +69,7 @@ class Corruption:
         return cls("perturb", dict(config.to_dict()), config)
 
     def corrupt_scene(self, scene: Any, seed: int) -> Any:
-        """The perturbed copy of `scene` (None for blur2d)."""
+        """The perturbed copy of `scene` (None for blur2d and sparse)."""
         if self.kind != "perturb":
             return None
         import morphgs

@@ -5,6 +5,7 @@ use pyo3::prelude::*;
 mod blur;
 mod diff;
 mod errors;
+mod fit;
 mod formats;
 mod io;
 mod perturb;
@@ -21,6 +22,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     blur::register(m)?;
     render::register(m)?;
     diff::register(m)?;
+    fit::register(m)?;
     formats::register(m)?;
     perturb::register(m)?;
     m.add_function(wrap_pyfunction!(num_threads, m)?)?;

@@ -19,5 +19,6 @@ pub use error::{Error, Result};
 pub use scene::{Scene, SceneView};
 pub mod blur;
 pub mod camera;
+pub mod fit;
 pub mod image_out;
 pub mod raster;

@@ -53,7 +53,8 @@ class ConfigSpec:
     """One corruption of a run: a label (used in paths) and its parameters as a dict.
 
     kind "perturb" carries `PerturbConfig.to_dict()` in `params`; kind "blur2d" carries
-    {"sigma": pixels}.
+    {"sigma": pixels}; kind "sparse" carries {"every": K} or {"n": N}, optionally "steps" and
+    "fit" (FitConfig overrides), see morphgs.curation.sparse.
     """
 
     label: str
@@ -69,15 +70,40 @@ class ConfigSpec:
         return morphgs.PerturbConfig.from_dict(self.params)
 
 
+def _sparse(spec: str, label_prefix: str, key: str, body: str) -> ConfigSpec:
+    count, _, steps = body.partition("@")
+    try:
+        k = int(count)
+        st = int(steps) if steps else None
+    except ValueError:
+        raise ValueError(f"--config {spec!r}: expected {label_prefix}:N or {label_prefix}:N@STEPS with integers") from None
+    if k < 1 or (st is not None and st < 1):
+        raise ValueError(f"--config {spec!r}: the view count and the steps must be >= 1")
+    params: dict[str, Any] = {key: k}
+    label = f"{label_prefix.replace(':', '')}-{k}" if key == "every" else f"sparse-n{k}"
+    if st is not None:
+        params["steps"] = st
+        label += f"-{st}steps"
+    return ConfigSpec(label, "sparse", params)
+
+
 def parse_config(spec: str, *, blur_sigma: float = 2.0) -> ConfigSpec:
     """Parse a --config value.
 
     Forms: a preset name (spatial, radiometric, morphological, naive); `NAME@S`, the preset with
     every intensity scaled by S (`PerturbConfig.scaled`); `blur2d` or `blur2d@SIGMA` (the 2D
-    baseline, sigma in pixels, default `blur_sigma`); or a path to a JSON file holding a
-    `PerturbConfig.to_dict()` (or {"kind": "blur2d", "sigma": s}), labelled by the file stem.
+    baseline, sigma in pixels, default `blur_sigma`); `sparse:K` (a reconstruction from every
+    K-th recorded view, the paper's S_K) or `sparse-n:N` (from N views spread evenly), each
+    optionally `@STEPS`; or a path to a JSON file holding a `PerturbConfig.to_dict()` (or
+    {"kind": "blur2d", "sigma": s}, or {"kind": "sparse", "every": K | "n": N, "steps": S,
+    "fit": {FitConfig overrides}}), labelled by the file stem.
     """
     s = spec.strip()
+    low = s.lower()
+    if low.startswith("sparse:"):
+        return _sparse(s, "sparse", "every", s[7:])
+    if low.startswith("sparse-n:"):
+        return _sparse(s, "sparse-n", "n", s[9:])
     if s.lower().endswith(".json"):
         p = Path(s)
         try:
@@ -88,6 +114,16 @@ def parse_config(spec: str, *, blur_sigma: float = 2.0) -> ConfigSpec:
             raise ValueError(f"--config {spec}: expected a JSON object")
         if d.get("kind") == "blur2d":
             return ConfigSpec(p.stem, "blur2d", {"sigma": float(d.get("sigma", blur_sigma))})
+        if d.get("kind") == "sparse":
+            if ("every" in d) == ("n" in d):
+                raise ValueError(f"--config {spec}: a sparse config needs exactly one of 'every' and 'n'")
+            params = {k: d[k] for k in ("every", "n", "steps", "fit") if k in d}
+            for k in ("every", "n", "steps"):
+                if k in params and (isinstance(params[k], bool) or not isinstance(params[k], int) or params[k] < 1):
+                    raise ValueError(f"--config {spec}: '{k}' must be an integer >= 1")
+            if "fit" in params and not isinstance(params["fit"], dict):
+                raise ValueError(f"--config {spec}: 'fit' must be an object of fit settings")
+            return ConfigSpec(p.stem, "sparse", params)
         import morphgs
 
         d = {k: v for k, v in d.items() if k not in ("kind", "name")}
@@ -140,6 +176,7 @@ class PairJob:
     frames: int
     width: int
     height: int
+    run_seed: int = 0
 
     @property
     def pair_id(self) -> str:
@@ -186,7 +223,8 @@ def make_plan(
             seed = pair_seed(run_seed, src.id, k)
             for cfg in configs:
                 if j % num_shards == shard_index:
-                    jobs.append(PairJob(src, cfg, k, pairs_per_scene, seed, split, frames, *resolution))
+                    jobs.append(PairJob(src, cfg, k, pairs_per_scene, seed, split, frames, *resolution,
+                                        run_seed=int(run_seed)))
                 j += 1
     return jobs
 

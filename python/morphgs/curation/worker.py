@@ -112,7 +112,13 @@ def make_pair(
     cams = job_cameras(job, scene, recorded, opts.trajectory)
     corruption = Corruption.make(job.config)
     t0 = time.perf_counter()
-    corrupted_scene = corruption.corrupt_scene(scene, job.seed)
+    fit_info = None
+    if corruption.kind == "sparse":
+        from morphgs.curation.sparse import sparse_scene
+
+        corrupted_scene, fit_info = sparse_scene(job, scene, recorded, out_dir)
+    else:
+        corrupted_scene = corruption.corrupt_scene(scene, job.seed)
     t_perturb = time.perf_counter() - t0
 
     tmp = tmp_root(out_dir) / f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:12]}"
@@ -159,6 +165,7 @@ def make_pair(
     if opts.depth:
         paths.update({"clean_depth": f"{rel}/clean", "corrupted_depth": f"{rel}/corrupted"})
     total = time.perf_counter() - t_start + load_seconds
+    extra = {"fit": fit_info} if fit_info is not None else {}
     return {
         "schema": 1,
         "pair_id": job.pair_id,
@@ -178,4 +185,5 @@ def make_pair(
         "timings": {"load": round(load_seconds, 4), "perturb": round(t_perturb, 4),
                     "render": round(t_render, 4), "write_wait": round(t_wait, 4), "total": round(total, 4)},
         "morphgs_version": morphgs.__version__,
+        **extra,
     }

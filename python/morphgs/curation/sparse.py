@@ -1,0 +1,187 @@
+"""Sparse-view reconstructions for `--config sparse:K` / `sparse-n:N` (docs/curation.md, docs/fit.md).
+
+The corrupted side of such a pair is a real 3DGS reconstruction from few views, rendered along
+the pair's path. Per (scene, views, seed, resolution, fit settings) one fit is made and cached:
+
+    OUT/fits/<scene>/<label>-<W>x<H>-seed<S>-<hash>/
+        data/transforms.json, data/images/      the training (and scoring) views as fitted
+        run/                                    the morphgs fit run folder (resumable)
+
+- The capture: the scene's recorded cameras (transforms.json / COLMAP / INRIA cameras.json, at
+  the pair resolution) in capture order; a scene without cameras gets a 96-view 360-degree orbit
+  (the built-in synthetic scenes their own room orbit).
+- Training views: every K-th capture view starting with the first (the paper's S_K), or N views
+  spread evenly (both ends included). Up to 8 other views, spread evenly, are held out to score
+  the fit.
+- Images: the scene folder's real images when every training view has one (resized to the pair
+  resolution), else renders of the clean scene from those cameras.
+- Initialisation: random points in the cameras' box (no SfM points: they would come from all
+  views). The fit config is the `sparse` preset (3000 steps, MCMC capped at 300k Gaussians, SH
+  degree 1) unless the config says otherwise.
+
+A fit is resumable (its run folder checkpoints) and shared: worker processes take a file lock per
+fit, so several pairs and workers reuse one reconstruction.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from morphgs.camera import Cameras
+
+__all__ = ["capture_cameras", "sparse_scene", "split_views"]
+
+CAPTURE_VIEWS = 96
+EVAL_VIEWS = 8
+_GL = np.diag([1.0, -1.0, -1.0, 1.0])
+_CACHE: dict[str, tuple[Any, dict[str, Any]]] = {}
+
+
+def capture_cameras(source: Any, scene: Any, recorded: Cameras | None, resolution: tuple[int, int]) -> Cameras:
+    """The cameras a sparse fit picks its views from (see the module docs)."""
+    from morphgs import trajectory
+
+    if recorded is not None:
+        return recorded
+    if source.builtin is not None:
+        from morphgs import synthetic
+
+        o = synthetic.suggested_orbit()
+        return trajectory.orbit(o.center, o.radius, o.height - o.center[2], CAPTURE_VIEWS, start_degrees=0.0,
+                                arc_degrees=360.0 * (CAPTURE_VIEWS - 1) / CAPTURE_VIEWS, fov_y_degrees=50.0,
+                                resolution=resolution)
+    return trajectory.for_scene(scene, CAPTURE_VIEWS, resolution=resolution,
+                                arc_degrees=360.0 * (CAPTURE_VIEWS - 1) / CAPTURE_VIEWS)
+
+
+def split_views(n: int, params: dict[str, Any]) -> tuple[list[int], list[int]]:
+    """(training, held-out) capture indices: every K-th or N spread evenly; up to 8 others held
+    out, spread evenly."""
+    if "every" in params:
+        train = list(range(0, n, int(params["every"])))
+    else:
+        k = int(params["n"])
+        train = sorted({int(i) for i in np.round(np.linspace(0, n - 1, min(k, n)))})
+    rest = [i for i in range(n) if i not in set(train)]
+    if rest:
+        held = sorted({rest[int(i)] for i in np.round(np.linspace(0, len(rest) - 1, min(EVAL_VIEWS, len(rest))))})
+    else:
+        held = []
+    return train, held
+
+
+def _real_images(source: Any, count: int) -> list[Path] | None:
+    """The scene folder's image files in capture order, when it has one per recorded camera."""
+    if source.cameras_kind not in ("transforms", "colmap") or source.cameras is None:
+        return None
+    from morphgs.fit import load_posed_images
+
+    try:
+        posed = load_posed_images(source.cameras if source.cameras_kind == "transforms" else Path(source.cameras))
+    except (OSError, ValueError):
+        return None
+    if len(posed) != count or not all(p.is_file() for p in posed.paths):
+        return None
+    return posed.paths
+
+
+def _fit_dir(out_dir: Path, job: Any, fit_cfg: dict[str, Any]) -> Path:
+    ident = json.dumps({"config": job.config.as_dict(), "fit": fit_cfg, "size": [job.width, job.height],
+                        "seed": job.run_seed, "scene": job.source.describe()}, sort_keys=True)
+    h = hashlib.sha256(ident.encode()).hexdigest()[:10]
+    return out_dir / "fits" / job.source.id / f"{job.config.label}-{job.width}x{job.height}-seed{job.run_seed}-{h}"
+
+
+def _write_data(folder: Path, cams: Cameras, images: list[np.ndarray]) -> None:
+    from morphgs._core import _write_png_batch
+
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    names = [f"view_{i:05d}.png" for i in range(len(images))]
+    _write_png_batch([folder / "images" / n for n in names], np.ascontiguousarray(np.stack(images)))
+    c0 = cams[0]
+    frames = [{"file_path": f"images/{n}", "transform_matrix": (c.camera_to_world @ _GL).tolist(),
+               "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy} for n, c in zip(names, cams)]
+    meta = {"w": c0.width, "h": c0.height, "frames": frames}
+    tmp = folder / ".transforms.json.tmp"
+    tmp.write_text(json.dumps(meta), encoding="utf-8")
+    os.replace(tmp, folder / "transforms.json")
+
+
+def _views_images(source: Any, scene: Any, cams: Cameras, idx: list[int]) -> tuple[list[np.ndarray], str]:
+    import morphgs
+
+    sub = Cameras.from_list([cams[i] for i in idx])
+    paths = _real_images(source, len(cams))
+    if paths is not None:
+        from PIL import Image
+
+        from morphgs.media import _read_image
+
+        out = []
+        for i in idx:
+            img = _read_image(paths[i])
+            c = cams[i]
+            if img.shape[:2] != (c.height, c.width):
+                img = np.asarray(Image.fromarray(img).resize((c.width, c.height), Image.Resampling.LANCZOS))
+            out.append(img)
+        return out, "images"
+    r = morphgs.render(scene, sub)
+    return list(r.to_uint8()), "renders"
+
+
+def sparse_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path) -> tuple[Any, dict[str, Any]]:
+    """The cached sparse reconstruction of a `sparse` job (fitting it first when needed):
+    (GaussianScene, info for the manifest)."""
+    import morphgs
+    from morphgs.fit import FitConfig, fit
+
+    params = dict(job.config.params)
+    cfg = FitConfig.preset("sparse")
+    overrides = dict(params.get("fit", {}))
+    if "steps" in params:
+        overrides["steps"] = int(params["steps"])
+    if overrides:
+        cfg = FitConfig.from_dict({**cfg.to_dict(), **overrides}, source=f"config {job.config.label}")
+    cfg.seed = int(job.run_seed)
+    folder = _fit_dir(out_dir, job, cfg.to_dict())
+    key = str(folder)
+    if key in _CACHE:
+        return _CACHE[key]
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # one process fits; the others wait and reuse it
+        run = folder / "run"
+        done = run / "fit.json"
+        if not done.is_file():
+            cams = capture_cameras(job.source, scene, recorded, (job.width, job.height))
+            train, held = split_views(len(cams), params)
+            data = folder / "data"
+            if not (data / "transforms.json").is_file():
+                order = train + held
+                imgs, kind = _views_images(job.source, scene, cams, order)
+                _write_data(data, Cameras.from_list([cams[i] for i in order]), imgs)
+                (folder / "views.json").write_text(json.dumps(
+                    {"capture_views": len(cams), "train": train, "heldout": held, "images": kind}, indent=1) + "\n")
+            nt = len(train)
+            print(f"curate: fitting {job.source.id} from {nt} of {len(cams)} views ({job.config.label}, "
+                  f"{cfg.steps} steps) -> {run}", file=sys.stderr)
+            fit(data, run, config=cfg, views=list(range(nt)), holdout=list(range(nt, nt + len(held))),
+                init="random", progress=False)
+        summary = json.loads(done.read_text(encoding="utf-8"))
+        views = json.loads((folder / "views.json").read_text(encoding="utf-8"))
+        result = morphgs.load(run / summary["ply"])
+    info = {"dir": str(folder.relative_to(out_dir)), "ply": str((run / summary["ply"]).relative_to(out_dir)),
+            "capture_views": views["capture_views"], "train_views": views["train"], "images": views["images"],
+            "steps": summary["steps"], "gaussians": summary["gaussians"], "heldout_psnr": summary["heldout_psnr"],
+            "heldout_ssim": summary["heldout_ssim"], "seed": int(job.run_seed)}
+    _CACHE.clear()
+    _CACHE[key] = (result, info)
+    return result, info

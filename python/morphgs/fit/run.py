@@ -1,0 +1,365 @@
+"""`morphgs.fit.fit(...)`: posed images in, a trained 3DGS scene and a run folder out.
+
+The run folder (docs/fit.md, "Run folder"):
+
+    config.toml                       the config as used (every value)
+    views.json                        training and held-out views (indices and file names)
+    cameras.json                      every view's camera, INRIA 3DGS layout
+    loss.csv                          per step: loss, L1, SSIM, train PSNR, Gaussians, ...
+    eval.csv, eval_views.csv          held-out PSNR / SSIM (mean; per view) every eval_every steps
+    previews/step_NNNNNN.png          first held-out view: render | ground truth
+    checkpoint.bin                    the state to resume from (atomic)
+    point_cloud/iteration_N/point_cloud.ply   the result, INRIA PLY layout
+    fit.json                          summary (written last: its presence means done)
+
+The loop runs natively in one call; the CSV rows arrive through its callback in batches and are
+flushed before every checkpoint, so after a kill (even SIGKILL) a rerun resumes from the last
+checkpoint, drops the rows logged after it and continues bit for bit: the same scene, the same
+rows.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import shutil
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from morphgs._core import GaussianScene, MorphgsError
+from morphgs.camera import Cameras
+from morphgs.fit.config import FitConfig
+from morphgs.fit.data import PosedImages, describe, load_posed_images
+from morphgs.fit.views import ViewSelection, select_views
+
+__all__ = ["FitResult", "FitRunError", "fit", "scene_scale_of"]
+
+LOSS_COLUMNS = ["step", "view", "loss", "l1", "ssim", "psnr", "gaussians", "sh_degree", "lr_means",
+                "duplicated", "split", "pruned", "reset", "relocated", "added", "seconds"]
+EVAL_COLUMNS = ["step", "psnr", "ssim"]
+EVAL_VIEW_COLUMNS = ["step", "view", "name", "psnr", "ssim"]
+
+
+class FitRunError(MorphgsError):
+    """A run folder that holds another run (other config or data) than the one asked for."""
+
+
+@dataclass
+class FitResult:
+    """What a fit produced.
+
+    Attributes:
+        run_dir: the run folder; ply: the result's PLY; scene: the trained GaussianScene.
+        steps: steps done; train_views, heldout_views: view indices of the dataset.
+        heldout_psnr, heldout_ssim: mean held-out metrics of the result (None without held-out
+            views); gaussians: the result's size; seconds: wall time of this call;
+        steps_per_second: steps of this call per second (None when nothing was left to do).
+    """
+
+    run_dir: Path
+    ply: Path
+    scene: GaussianScene
+    steps: int
+    train_views: list[int]
+    heldout_views: list[int]
+    heldout_psnr: float | None
+    heldout_ssim: float | None
+    gaussians: int
+    seconds: float
+    steps_per_second: float | None
+    summary: dict[str, Any] = field(default_factory=dict, repr=False)
+
+
+def scene_scale_of(cameras: Cameras) -> float:
+    """INRIA's cameras_extent / gsplat's scene_scale: 1.1 x the largest distance of a camera
+    centre from their mean (1.0 when the cameras coincide, e.g. one view)."""
+    c = np.stack([cam.center for cam in cameras]) if len(cameras) else np.zeros((1, 3))
+    r = float(np.linalg.norm(c - c.mean(axis=0), axis=1).max()) * 1.1
+    return r if r > 1e-6 else 1.0
+
+
+def _resolve_config(config: Any) -> FitConfig:
+    if config is None:
+        return FitConfig()
+    if isinstance(config, FitConfig):
+        return config
+    if isinstance(config, dict):
+        return FitConfig.from_dict(config)
+    if isinstance(config, str) and config in ("default", "mcmc", "sparse"):
+        return FitConfig.preset(config)
+    return FitConfig.load(config)
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def _truncate_csv(path: Path, step: int, columns: list[str]) -> None:
+    """Keep the header and the rows of steps <= `step` (a fresh file when there is none)."""
+    rows: list[str] = []
+    if path.is_file():
+        lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+        for line in lines[1:]:
+            if not line.endswith("\n"):
+                break  # cut short by a kill
+            try:
+                if int(line.split(",", 1)[0]) <= step:
+                    rows.append(line)
+            except ValueError:
+                continue
+    _write_atomic(path, ",".join(columns) + "\n" + "".join(rows))
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, bool):
+        return "1" if v else "0"
+    if isinstance(v, float):
+        return repr(v)
+    return str(v)
+
+
+def _inria_cameras(cams: Cameras, names: list[str]) -> list[dict[str, Any]]:
+    out = []
+    for i, (c, n) in enumerate(zip(cams, names)):
+        c2w = c.camera_to_world
+        out.append({"id": i, "img_name": Path(n).stem, "width": c.width, "height": c.height,
+                    "position": c2w[:3, 3].tolist(), "rotation": c2w[:3, :3].tolist(),
+                    "fx": c.fx, "fy": c.fy})
+    return out
+
+
+def _preview(render: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    r = np.rint(np.clip(render, 0.0, 1.0) * 255.0).astype(np.uint8)
+    return np.ascontiguousarray(np.concatenate([r, truth], axis=1))
+
+
+def _stack(cams: Cameras) -> tuple[np.ndarray, np.ndarray]:
+    w2c = np.ascontiguousarray(np.stack([c.world_to_camera for c in cams]), np.float64)
+    k = np.ascontiguousarray(np.stack([c.K for c in cams]), np.float64)
+    return w2c, k
+
+
+class _Logger:
+    """Receives the native loop's callbacks: CSV rows, previews, the progress bar."""
+
+    def __init__(self, run: Path, cfg: FitConfig, heldout_names: list[str], heldout_images: list[np.ndarray],
+                 bar: Any, user: Callable[[str, Any], Any] | None, verbose: bool) -> None:
+        self.run, self.cfg, self.names, self.truth, self.bar, self.user = run, cfg, heldout_names, heldout_images, bar, user
+        self.verbose = verbose
+        self.loss = open(run / "loss.csv", "a", encoding="utf-8", newline="")
+        self.eval = open(run / "eval.csv", "a", encoding="utf-8", newline="")
+        self.eval_views = open(run / "eval_views.csv", "a", encoding="utf-8", newline="")
+        self.last: dict[str, Any] = {}
+        self.last_eval: dict[str, Any] = {}
+
+    def __call__(self, kind: str, payload: Any) -> Any:
+        if kind == "steps":
+            for r in payload:
+                self.loss.write(",".join(_fmt(r[c]) for c in LOSS_COLUMNS) + "\n")
+                for what in ("duplicated", "split", "pruned", "relocated", "added"):
+                    if r[what] and self.verbose:
+                        self.bar.write(f"step {r['step']}: {r['duplicated']} duplicated, {r['split']} split, "
+                                       f"{r['pruned']} pruned, {r['relocated']} relocated, {r['added']} added "
+                                       f"-> {r['gaussians']} Gaussians")
+                        break
+                if r["reset"] and self.verbose:
+                    self.bar.write(f"step {r['step']}: opacities reset")
+            self.loss.flush()
+            if payload:
+                self.last = payload[-1]
+                self.bar.set_postfix_str(
+                    f"loss {self.last['loss']:.4f} psnr {self.last['psnr']:.2f} N {self.last['gaussians']}",
+                    refresh=False)
+                self.bar.update(len(payload))
+        elif kind == "eval_view":
+            step, v = payload["step"], payload["view"]
+            self.eval_views.write(",".join(_fmt(x) for x in (step, v, self.names[v], payload["psnr"], payload["ssim"])) + "\n")
+            pe = self.cfg.output.preview_every
+            if v == 0 and (step == self.cfg.steps or (pe > 0 and step % pe == 0)):
+                from morphgs._core import _write_png
+
+                (self.run / "previews").mkdir(exist_ok=True)
+                _write_png(self.run / "previews" / f"step_{step:06d}.png", _preview(payload["rgb"], self.truth[0]))
+        elif kind == "eval":
+            self.eval.write(",".join(_fmt(payload[c]) for c in EVAL_COLUMNS) + "\n")
+            self.eval.flush()
+            self.eval_views.flush()
+            self.last_eval = payload
+            if self.verbose:
+                self.bar.write(f"step {payload['step']}: held-out PSNR {payload['psnr']:.3f} dB, SSIM {payload['ssim']:.4f}")
+        elif kind == "checkpoint":
+            pass
+        if self.user is not None:
+            return self.user(kind, payload)
+        return None
+
+    def close(self) -> None:
+        for f in (self.loss, self.eval, self.eval_views):
+            f.close()
+
+
+def fit(
+    data: str | os.PathLike[str] | PosedImages,
+    out: str | os.PathLike[str],
+    *,
+    config: FitConfig | str | os.PathLike[str] | dict[str, Any] | None = None,
+    views: str | Sequence[int] = "all",
+    holdout: str | Sequence[int] = "every:8",
+    init: Any = "auto",
+    images: str | None = None,
+    downscale: int = 1,
+    steps: int | None = None,
+    seed: int | None = None,
+    resume: bool = True,
+    progress: bool = True,
+    callback: Callable[[str, Any], Any] | None = None,
+) -> FitResult:
+    """Fit a 3DGS scene to posed images on the CPU (docs/fit.md).
+
+    Args:
+        data: a transforms.json, a dataset folder (transforms.json or COLMAP model + images) or
+            a `PosedImages`.
+        out: the run folder (created; a rerun resumes in it).
+        config: a FitConfig, a TOML file, a dict of settings, a preset name ("default",
+            "mcmc", "sparse") or None (the defaults).
+        views: training views: "all", "every:K", "n:N" or explicit indices (see
+            morphgs.fit.views); holdout: "every:8" (default), "none" or explicit indices.
+        init: "auto", "points", "random[:N]", "ply:PATH", "scene:PATH" or a GaussianScene.
+        images: image folder to use instead of the dataset's (e.g. "images_4").
+        downscale: shrink images (and cameras) by this integer factor.
+        steps, seed: override the config's.
+        resume: continue a run found in `out` (False: start over, removing its files).
+        progress: show a progress bar (tqdm when installed) on stderr.
+        callback: also called with every event of the loop (kind, payload); see
+            `_core.Trainer.run`. A true return value stops the run after a checkpoint.
+
+    Returns:
+        FitResult.
+
+    Raises:
+        FileNotFoundError: missing dataset, images or init files. FitDataError, FitConfigError,
+        ViewSelectionError, InitError (all MorphgsError): bad inputs, each naming the file or
+        field. FitRunError: `out` holds another run. KeyboardInterrupt: Ctrl-C, after a
+        checkpoint was written (rerun to resume).
+    """
+    from morphgs import _core
+    from morphgs.fit.init import initial_scene
+    from morphgs.fit.progress import progress_bar
+
+    t_start = time.perf_counter()
+    cfg = _resolve_config(config)
+    if steps is not None or seed is not None:
+        cfg = FitConfig.from_dict({**cfg.to_dict(), **({"steps": steps} if steps is not None else {}),
+                                   **({"seed": seed} if seed is not None else {})})
+    if downscale < 1:
+        raise MorphgsError(f"downscale must be >= 1, got {downscale}")
+    posed = data if isinstance(data, PosedImages) else load_posed_images(data, images=images)
+    sel: ViewSelection = select_views(len(posed), views, holdout=holdout)
+    train_imgs, train_cams = posed.load(sel.train, downscale=downscale)
+    eval_imgs, eval_cams = posed.load(sel.heldout, downscale=downscale)
+    scale = float(cfg.scene_scale) if not isinstance(cfg.scene_scale, str) else scene_scale_of(train_cams)
+    native = cfg.native(scale)
+    init_key = f"scene object {hashlib.sha256(np.asarray(init.means).tobytes()).hexdigest()[:16]}" \
+        if isinstance(init, GaussianScene) else str(init)
+    ident = {"config": native, "data": describe(posed), "train": sel.train, "heldout": sel.heldout,
+             "downscale": downscale, "init": init_key, "format": 1}
+    fingerprint = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
+
+    run = Path(out)
+    run.mkdir(parents=True, exist_ok=True)
+    ck_path = run / "checkpoint.bin"
+    id_path = run / "run.json"
+    if id_path.is_file() and resume:
+        old = json.loads(id_path.read_text(encoding="utf-8")).get("fingerprint")
+        if old != fingerprint:
+            raise FitRunError(f"{run} holds a run with another config, data, views or init; "
+                              "use another folder, or resume=False (--restart) to start over")
+    if not resume:
+        for name in ("checkpoint.bin", "fit.json", "loss.csv", "eval.csv", "eval_views.csv", "run.json"):
+            (run / name).unlink(missing_ok=True)
+        for d in ("previews", "point_cloud"):
+            shutil.rmtree(run / d, ignore_errors=True)
+
+    ply = run / "point_cloud" / f"iteration_{cfg.steps}" / "point_cloud.ply"
+    tw2c, tk = _stack(train_cams)
+    ew2c, ek = _stack(eval_cams) if len(eval_cams) else (None, None)
+    common: dict[str, Any] = dict(config=native, eval_images=list(eval_imgs), eval_world_to_camera=ew2c, eval_K=ek)
+    fp = fingerprint.encode()
+    if ck_path.is_file() and resume:
+        trainer = _core.Trainer.restore(ck_path, train_imgs, tw2c, tk, fingerprint=fp, **common)
+        init_desc = json.loads(id_path.read_text(encoding="utf-8")).get("init", init_key) if id_path.is_file() else init_key
+    else:
+        centers = np.stack([c.center for c in train_cams])
+        scene0, init_desc = initial_scene(init, posed, centers, cfg, scene_scale=scale)
+        trainer = _core.Trainer(scene0, train_imgs, tw2c, tk, **common)
+        _write_atomic(run / "config.toml", cfg.to_toml())
+        names = posed.names
+        _write_atomic(run / "views.json", json.dumps({
+            "source": posed.source, "views": sel.spec, "holdout": sel.holdout, "downscale": downscale,
+            "train": [{"index": i, "name": names[i]} for i in sel.train],
+            "heldout": [{"index": i, "name": names[i]} for i in sel.heldout]}, indent=1) + "\n")
+        all_cams = Cameras.from_list(list(train_cams) + list(eval_cams))
+        _write_atomic(run / "cameras.json", json.dumps(_inria_cameras(
+            all_cams, [names[i] for i in sel.train + sel.heldout]), indent=1) + "\n")
+        _write_atomic(id_path, json.dumps({"fingerprint": fingerprint, "init": init_desc, "scene_scale": scale,
+                                           "identity": ident}, indent=1, sort_keys=True) + "\n")
+    # the trainer holds its own copy of the pixels; keep only what the final preview needs
+    first_train = (train_imgs[0], train_cams[0])
+    del train_imgs
+    start = trainer.step
+    _truncate_csv(run / "loss.csv", start, LOSS_COLUMNS)
+    _truncate_csv(run / "eval.csv", start, EVAL_COLUMNS)
+    _truncate_csv(run / "eval_views.csv", start, EVAL_VIEW_COLUMNS)
+
+    bar = progress_bar(cfg.steps, start, progress)
+    logger = _Logger(run, cfg, [posed.names[i] for i in sel.heldout], list(eval_imgs), bar, callback, progress)
+    t_run = time.perf_counter()
+    try:
+        ended = trainer.run(cfg.steps, callback=logger, eval_every=cfg.output.eval_every if eval_imgs else 0,
+                    checkpoint=ck_path, checkpoint_every=cfg.output.checkpoint_every, fingerprint=fp,
+                    progress_every=cfg.output.progress_every)
+    finally:
+        logger.close()
+        bar.close()
+    run_s = time.perf_counter() - t_run
+    done_steps = trainer.step - start
+
+    scene = trainer.scene()
+    if ended == "stopped":  # the callback asked to stop: a PLY of where it is, no fit.json
+        ply = run / "point_cloud" / f"iteration_{trainer.step}" / "point_cloud.ply"
+    ply.parent.mkdir(parents=True, exist_ok=True)
+    import morphgs
+
+    morphgs.save_ply(scene, ply)
+    metrics = trainer.evaluate() if eval_imgs else []
+    psnr = float(np.mean([m[0] for m in metrics])) if metrics else None
+    ssim = float(np.mean([m[1] for m in metrics])) if metrics else None
+    # a final preview: first held-out view (else first training view) beside its image
+    if eval_imgs:
+        cam, truth = eval_cams[0], eval_imgs[0]
+    else:
+        truth, cam = first_train
+    rgb = trainer.render(np.ascontiguousarray(cam.world_to_camera, np.float64),
+                         np.ascontiguousarray(cam.K, np.float64), cam.width, cam.height)
+    _core._write_png(run / "preview.png", _preview(rgb, truth))
+    rate = done_steps / run_s if done_steps and run_s > 0 else None
+    summary: dict[str, Any] = {"steps": trainer.step, "gaussians": len(scene), "heldout_psnr": psnr, "heldout_ssim": ssim,
+               "train_views": len(sel.train), "heldout_views": len(sel.heldout), "scene_scale": scale,
+               "init": init_desc, "strategy": cfg.strategy, "ply": str(ply.relative_to(run)),
+               "seconds_this_call": round(time.perf_counter() - t_start, 3),
+               "steps_this_call": done_steps,
+               "steps_per_second": round(rate, 4) if rate is not None else None,
+               "threads": _core.num_threads(), "morphgs_version": morphgs.__version__}
+    if ended == "finished":
+        _write_atomic(run / "fit.json", json.dumps(summary, indent=1) + "\n")
+    return FitResult(run, ply, scene, trainer.step, sel.train, sel.heldout, psnr, ssim, len(scene),
+                     time.perf_counter() - t_start, round(rate, 4) if rate is not None else None, summary)

@@ -1,0 +1,96 @@
+"""`morphgs.fit.fit` end to end on a small known scene fitted from its own renders."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import morphgs
+from fit_helpers import make_dataset, small_config
+from morphgs.fit import FitConfig, FitRunError, fit
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root, _, _ = make_dataset(tmp_path_factory.mktemp("fitdata") / "room", points=1500)
+    return root
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with open(path, encoding="utf-8") as f:
+        return list(csv.DictReader(f))
+
+
+def test_fit_from_own_renders_reaches_25db_held_out_in_400_steps(dataset: Path, tmp_path: Path) -> None:
+    res = fit(dataset, tmp_path / "run", config=small_config(400), init="points", progress=False)
+    # 24 views, every 8th held out: views 0, 8, 16
+    assert res.heldout_views == [0, 8, 16] and len(res.train_views) == 21
+    assert res.steps == 400
+    assert res.heldout_psnr is not None and res.heldout_psnr >= 25.0, res.heldout_psnr
+    ev = _rows(res.run_dir / "eval.csv")
+    assert [int(r["step"]) for r in ev] == [100, 200, 300, 400]
+    psnrs = [float(r["psnr"]) for r in ev]
+    assert psnrs[-1] > psnrs[0] + 2.0
+    assert float(ev[-1]["psnr"]) == pytest.approx(res.heldout_psnr, abs=1e-9)
+    # densification ran: the Gaussian count grew from the 1500 points
+    loss = _rows(res.run_dir / "loss.csv")
+    assert [int(r["step"]) for r in loss] == list(range(1, 401))
+    assert int(loss[-1]["gaussians"]) == res.gaussians > 1500
+    assert any(r["reset"] == "1" for r in loss) and any(int(r["split"]) > 0 for r in loss)
+    # the PLY in the INRIA layout loads back to the trained scene
+    back = morphgs.load(res.ply)
+    assert len(back) == res.gaussians and back.sh_degree == 1
+    np.testing.assert_array_equal(np.asarray(back.means), np.asarray(res.scene.means))
+    assert res.ply == res.run_dir / "point_cloud" / "iteration_400" / "point_cloud.ply"
+    views = json.loads((res.run_dir / "views.json").read_text())
+    assert [v["index"] for v in views["heldout"]] == [0, 8, 16]
+    assert views["heldout"][1]["name"] == "frame_00008.png"
+    cfg = FitConfig.load(res.run_dir / "config.toml")
+    assert cfg.steps == 400 and cfg.default.refine_every == 50 and cfg.default.opacity_reset
+    assert (res.run_dir / "previews" / "step_000400.png").is_file() and (res.run_dir / "preview.png").is_file()
+    cams = json.loads((res.run_dir / "cameras.json").read_text())
+    assert len(cams) == 24 and cams[0]["width"] == 64
+    summary = json.loads((res.run_dir / "fit.json").read_text())
+    assert summary["steps"] == 400 and summary["gaussians"] == res.gaussians
+
+
+def test_a_finished_run_is_not_redone_and_another_config_is_refused(dataset: Path, tmp_path: Path) -> None:
+    cfg = small_config(120)
+    a = fit(dataset, tmp_path / "run", config=cfg, init="points", progress=False)
+    b = fit(dataset, tmp_path / "run", config=cfg, init="points", progress=False)
+    assert b.summary["steps_this_call"] == 0 and b.ply.read_bytes() == a.ply.read_bytes()
+    with pytest.raises(FitRunError, match="another config"):
+        fit(dataset, tmp_path / "run", config=small_config(130), init="points", progress=False)
+    c = fit(dataset, tmp_path / "run", config=small_config(130), init="points", progress=False, resume=False)
+    assert c.steps == 130
+
+
+def test_a_stopped_run_resumes_to_the_same_scene_and_rows(dataset: Path, tmp_path: Path) -> None:
+    cfg = small_config(250, "mcmc")
+    straight = fit(dataset, tmp_path / "a", config=cfg, init="random", progress=False)
+
+    def stop_at_130(kind: str, payload: object) -> bool:
+        return kind == "steps" and any(r["step"] >= 130 for r in payload)  # type: ignore[union-attr]
+
+    part = fit(dataset, tmp_path / "b", config=cfg, init="random", progress=False, callback=stop_at_130)
+    assert 130 <= part.steps < 250 and not (tmp_path / "b" / "fit.json").exists()
+    done = fit(dataset, tmp_path / "b", config=cfg, init="random", progress=False)
+    assert done.ply.read_bytes() == straight.ply.read_bytes()
+    keys = ["step", "view", "loss", "psnr", "gaussians"]
+    ra, rb = _rows(straight.run_dir / "loss.csv"), _rows(done.run_dir / "loss.csv")
+    assert [[r[k] for k in keys] for r in ra] == [[r[k] for k in keys] for r in rb]
+    assert _rows(straight.run_dir / "eval.csv") == _rows(done.run_dir / "eval.csv")
+
+
+def test_views_every_k_trains_on_every_kth_view_of_the_trajectory(dataset: Path, tmp_path: Path) -> None:
+    res = fit(dataset, tmp_path / "run", config=small_config(30), views="every:4", init="random:500", progress=False)
+    traj = [i for i in range(24) if i % 8]
+    assert res.train_views == traj[::4] == [1, 5, 10, 14, 19, 23]
+    assert res.heldout_views == [0, 8, 16]
+    res = fit(dataset, tmp_path / "run2", config=small_config(30), views="n:3", holdout="none", init="random:500",
+              progress=False)
+    assert res.train_views == [0, 12, 23] and res.heldout_views == [] and res.heldout_psnr is None
