@@ -94,3 +94,33 @@ def test_views_every_k_trains_on_every_kth_view_of_the_trajectory(dataset: Path,
     res = fit(dataset, tmp_path / "run2", config=small_config(30), views="n:3", holdout="none", init="random:500",
               progress=False)
     assert res.train_views == [0, 12, 23] and res.heldout_views == [] and res.heldout_psnr is None
+
+
+def test_held_out_lpips_is_logged_and_leaves_the_fit_alone(dataset: Path, tmp_path: Path) -> None:
+    pytest.importorskip("torch")
+    from morphgs.media import _read_image
+    from morphgs.metrics import lpips
+
+    cfg = small_config(200)
+    on = fit(dataset, tmp_path / "on", config={**cfg, "output": {**cfg["output"], "lpips": "alex"}},
+             init="points", progress=False)
+    off = fit(dataset, tmp_path / "off", config={**cfg, "output": {**cfg["output"], "lpips": "off"}},
+              init="points", progress=False)
+    # the scorer reads the renders; it never changes what is fitted
+    assert on.ply.read_bytes() == off.ply.read_bytes()
+    ev = _rows(on.run_dir / "eval.csv")
+    assert [int(r["step"]) for r in ev] == [100, 200]
+    lp = [float(r["lpips"]) for r in ev]
+    assert all(0.0 < v < 1.0 for v in lp) and lp[-1] < lp[0]  # the fit gets perceptually closer
+    per_view = _rows(on.run_dir / "eval_views.csv")
+    assert len(per_view) == 6 and all(r["lpips"] for r in per_view)
+    assert np.mean([float(r["lpips"]) for r in per_view if r["step"] == "200"]) == pytest.approx(lp[-1], rel=1e-12)
+    # the final figure is LPIPS of the saved scene's renders against the held-out images
+    scene = morphgs.load(on.ply)
+    views = json.loads((on.run_dir / "views.json").read_text())
+    cams = morphgs.trajectory.from_transforms_json(dataset / "transforms.json")
+    ref = [lpips(np.clip(morphgs.render(scene, cams[v["index"]]).rgb, 0, 1), _read_image(dataset / "images" / v["name"]))
+           for v in views["heldout"]]
+    assert on.heldout_lpips == pytest.approx(float(np.mean(ref)), abs=2e-3)
+    assert json.loads((on.run_dir / "fit.json").read_text())["heldout_lpips"] == on.heldout_lpips
+    assert off.heldout_lpips is None and all(r["lpips"] == "" for r in _rows(off.run_dir / "eval.csv"))

@@ -71,7 +71,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"morphgs fit: interrupted; a checkpoint is in {args.out}: rerun the same command to resume",
               file=sys.stderr)
         return 130
-    held = (f", held-out PSNR {res.heldout_psnr:.3f} dB SSIM {res.heldout_ssim:.4f} on {len(res.heldout_views)} views"
+    lp = f" LPIPS {res.heldout_lpips:.4f}" if res.heldout_lpips is not None else ""
+    held = (f", held-out PSNR {res.heldout_psnr:.3f} dB SSIM {res.heldout_ssim:.4f}{lp} on {len(res.heldout_views)} views"
             if res.heldout_psnr is not None else "")
     rate = f", {res.steps_per_second:.2f} steps/s" if res.steps_per_second else ""
     print(f"morphgs fit: {res.steps} steps, {res.gaussians} Gaussians{held}{rate} -> {res.ply}", file=sys.stderr)

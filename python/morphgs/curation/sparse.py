@@ -181,7 +181,8 @@ def sparse_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path) 
     info = {"dir": str(folder.relative_to(out_dir)), "ply": str((run / summary["ply"]).relative_to(out_dir)),
             "capture_views": views["capture_views"], "train_views": views["train"], "images": views["images"],
             "steps": summary["steps"], "gaussians": summary["gaussians"], "heldout_psnr": summary["heldout_psnr"],
-            "heldout_ssim": summary["heldout_ssim"], "seed": int(job.run_seed)}
+            "heldout_ssim": summary["heldout_ssim"], "heldout_lpips": summary.get("heldout_lpips"),
+            "seed": int(job.run_seed)}
     _CACHE.clear()
     _CACHE[key] = (result, info)
     return result, info

@@ -93,6 +93,9 @@ class OutputConfig:
     checkpoint_every: int = 1000
     preview_every: int = 1000
     progress_every: float = 0.5
+    # LPIPS of the held-out renders beside PSNR/SSIM (morphgs.metrics): "auto" (AlexNet when torch
+    # and the offline weights are installed, else the column stays empty), "alex", "vgg" or "off"
+    lpips: str = "auto"
 
 
 _SECTIONS: dict[str, type] = {"lr": LearningRates, "default": DefaultStrategyConfig, "mcmc": MCMCConfig,
@@ -222,6 +225,8 @@ class FitConfig:
         for k in ("eval_every", "checkpoint_every", "preview_every"):
             if getattr(self.output, k) < 0:
                 raise FitConfigError(f"{source}: output.{k} must be >= 0")
+        if self.output.lpips not in ("auto", "alex", "vgg", "off"):
+            raise FitConfigError(f"{source}: output.lpips must be 'auto', 'alex', 'vgg' or 'off', got {self.output.lpips!r}")
         if self.output.progress_every < 0:
             raise FitConfigError(f"{source}: output.progress_every must be >= 0")
 

@@ -6,7 +6,7 @@ The run folder (docs/fit.md, "Run folder"):
     views.json                        training and held-out views (indices and file names)
     cameras.json                      every view's camera, INRIA 3DGS layout
     loss.csv                          per step: loss, L1, SSIM, train PSNR, Gaussians, ...
-    eval.csv, eval_views.csv          held-out PSNR / SSIM (mean; per view) every eval_every steps
+    eval.csv, eval_views.csv          held-out PSNR / SSIM / LPIPS (mean; per view) every eval_every steps
     previews/step_NNNNNN.png          first held-out view: render | ground truth
     checkpoint.bin                    the state to resume from (atomic)
     point_cloud/iteration_N/point_cloud.ply   the result, INRIA PLY layout
@@ -43,8 +43,8 @@ __all__ = ["FitResult", "FitRunError", "fit", "scene_scale_of"]
 
 LOSS_COLUMNS = ["step", "view", "loss", "l1", "ssim", "psnr", "gaussians", "sh_degree", "lr_means",
                 "duplicated", "split", "pruned", "reset", "relocated", "added", "seconds"]
-EVAL_COLUMNS = ["step", "psnr", "ssim"]
-EVAL_VIEW_COLUMNS = ["step", "view", "name", "psnr", "ssim"]
+EVAL_COLUMNS = ["step", "psnr", "ssim", "lpips"]
+EVAL_VIEW_COLUMNS = ["step", "view", "name", "psnr", "ssim", "lpips"]
 
 
 class FitRunError(MorphgsError):
@@ -58,8 +58,8 @@ class FitResult:
     Attributes:
         run_dir: the run folder; ply: the result's PLY; scene: the trained GaussianScene.
         steps: steps done; train_views, heldout_views: view indices of the dataset.
-        heldout_psnr, heldout_ssim: mean held-out metrics of the result (None without held-out
-            views); gaussians: the result's size; seconds: wall time of this call;
+        heldout_psnr, heldout_ssim, heldout_lpips: mean held-out metrics of the result (None
+            without held-out views; LPIPS None when it is off or unavailable); gaussians: the result's size; seconds: wall time of this call;
         steps_per_second: steps of this call per second (None when nothing was left to do).
     """
 
@@ -75,6 +75,7 @@ class FitResult:
     seconds: float
     steps_per_second: float | None
     summary: dict[str, Any] = field(default_factory=dict, repr=False)
+    heldout_lpips: float | None = None
 
 
 def scene_scale_of(cameras: Cameras) -> float:
@@ -119,7 +120,53 @@ def _truncate_csv(path: Path, step: int, columns: list[str]) -> None:
     _write_atomic(path, ",".join(columns) + "\n" + "".join(rows))
 
 
+def _lpips_scorer(setting: str, images: list[np.ndarray], *, verbose: bool) -> Callable[[np.ndarray, int], float] | None:
+    """A function (render, held-out view index) -> LPIPS against that view's image, or None.
+
+    "auto" gives AlexNet when torch and the weights are installed and None (with a note) when
+    not; "alex"/"vgg" must work (the error says what to install); "off" is None. The scorer runs
+    in torch and never touches the fit, whose bytes do not depend on it.
+    """
+    if setting == "off" or not images:
+        return None
+    net = "alex" if setting == "auto" else setting
+    try:
+        from morphgs.metrics import lpips, lpips_model
+        from morphgs.metrics._lpips_torch import MIN_SIZE
+
+        h, w = images[0].shape[:2]
+        if min(h, w) < MIN_SIZE[net]:
+            if setting == "auto":
+                return None
+            raise MorphgsError(f"output.lpips = {setting!r}: held-out images of {w}x{h} are smaller than LPIPS "
+                               f"{net} accepts ({MIN_SIZE[net]} pixels a side)")
+        lpips_model(net)
+    except (ImportError, MorphgsError) as e:
+        if setting != "auto":
+            raise
+        if verbose:
+            first = str(e).splitlines()[0] if str(e) else type(e).__name__
+            print(f"held-out LPIPS off: {first} (output.lpips = 'off' silences this)", flush=True)
+        return None
+
+    import torch
+
+    def score(rgb: np.ndarray, view: int) -> float:
+        # one torch thread: the column then has the same bits whatever torch's default thread
+        # count (the scene's bytes never depend on it)
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            return float(lpips(np.clip(rgb, 0.0, 1.0), images[view], net=net))
+        finally:
+            torch.set_num_threads(threads)
+
+    return score
+
+
 def _fmt(v: Any) -> str:
+    if v is None:
+        return ""
     if isinstance(v, bool):
         return "1" if v else "0"
     if isinstance(v, float):
@@ -152,9 +199,12 @@ class _Logger:
     """Receives the native loop's callbacks: CSV rows, previews, the progress bar."""
 
     def __init__(self, run: Path, cfg: FitConfig, heldout_names: list[str], heldout_images: list[np.ndarray],
-                 bar: Any, user: Callable[[str, Any], Any] | None, verbose: bool) -> None:
+                 bar: Any, user: Callable[[str, Any], Any] | None, verbose: bool,
+                 lpips: Callable[[np.ndarray, int], float] | None = None) -> None:
         self.run, self.cfg, self.names, self.truth, self.bar, self.user = run, cfg, heldout_names, heldout_images, bar, user
         self.verbose = verbose
+        self.lpips = lpips
+        self.view_lpips: dict[int, float] = {}
         self.loss = open(run / "loss.csv", "a", encoding="utf-8", newline="")
         self.eval = open(run / "eval.csv", "a", encoding="utf-8", newline="")
         self.eval_views = open(run / "eval_views.csv", "a", encoding="utf-8", newline="")
@@ -182,7 +232,11 @@ class _Logger:
                 self.bar.update(len(payload))
         elif kind == "eval_view":
             step, v = payload["step"], payload["view"]
-            self.eval_views.write(",".join(_fmt(x) for x in (step, v, self.names[v], payload["psnr"], payload["ssim"])) + "\n")
+            lp = self.lpips(payload["rgb"], v) if self.lpips is not None else None
+            if lp is not None:
+                self.view_lpips[v] = lp
+            self.eval_views.write(",".join(_fmt(x) for x in (step, v, self.names[v], payload["psnr"], payload["ssim"], lp))
+                                  + "\n")
             pe = self.cfg.output.preview_every
             if v == 0 and (step == self.cfg.steps or (pe > 0 and step % pe == 0)):
                 from morphgs._core import _write_png
@@ -190,12 +244,16 @@ class _Logger:
                 (self.run / "previews").mkdir(exist_ok=True)
                 _write_png(self.run / "previews" / f"step_{step:06d}.png", _preview(payload["rgb"], self.truth[0]))
         elif kind == "eval":
+            lp = float(np.mean(list(self.view_lpips.values()))) if self.view_lpips else None
+            self.view_lpips = {}
+            payload = dict(payload, lpips=lp)
             self.eval.write(",".join(_fmt(payload[c]) for c in EVAL_COLUMNS) + "\n")
             self.eval.flush()
             self.eval_views.flush()
             self.last_eval = payload
             if self.verbose:
-                self.bar.write(f"step {payload['step']}: held-out PSNR {payload['psnr']:.3f} dB, SSIM {payload['ssim']:.4f}")
+                self.bar.write(f"step {payload['step']}: held-out PSNR {payload['psnr']:.3f} dB, SSIM {payload['ssim']:.4f}"
+                               + (f", LPIPS {lp:.4f}" if lp is not None else ""))
         elif kind == "checkpoint":
             pass
         if self.user is not None:
@@ -320,8 +378,10 @@ def fit(
     _truncate_csv(run / "eval.csv", start, EVAL_COLUMNS)
     _truncate_csv(run / "eval_views.csv", start, EVAL_VIEW_COLUMNS)
 
+    score_lpips = _lpips_scorer(cfg.output.lpips, list(eval_imgs), verbose=progress)
     bar = progress_bar(cfg.steps, start, progress)
-    logger = _Logger(run, cfg, [posed.names[i] for i in sel.heldout], list(eval_imgs), bar, callback, progress)
+    logger = _Logger(run, cfg, [posed.names[i] for i in sel.heldout], list(eval_imgs), bar, callback, progress,
+                     score_lpips)
     t_run = time.perf_counter()
     try:
         ended = trainer.run(cfg.steps, callback=logger, eval_every=cfg.output.eval_every if eval_imgs else 0,
@@ -343,6 +403,11 @@ def fit(
     metrics = trainer.evaluate() if eval_imgs else []
     psnr = float(np.mean([m[0] for m in metrics])) if metrics else None
     ssim = float(np.mean([m[1] for m in metrics])) if metrics else None
+    lp_final = None
+    if score_lpips is not None:
+        lp_final = float(np.mean([score_lpips(trainer.render(np.ascontiguousarray(c.world_to_camera, np.float64),
+                                                             np.ascontiguousarray(c.K, np.float64), c.width, c.height), v)
+                                  for v, c in enumerate(eval_cams)]))
     # a final preview: first held-out view (else first training view) beside its image
     if eval_imgs:
         cam, truth = eval_cams[0], eval_imgs[0]
@@ -353,7 +418,7 @@ def fit(
     _core._write_png(run / "preview.png", _preview(rgb, truth))
     rate = done_steps / run_s if done_steps and run_s > 0 else None
     summary: dict[str, Any] = {"steps": trainer.step, "gaussians": len(scene), "heldout_psnr": psnr, "heldout_ssim": ssim,
-               "train_views": len(sel.train), "heldout_views": len(sel.heldout), "scene_scale": scale,
+               "heldout_lpips": lp_final, "train_views": len(sel.train), "heldout_views": len(sel.heldout), "scene_scale": scale,
                "init": init_desc, "strategy": cfg.strategy, "ply": str(ply.relative_to(run)),
                "seconds_this_call": round(time.perf_counter() - t_start, 3),
                "steps_this_call": done_steps,
@@ -362,4 +427,4 @@ def fit(
     if ended == "finished":
         _write_atomic(run / "fit.json", json.dumps(summary, indent=1) + "\n")
     return FitResult(run, ply, scene, trainer.step, sel.train, sel.heldout, psnr, ssim, len(scene),
-                     time.perf_counter() - t_start, round(rate, 4) if rate is not None else None, summary)
+                     time.perf_counter() - t_start, round(rate, 4) if rate is not None else None, summary, lp_final)
