@@ -67,23 +67,7 @@ pub fn rotmat(q: &[f32]) -> [[f32; 3]; 3] {
     } else {
         (1.0, 0.0, 0.0, 0.0)
     };
-    [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ]
+    crate::raster::project::quat_rotation(w, x, y, z)
 }
 
 /// The strategy's work after the optimiser step of `step`.

@@ -303,23 +303,7 @@ impl Projector {
         let mut cov = [[0.0f32; BLOCK]; 4]; // c00, c01, c11, det_orig
         for l in 0..BLOCK {
             let (qw, qx, qy, qz) = (q[0][l], q[1][l], q[2][l], q[3][l]);
-            let rq = [
-                [
-                    1.0 - 2.0 * (qy * qy + qz * qz),
-                    2.0 * (qx * qy - qw * qz),
-                    2.0 * (qx * qz + qw * qy),
-                ],
-                [
-                    2.0 * (qx * qy + qw * qz),
-                    1.0 - 2.0 * (qx * qx + qz * qz),
-                    2.0 * (qy * qz - qw * qx),
-                ],
-                [
-                    2.0 * (qx * qz - qw * qy),
-                    2.0 * (qy * qz + qw * qx),
-                    1.0 - 2.0 * (qx * qx + qy * qy),
-                ],
-            ];
+            let rq = quat_rotation(qw, qx, qy, qz);
             // T = W R S (3x3)
             let mut t = [[0.0f32; 3]; 3];
             for r in 0..3 {
@@ -491,6 +475,29 @@ struct FootLanes {
 
 /// An upper bound of the largest singular value of `m`: 1 (plus rounding slack) for a rotation,
 /// else the Frobenius norm, so the off-screen early out stays conservative for any matrix.
+/// Rotation matrix of a unit quaternion (w, x, y, z), row-major: the one formula the forward,
+/// the backward and densification share (same operations, so the same bits everywhere).
+#[inline(always)]
+pub(crate) fn quat_rotation(qw: f32, qx: f32, qy: f32, qz: f32) -> [[f32; 3]; 3] {
+    [
+        [
+            1.0 - 2.0 * (qy * qy + qz * qz),
+            2.0 * (qx * qy - qw * qz),
+            2.0 * (qx * qz + qw * qy),
+        ],
+        [
+            2.0 * (qx * qy + qw * qz),
+            1.0 - 2.0 * (qx * qx + qz * qz),
+            2.0 * (qy * qz - qw * qx),
+        ],
+        [
+            2.0 * (qx * qz - qw * qy),
+            2.0 * (qy * qz + qw * qx),
+            1.0 - 2.0 * (qx * qx + qy * qy),
+        ],
+    ]
+}
+
 fn spectral_norm_bound(m: &[[f64; 3]; 3]) -> f32 {
     let mut frob2 = 0.0;
     let mut off = 0.0f64;

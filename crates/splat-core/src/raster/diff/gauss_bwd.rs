@@ -105,23 +105,7 @@ pub(crate) fn gauss_backward(
     ];
     let qn = (qv[0] * qv[0] + qv[1] * qv[1] + qv[2] * qv[2] + qv[3] * qv[3]).sqrt();
     let [qw, qx, qy, qz] = qv.map(|v| v / qn);
-    let rq = [
-        [
-            1.0 - 2.0 * (qy * qy + qz * qz),
-            2.0 * (qx * qy - qw * qz),
-            2.0 * (qx * qz + qw * qy),
-        ],
-        [
-            2.0 * (qx * qy + qw * qz),
-            1.0 - 2.0 * (qx * qx + qz * qz),
-            2.0 * (qy * qz - qw * qx),
-        ],
-        [
-            2.0 * (qx * qz - qw * qy),
-            2.0 * (qy * qz + qw * qx),
-            1.0 - 2.0 * (qx * qx + qy * qy),
-        ],
-    ];
+    let rq = crate::raster::project::quat_rotation(qw, qx, qy, qz);
     let ls = [
         sc.log_scales[i * 3],
         sc.log_scales[i * 3 + 1],
