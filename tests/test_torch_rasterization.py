@@ -177,6 +177,13 @@ def test_unsupported_gsplat_options_are_clear_errors() -> None:
         rasterization(*args[:4], x["colors"][:, :1], *args[5:], sh_degree=1)
     with pytest.raises(morphgs.MorphgsError, match="means"):
         rasterization(x["means"][None], *args[1:], sh_degree=0)
+    # camera gradients are refused, not silently dropped; detached (or no_grad) cameras run
+    pose = viewmats.clone().requires_grad_()
+    with pytest.raises(morphgs.MorphgsError, match="viewmats.detach"):
+        rasterization(*args[:5], pose, *args[6:], sh_degree=0)
+    with torch.no_grad():
+        rasterization(*args[:5], pose, *args[6:], sh_degree=0)
+    rasterization(*args[:5], pose.detach(), *args[6:], sh_degree=0)
 
 
 def test_gsplat_default_strategy_trains_and_densifies_on_our_meta() -> None:

@@ -178,7 +178,8 @@ def rasterization(
     ``scales`` and ``opacities``, ``quats`` (w,x,y,z, normalised inside), ``colors`` as SH
     coefficients (N,K,3) with ``sh_degree`` or post-activation colours (N,3) without, OpenCV
     ``viewmats`` (C,4,4) world-to-camera and ``Ks`` (C,3,3). Gradients flow to means, quats,
-    scales, opacities, colors and backgrounds (not to viewmats or Ks). As in gsplat,
+    scales, opacities, colors and backgrounds; not to viewmats or Ks (inputs that require grad
+    are refused rather than silently detached). As in gsplat,
     ``meta["means2d"].grad`` holds dL/d(projected means) (C,N,2) after ``backward()`` (and
     ``.absgrad`` with ``absgrad=True``), which gsplat's densification strategies read.
 
@@ -234,6 +235,11 @@ def rasterization(
     if viewmats.dim() != 3 or viewmats.shape[1:] != (4, 4) or Ks.shape != (viewmats.shape[0], 3, 3):
         raise MorphgsError(f"viewmats must be (C,4,4) and Ks (C,3,3), got {tuple(viewmats.shape)} "
                            f"and {tuple(Ks.shape)}")
+    if torch.is_grad_enabled() and (viewmats.requires_grad or Ks.requires_grad):
+        # gsplat would give them gradients; detaching silently would leave a pose optimiser with
+        # grad None and no word why
+        raise MorphgsError("morphgs.torch.rasterization has no gradients for viewmats or Ks (camera pose or "
+                           "intrinsics optimisation): pass viewmats.detach() and Ks.detach()")
     n_cams = viewmats.shape[0]
     if backgrounds is not None and tuple(backgrounds.shape) != (n_cams, 3):
         raise MorphgsError(f"backgrounds must be (C,3) = ({n_cams},3), got {tuple(backgrounds.shape)}")
