@@ -6,6 +6,7 @@ files written by morphgs.save)."""
 from __future__ import annotations
 
 import io
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -108,3 +109,27 @@ def test_sog_with_damaged_members_loads_or_raises(fixtures_dir: Path, tmp_path: 
         _load_or_format_error(p)
 
     check()
+
+
+def test_scenesplat_folders_with_a_damaged_array_load_or_raise(fixtures_dir: Path, tmp_path: Path) -> None:
+    from test_formats_scenesplat import _preprocess_gs
+
+    src = tmp_path / "src"
+    _preprocess_gs(morphgs.load(fixtures_dir / "splatapult_test.ply"), src)
+    arrays = {p.name: p.read_bytes() for p in src.glob("*.npy")}
+
+    @settings(max_examples=60, deadline=None)
+    @given(st.sampled_from(sorted(arrays)), damage)
+    def check(member: str, d: tuple[float, list[tuple[float, int]]]) -> None:
+        folder = tmp_path / "damaged"
+        folder.mkdir(exist_ok=True)
+        for k, v in arrays.items():
+            (folder / k).write_bytes(_damaged(v, *d) if k == member else v)
+        try:
+            morphgs.load(folder)
+        except morphgs.SceneFormatError as e:
+            assert str(folder) in str(e), e
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", morphgs.MorphgsWarning)  # the lossy-colour note of each load
+        check()
