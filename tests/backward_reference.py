@@ -91,9 +91,10 @@ def rust_forward(p: Params, s: Setup) -> tuple[DiffRasterizer, tuple[np.ndarray,
 
 
 def rust_backward(r: DiffRasterizer, p: Params, w: dict[str, np.ndarray]) -> dict:
-    """Our gradients for the loss sum(w_rgb rgb) + sum(w_depth depth) + sum(w_alpha alpha)."""
+    """Our gradients for the loss sum(w_rgb rgb) + sum(w_depth depth) + sum(w_alpha alpha),
+    the camera's (viewmat) included."""
     return r.backward(*p.arrays(), v_rgb=w["rgb"], v_depth=w["depth"], v_alpha=w["alpha"],
-                      view=True)
+                      view=True, viewmat=True)
 
 
 def loss_weights(s: Setup, seed: int) -> dict[str, np.ndarray]:
@@ -131,7 +132,7 @@ class Reference:
         return {n: t.tensor(a, dtype=self.dtype, requires_grad=requires_grad)
                 for n, a in zip(p.names, p.arrays())}
 
-    def project(self, x: dict) -> dict:
+    def project(self, x: dict, viewmat=None) -> dict:
         """Per-Gaussian projected values (float64, with autograd); given colours (x["colors"],
         post-activation) replace the SH colour."""
         t = self.torch
@@ -144,7 +145,9 @@ class Reference:
         cam = self.s.cam
         covars, _ = _quat_scale_to_covar_preci(x["quats"], t.exp(x["log_scales"]),
                                                compute_covar=True, compute_preci=False)
-        viewmat = t.tensor(np.asarray(cam.world_to_camera), dtype=self.dtype)[None]
+        if viewmat is None:
+            viewmat = t.tensor(np.asarray(cam.world_to_camera), dtype=self.dtype)
+        viewmat = viewmat[None]
         ks = t.tensor(np.asarray(cam.K), dtype=self.dtype)[None]
         _, means2d, depths, conics, comp = _fully_fused_projection(
             x["means"], covars, viewmat, ks, cam.width, cam.height, eps2d=0.3,

@@ -16,7 +16,8 @@ import morphgs
 TESTS = Path(__file__).resolve().parent
 
 # forward + backward of the garden frame (648x420, real cameras) and of a random SH-3 scene,
-# with absgrad and a depth gradient; prints a hash of every gradient and statistic
+# with absgrad and a depth gradient; prints a hash of every gradient and statistic (the camera's
+# viewmat gradient, a float64 sum over the Gaussians, included)
 CODE = f"""
 import hashlib, sys
 import numpy as np
@@ -34,6 +35,7 @@ for sc, setup in runs:
     g = rust_backward(r, p, loss_weights(setup, seed=5))
     for a in images:
         h.update(np.ascontiguousarray(a).tobytes())
+    assert "viewmat" in g
     for k in sorted(k for k in g if k != "stats"):
         h.update(k.encode())
         h.update(np.ascontiguousarray(g[k]).tobytes())

@@ -40,7 +40,8 @@ def gsplat_inputs(scene: morphgs.GaussianScene, dtype: torch.dtype = torch.float
 
 
 def reference_grads(x: dict, cams: list[morphgs.Camera], bg: np.ndarray, sh_degree: int | None,
-                    w_img: torch.Tensor, w_alpha: torch.Tensor, render_mode: str) -> dict:
+                    w_img: torch.Tensor, w_alpha: torch.Tensor, render_mode: str,
+                    viewmats: torch.Tensor | None = None) -> dict:
     """Autograd of the float64 reference for gsplat's inputs, summed over cameras."""
     f32 = {k: v.detach().float() for k, v in x.items()}
     n = len(f32["means"])
@@ -52,6 +53,7 @@ def reference_grads(x: dict, cams: list[morphgs.Camera], bg: np.ndarray, sh_degr
     )))
     leaves = {k: v.detach().double().requires_grad_(True) for k, v in x.items()}
     bgt = torch.tensor(bg, dtype=torch.float64, requires_grad=True)
+    vm = None if viewmats is None else viewmats.detach().double().requires_grad_(True)
     loss = torch.zeros((), dtype=torch.float64)
     for c, cam in enumerate(cams):
         setup = Setup(cam, background=tuple(bg[c]), sh_degree=sh_degree, depth="accumulated")
@@ -68,13 +70,15 @@ def reference_grads(x: dict, cams: list[morphgs.Camera], bg: np.ndarray, sh_degr
         else:
             t["sh0"] = leaves["colors"][:, 0]
             t["sh_rest"] = leaves["colors"][:, 1:]
-        rgb, depth, alpha = ref.blend(ref.project(t), bgt[c])
+        rgb, depth, alpha = ref.blend(ref.project(t, viewmat=None if vm is None else vm[c]), bgt[c])
         ed = depth / alpha.clamp(min=1e-10)
         img = torch.cat([rgb, ed[..., None]], dim=-1) if render_mode == "RGB+ED" else rgb
         loss = loss + (img * w_img[c].double()).sum() + (alpha * w_alpha[c].double()).sum()
     loss.backward()
     out = {k: v.grad.numpy() for k, v in leaves.items()}
     out["backgrounds"] = bgt.grad.numpy()
+    if vm is not None:
+        out["viewmats"] = vm.grad.numpy()
     return out
 
 
@@ -113,6 +117,69 @@ def test_gradients_of_gsplat_inputs_match_the_reference(sh_degree: int | None) -
         scale = np.abs(ref).max()
         assert np.abs(got - ref).max() <= 1e-3 * scale, name
     np.testing.assert_allclose(bgt.grad.numpy(), want["backgrounds"], rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("sh_degree", [3, 0])
+def test_viewmat_gradients_match_the_reference(sh_degree: int) -> None:
+    """gsplat's v_viewmats: through the camera-space means and covariances and, with SH, the
+    camera centre (the translation of inverse(viewmats), as gsplat takes it)."""
+    scene = random_scene(250, 3, seed=22)
+    x = gsplat_inputs(scene)
+    cams, viewmats, ks = cameras(2, 48, 40)
+    pose = viewmats.clone().requires_grad_(True)
+    bg = np.zeros((2, 3))
+    img, alpha, meta = rasterization(x["means"], x["quats"], x["scales"], x["opacities"], x["colors"],
+                                     pose, ks, 48, 40, sh_degree=sh_degree, render_mode="RGB+ED")
+    rng = np.random.default_rng(3)
+    w_img = torch.tensor(rng.normal(size=img.shape), dtype=torch.float32)
+    w_img[..., 3:] *= 0.2
+    w_alpha = torch.tensor(rng.normal(size=alpha.shape[:-1]), dtype=torch.float32)
+    ((img * w_img).sum() + (alpha[..., 0] * w_alpha).sum()).backward()
+    want = reference_grads(x, cams, bg, sh_degree, w_img, w_alpha, "RGB+ED", viewmats=viewmats)["viewmats"]
+    got = pose.grad.numpy()
+    assert got.shape == (2, 4, 4) and pose.grad.dtype == torch.float64
+    for c in range(2):
+        scale = np.abs(want[c]).max()
+        assert scale > 0
+        assert np.abs(got[c] - want[c]).max() <= 2e-3 * scale, (c, got[c], want[c])
+    if sh_degree == 0:  # no view dependence: the bottom row gets nothing
+        np.testing.assert_array_equal(got[:, 3], 0.0)
+    # the other parameters' gradients do not change when the pose is differentiated too
+    first = {k: v.grad.clone() for k, v in x.items()}
+    for v in x.values():
+        v.grad = None
+    img2, alpha2, _ = rasterization(x["means"], x["quats"], x["scales"], x["opacities"], x["colors"],
+                                    viewmats, ks, 48, 40, sh_degree=sh_degree, render_mode="RGB+ED")
+    ((img2 * w_img).sum() + (alpha2[..., 0] * w_alpha).sum()).backward()
+    for k, v in x.items():
+        assert torch.equal(v.grad, first[k]), k
+
+
+def test_pose_optimisation_recovers_a_shifted_camera() -> None:
+    """Render a target, shift the camera, and let Adam on the viewmat's translation bring the
+    render back (a real optimisation through the pose gradient)."""
+    scene = random_scene(400, 0, seed=5)
+    x = {k: v.detach() for k, v in gsplat_inputs(scene).items()}
+    _, viewmats, ks = cameras(1, 48, 40)
+    target, _, _ = rasterization(x["means"], x["quats"], x["scales"], x["opacities"], x["colors"],
+                                 viewmats, ks, 48, 40, sh_degree=0)
+    shift = torch.zeros_like(viewmats)
+    shift[0, :3, 3] = torch.tensor([0.15, -0.1, 0.0], dtype=viewmats.dtype)
+    t = (viewmats[0, :3, 3] + shift[0, :3, 3]).clone().requires_grad_(True)
+    opt = torch.optim.Adam([t], lr=0.01)
+    losses = []
+    for _ in range(60):
+        vm = torch.cat([torch.cat([viewmats[0, :3, :3], t[:, None]], dim=1), viewmats[0, 3:]], dim=0)[None]
+        img, _, _ = rasterization(x["means"], x["quats"], x["scales"], x["opacities"], x["colors"],
+                                  vm, ks, 48, 40, sh_degree=0)
+        loss = ((img - target) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    err0 = float(shift[0, :3, 3].norm())
+    err = float((t.detach() - viewmats[0, :3, 3]).norm())
+    assert losses[-1] < 0.2 * losses[0] and err < 0.3 * err0, (losses[0], losses[-1], err0, err)
 
 
 def test_meta_follows_gsplat_and_means2d_grad_is_set() -> None:
@@ -177,13 +244,13 @@ def test_unsupported_gsplat_options_are_clear_errors() -> None:
         rasterization(*args[:4], x["colors"][:, :1], *args[5:], sh_degree=1)
     with pytest.raises(morphgs.MorphgsError, match="means"):
         rasterization(x["means"][None], *args[1:], sh_degree=0)
-    # camera gradients are refused, not silently dropped; detached (or no_grad) cameras run
-    pose = viewmats.clone().requires_grad_()
-    with pytest.raises(morphgs.MorphgsError, match="viewmats.detach"):
-        rasterization(*args[:5], pose, *args[6:], sh_degree=0)
+    # intrinsics gradients are refused, not silently dropped; detached (or no_grad) Ks run
+    k = ks.clone().requires_grad_()
+    with pytest.raises(morphgs.MorphgsError, match="Ks.detach"):
+        rasterization(*args[:6], k, *args[7:], sh_degree=0)
     with torch.no_grad():
-        rasterization(*args[:5], pose, *args[6:], sh_degree=0)
-    rasterization(*args[:5], pose.detach(), *args[6:], sh_degree=0)
+        rasterization(*args[:6], k, *args[7:], sh_degree=0)
+    rasterization(*args[:6], k.detach(), *args[7:], sh_degree=0)
 
 
 def test_gsplat_default_strategy_trains_and_densifies_on_our_meta() -> None:

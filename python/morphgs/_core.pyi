@@ -153,6 +153,7 @@ class DiffRasterizer:
         v_depth: _F32 | None = None,
         v_alpha: _F32 | None = None,
         view: bool = False,
+        viewmat: bool = False,
         cameras_per_step: float = 1.0,
     ) -> dict[str, Any]: ...
     def projection(self) -> dict[str, npt.NDArray[Any]]: ...

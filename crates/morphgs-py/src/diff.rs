@@ -227,6 +227,8 @@ impl PyDiffRasterizer {
     ///         refers to the depth kind the forward wrote.
     ///     view: also return this view's intermediate gradients (means2d, means2d_abs, conics,
     ///         view_colors, view_opacities, view_depths).
+    ///     viewmat: also return "viewmat", dL/d(world_to_camera) (4,4) float64 (gsplat's
+    ///         v_viewmats; implies `view`).
     ///     cameras_per_step: gsplat's n_cameras factor of the densification statistics.
     ///
     /// Returns:
@@ -239,7 +241,7 @@ impl PyDiffRasterizer {
     ///     ValueError: no forward yet, or arrays that do not match it.
     #[pyo3(signature = (means, quats, log_scales, opacity_logits, sh0, sh_rest, *, colors = None,
                         v_rgb = None, v_depth = None, v_alpha = None, view = false,
-                        cameras_per_step = 1.0))]
+                        viewmat = false, cameras_per_step = 1.0))]
     #[allow(clippy::too_many_arguments)]
     fn backward<'py>(
         &self,
@@ -255,8 +257,10 @@ impl PyDiffRasterizer {
         v_depth: Option<PyReadonlyArray2<'py, f32>>,
         v_alpha: Option<PyReadonlyArray2<'py, f32>>,
         view: bool,
+        viewmat: bool,
         cameras_per_step: f32,
     ) -> PyResult<Bound<'py, PyDict>> {
+        let view = view || viewmat;
         let p = Params {
             means,
             quats,
@@ -277,7 +281,10 @@ impl PyDiffRasterizer {
         let k = scene.sh_rest_k();
         let mut out = Gradients::default();
         out.reset(n, k, colors.is_some());
-        let mut vg = ViewGrads::default();
+        let mut vg = ViewGrads {
+            viewmat: viewmat.then_some([0.0; 16]),
+            ..Default::default()
+        };
         let mut dens = DensifyStats {
             cameras_per_step,
             ..Default::default()
@@ -336,6 +343,10 @@ impl PyDiffRasterizer {
             put2("view_colors", vg.colors, 3)?;
             put1("view_opacities", vg.opacities)?;
             put1("view_depths", vg.depths)?;
+        }
+        if let Some(m) = vg.viewmat {
+            let a = Array2::from_shape_vec((4, 4), m.to_vec()).map_err(bad)?;
+            d.set_item("viewmat", a.into_pyarray(py))?;
         }
         let s = PyDict::new(py);
         s.set_item("evaluations", stats.evaluations)?;

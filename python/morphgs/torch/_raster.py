@@ -65,7 +65,7 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
                 sh0: Tensor, sh_rest: Tensor, colors: Tensor | None, backgrounds: Tensor | None,
-                setup: _Setup) -> tuple[Tensor, Tensor, Tensor]:
+                viewmats: Tensor, setup: _Setup) -> tuple[Tensor, Tensor, Tensor]:
         log_scales = torch.log(scales.detach().to(torch.float32))
         logits = torch.logit(opacities.detach().to(torch.float32)).clamp(-_LOGIT_CLAMP, _LOGIT_CLAMP)
         setup.arrays = (_np32(means), _np32(quats), _np32(log_scales), _np32(logits), _np32(sh0),
@@ -88,7 +88,7 @@ class _Rasterize(torch.autograd.Function):
             alphas.append(torch.from_numpy(alpha))
         ctx.setup = setup
         ctx.dtypes = [None if t is None else t.dtype
-                      for t in (means, quats, scales, opacities, sh0, sh_rest, colors, backgrounds)]
+                      for t in (means, quats, scales, opacities, sh0, sh_rest, colors, backgrounds, viewmats)]
         ctx.set_materialize_grads(False)
         dtype = means.dtype
         return (torch.stack(rgbs).to(dtype), torch.stack(depths).to(dtype),
@@ -100,12 +100,15 @@ class _Rasterize(torch.autograd.Function):
         setup: _Setup = ctx.setup
         n_cams = len(setup.rasterizers)
         totals: dict[str, np.ndarray] = {}
-        v_bg, m2d, m2d_abs = [], [], []
+        v_bg, m2d, m2d_abs, v_view = [], [], [], []
+        want_view = bool(ctx.needs_input_grad[8])
         for c, r in enumerate(setup.rasterizers):
             pick = (lambda v: None if v is None else _np32(v[c]))  # noqa: E731
             out = r.backward(*setup.arrays, colors=setup.colors, v_rgb=pick(v_rgb),
                              v_depth=pick(v_depth), v_alpha=pick(v_alpha), view=True,
-                             cameras_per_step=float(n_cams))
+                             viewmat=want_view, cameras_per_step=float(n_cams))
+            if want_view:
+                v_view.append(out["viewmat"])
             # cameras add up in camera order (deterministic)
             for k in ("means", "quats", "scales", "opacities", "sh0", "sh_rest", "colors"):
                 if k in out:
@@ -132,8 +135,9 @@ class _Rasterize(torch.autograd.Function):
         v_backgrounds = None
         if ctx.needs_input_grad[7]:
             v_backgrounds = torch.from_numpy(np.stack(v_bg)).to(dt[7])
+        v_viewmats = torch.from_numpy(np.stack(v_view)).to(dt[8]) if want_view else None
         return (grad("means", 0), grad("quats", 1), grad("scales", 2), grad("opacities", 3),
-                grad("sh0", 4), grad("sh_rest", 5), grad("colors", 6), v_backgrounds, None)
+                grad("sh0", 4), grad("sh_rest", 5), grad("colors", 6), v_backgrounds, v_viewmats, None)
 
 
 def _unsupported(name: str, value: object, why: str) -> MorphgsError:
@@ -178,8 +182,9 @@ def rasterization(
     ``scales`` and ``opacities``, ``quats`` (w,x,y,z, normalised inside), ``colors`` as SH
     coefficients (N,K,3) with ``sh_degree`` or post-activation colours (N,3) without, OpenCV
     ``viewmats`` (C,4,4) world-to-camera and ``Ks`` (C,3,3). Gradients flow to means, quats,
-    scales, opacities, colors and backgrounds; not to viewmats or Ks (inputs that require grad
-    are refused rather than silently detached). As in gsplat,
+    scales, opacities, colors, backgrounds and viewmats (pose optimisation; the camera centre's
+    path through the SH view directions included), not to Ks (Ks that require grad are refused
+    rather than silently detached). As in gsplat,
     ``meta["means2d"].grad`` holds dL/d(projected means) (C,N,2) after ``backward()`` (and
     ``.absgrad`` with ``absgrad=True``), which gsplat's densification strategies read.
 
@@ -235,11 +240,11 @@ def rasterization(
     if viewmats.dim() != 3 or viewmats.shape[1:] != (4, 4) or Ks.shape != (viewmats.shape[0], 3, 3):
         raise MorphgsError(f"viewmats must be (C,4,4) and Ks (C,3,3), got {tuple(viewmats.shape)} "
                            f"and {tuple(Ks.shape)}")
-    if torch.is_grad_enabled() and (viewmats.requires_grad or Ks.requires_grad):
-        # gsplat would give them gradients; detaching silently would leave a pose optimiser with
-        # grad None and no word why
-        raise MorphgsError("morphgs.torch.rasterization has no gradients for viewmats or Ks (camera pose or "
-                           "intrinsics optimisation): pass viewmats.detach() and Ks.detach()")
+    if torch.is_grad_enabled() and Ks.requires_grad:
+        # gsplat gives Ks no gradient either; detaching silently would leave an intrinsics
+        # optimiser with grad None and no word why
+        raise MorphgsError("morphgs.torch.rasterization has no gradients for Ks (intrinsics optimisation): "
+                           "pass Ks.detach()")
     n_cams = viewmats.shape[0]
     if backgrounds is not None and tuple(backgrounds.shape) != (n_cams, 3):
         raise MorphgsError(f"backgrounds must be (C,3) = ({n_cams},3), got {tuple(backgrounds.shape)}")
@@ -273,7 +278,7 @@ def rasterization(
         absgrad=absgrad, means2d=means2d, rasterizers=[],
     )
     rgb, depth, alpha = _Rasterize.apply(means, quats, scales, opacities, sh0, sh_rest, given,
-                                         backgrounds, setup)
+                                         backgrounds, viewmats, setup)
     # projected values for meta, from the rasterizers' saved state
     proj = [r.projection() for r in setup.rasterizers]
     if not torch.is_grad_enabled() or not rgb.requires_grad:

@@ -34,7 +34,15 @@ pub(crate) struct GaussGrad {
     pub rgb: [f32; 3],
     pub opacity_eff: f32,
     pub depth: f32,
+    /// With [`GaussCtx::pose`]: this Gaussian's share of the camera gradient, summed over the
+    /// Gaussians by the caller: dL/dW (3x3 row-major, W the world-to-camera rotation) through
+    /// the camera-space mean and covariance, dL/dt (the translation), and dL/d(mean) through the
+    /// SH view direction (which depends on the camera centre).
+    pub pose: [f32; POSE_LEN],
 }
+
+/// Length of [`GaussGrad::pose`]: dL/dW (9), dL/dt (3), the SH direction's dL/d(mean) (3).
+pub(crate) const POSE_LEN: usize = 15;
 
 /// The per-camera constants the per-Gaussian backward needs.
 pub(crate) struct GaussCtx<'a> {
@@ -44,6 +52,8 @@ pub(crate) struct GaussCtx<'a> {
     pub degree: u8,
     /// Given per-Gaussian colours (N,3) instead of SH.
     pub colors: Option<&'a [f32]>,
+    /// Also compute [`GaussGrad::pose`].
+    pub pose: bool,
 }
 
 /// Backward of Gaussian `i`, whose depth-sorted splat is `s`, from its summed blend slot.
@@ -254,6 +264,7 @@ pub(crate) fn gauss_backward(
     }
 
     // ---- colour
+    let mut v_dir_mean = [0.0f32; 3];
     match ctx.colors {
         Some(_) => out.color = v_rgb,
         None => {
@@ -298,6 +309,21 @@ pub(crate) fn gauss_backward(
             for c in 0..3 {
                 v_mean[c] += v_d[c];
             }
+            v_dir_mean = v_d;
+        }
+    }
+
+    if ctx.pose {
+        // pc = W mean + t and Mq = W Rq: dL/dW = v_pc mean^T + v_Mq Rq^T, dL/dt = v_pc
+        for r in 0..3 {
+            for k in 0..3 {
+                out.pose[r * 3 + k] = v_pc[r] * mean[k]
+                    + v_mq[r][0] * rq[k][0]
+                    + v_mq[r][1] * rq[k][1]
+                    + v_mq[r][2] * rq[k][2];
+            }
+            out.pose[9 + r] = v_pc[r];
+            out.pose[12 + r] = v_dir_mean[r];
         }
     }
 

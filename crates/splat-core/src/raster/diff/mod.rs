@@ -159,6 +159,10 @@ pub struct ViewGrads {
     pub colors: Vec<f32>,
     pub opacities: Vec<f32>,
     pub depths: Vec<f32>,
+    /// dL/d(world-to-camera matrix), 4x4 row-major, when set to `Some` before the backward
+    /// (gsplat's `v_viewmats`, camera-centre path through the matrix inverse included); summed
+    /// over Gaussians in index order in float64, so it has the same bits for any thread count.
+    pub viewmat: Option<[f64; 16]>,
 }
 
 impl ViewGrads {
@@ -173,6 +177,9 @@ impl ViewGrads {
         ] {
             v.clear();
             v.resize(n * k, 0.0);
+        }
+        if let Some(m) = self.viewmat.as_mut() {
+            *m = [0.0; 16];
         }
     }
 }
@@ -490,18 +497,30 @@ impl Workspace {
             scene,
             degree: sv.degree,
             colors,
+            pose: view.as_ref().is_some_and(|v| v.viewmat.is_some()),
         };
+        let pose = ctx.pose;
         let mut view = view;
         if let Some(v) = view.as_deref_mut() {
             v.reset(n);
         }
-        let scatter = Scatter::new(out, view, densify, k, (sv.cam.width, sv.cam.height));
+        let scatter = Scatter::new(
+            out,
+            view.as_deref_mut(),
+            densify,
+            k,
+            (sv.cam.width, sv.cam.height),
+        );
         let (acc, part_off, pos) = (&self.acc, &self.part_off, &self.pos);
-        self.parts
+        // per projection chunk (a fixed partition of the Gaussians) the camera-gradient sum of
+        // its Gaussians in index order; the chunks are then added in order
+        let pose_parts: Vec<[f64; gauss_bwd::POSE_LEN]> = self
+            .parts
             .par_iter()
             .zip(self.part_ids.par_iter())
             .enumerate()
-            .for_each(|(c, (ss, ids))| {
+            .map(|(c, (ss, ids))| {
+                let mut part = [0.0f64; gauss_bwd::POSE_LEN];
                 let pos = &pos[part_off[c]..part_off[c] + ss.len()];
                 for (j, ((s, &i), &p)) in ss.iter().zip(ids).zip(pos).enumerate() {
                     // the sums lie in depth order: fetch ahead (a cache miss each otherwise)
@@ -509,10 +528,26 @@ impl Workspace {
                         prefetch_slot(acc, ahead as usize);
                     }
                     let g = gauss_bwd::gauss_backward(&ctx, i as usize, s, &acc[p as usize]);
+                    if pose {
+                        for (a, &v) in part.iter_mut().zip(&g.pose) {
+                            *a += v as f64;
+                        }
+                    }
                     // SAFETY: every Gaussian index occurs once among the visible splats.
                     unsafe { scatter.put(i as usize, s, &g, sv.degree) };
                 }
-            });
+                part
+            })
+            .collect();
+        if let Some(m) = view.and_then(|v| v.viewmat.as_mut()) {
+            let mut sum = [0.0f64; gauss_bwd::POSE_LEN];
+            for part in &pose_parts {
+                for (a, v) in sum.iter_mut().zip(part) {
+                    *a += v;
+                }
+            }
+            *m = viewmat_grad(&sum, &proj.rot, &proj.center);
+        }
         stats.project_s = t0.elapsed().as_secs_f64();
         Ok(stats)
     }
@@ -889,6 +924,34 @@ impl blend_bwd::SlotSink for TileSink<'_> {
 }
 
 /// Raw base pointers of the output buffers, taken once before the parallel per-Gaussian pass.
+/// The 4x4 dL/d(world-to-camera) from the summed per-Gaussian terms (dL/dW, dL/dt through the
+/// camera-space means and covariances; dL/dc = -sum of the SH directions' dL/d(mean), c the
+/// camera centre). c is the translation column of the matrix inverse (as gsplat and torch take
+/// it): with V = [[W, t], [0, 1]], dc = -W^-1 (dW c + dt) - c (dV[3, :3] c + dV[3, 3]).
+fn viewmat_grad(sum: &[f64; gauss_bwd::POSE_LEN], w: &[[f64; 3]; 3], c: &[f64; 3]) -> [f64; 16] {
+    let v_c = [-sum[12], -sum[13], -sum[14]];
+    // u = W^-T v_c (the cofactor form of the inverse; W is a rotation for rigid cameras)
+    let cof = |r: usize, k: usize| {
+        let (r1, r2, k1, k2) = ((r + 1) % 3, (r + 2) % 3, (k + 1) % 3, (k + 2) % 3);
+        w[r1][k1] * w[r2][k2] - w[r1][k2] * w[r2][k1]
+    };
+    let det = w[0][0] * cof(0, 0) + w[0][1] * cof(0, 1) + w[0][2] * cof(0, 2);
+    // (W^-1)[k][r] = cof(r, k) / det, so (W^-T v_c)[r] = sum_k cof(r, k) v_c[k] / det
+    let u: [f64; 3] =
+        std::array::from_fn(|r| (0..3).map(|k| cof(r, k) * v_c[k]).sum::<f64>() / det);
+    let vc_dot_c = v_c[0] * c[0] + v_c[1] * c[1] + v_c[2] * c[2];
+    let mut m = [0.0f64; 16];
+    for r in 0..3 {
+        for k in 0..3 {
+            m[r * 4 + k] = sum[r * 3 + k] - u[r] * c[k];
+        }
+        m[r * 4 + 3] = sum[9 + r] - u[r];
+        m[12 + r] = -vc_dot_c * c[r];
+    }
+    m[15] = -vc_dot_c;
+    m
+}
+
 struct Scatter<'a> {
     means: *mut f32,
     quats: *mut f32,
