@@ -1,6 +1,6 @@
 """`morphgs fit` benchmark: speed on the garden scene, quality over steps, sparse-view fits
-(S_20 > S_40 > S_80), and the side-by-side with OpenSplat's CPU mode on the dataset of
-../shared/research/opensplat_cpu.md (rebuilt here from the built-in synthetic scene).
+(S_20 > S_40 > S_80), and the side-by-side with OpenSplat's CPU mode on the dataset of its
+CPU measurements (docs/fit.md; rebuilt here from the built-in synthetic scene).
 
     python benches/bench_fit.py                    # everything (about 30-40 min on 2 idle cores)
     python benches/bench_fit.py --only garden      # garden | quality | sparse | opensplat
@@ -17,7 +17,7 @@ Sections:
   room orbit (test views: index % 8 == 0; S_K = every K-th view of the other 262), fitted with the
   `sparse` preset; held-out PSNR and seconds per K; the S_80 preview image is written with
   --write-docs.
-- opensplat: the dataset of OpenSplat's CPU measurements on this machine type (opensplat_cpu.md
+- opensplat: the dataset of OpenSplat's CPU measurements on this machine type (docs/fit.md
   section 3: 40 views of the synthetic room at 320x240, 8 held out, 20,000 points from the ground
   truth) fitted by morphgs for 300 steps (no densification) and 1,500 steps (densify from step
   100 every 100 until 750): s/step and held-out PSNR. With --opensplat BIN (a CPU build of
@@ -47,7 +47,7 @@ FIXTURES = Path(os.environ.get("MORPHGS_FIXTURES", REPO / "tests" / "fixtures"))
 sys.path.insert(0, str(REPO / "tests"))
 _GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
-# OpenSplat (WebODM/OpenSplat bd0400d, CPU mode) on this machine type, opensplat_cpu.md sections 4 and 6.
+# OpenSplat (WebODM/OpenSplat bd0400d, CPU mode) on this machine type, its CPU notes (docs/fit.md).
 OPENSPLAT = {
     "s_per_it_1core": "0.258",
     "psnr_300": 22.14,
@@ -260,7 +260,7 @@ def section_sparse(tmp: Path, quick: bool, size: tuple[int, int], steps: int, wr
 
 
 def opensplat_dataset(tmp: Path, quick: bool) -> tuple[Path, object, list[int]]:
-    """opensplat_cpu.md's dataset: 40 views of the synthetic room (100k Gaussians) at 320x240 on
+    """The dataset of OpenSplat's CPU notes: 40 views of the synthetic room (100k Gaussians) at 320x240 on
     its orbit, views i % 5 == 0 held out, 20,000 points sampled from the ground-truth centres
     (opacity >= 0.1) with their colours as the initial cloud."""
     import morphgs
@@ -338,7 +338,7 @@ def run_opensplat(binary: str, data: Path, cams, held: list[int], out: Path, arg
 def section_opensplat(tmp: Path, quick: bool, binary: str | None) -> None:
     data, cams, held = opensplat_dataset(tmp, quick)
     c0 = cams[0]  # type: ignore[index]
-    print(f"\n## side by side with OpenSplat (CPU): the opensplat_cpu.md dataset, {len(cams)} views "  # type: ignore[arg-type]
+    print(f"\n## side by side with OpenSplat (CPU): the dataset of OpenSplat's CPU notes, {len(cams)} views "  # type: ignore[arg-type]
           f"{c0.width}x{c0.height}, {len(held)} held out, 20,000 points from the ground truth (load average {_load()})")
     print(f"{'run':<50} {'s/step wall':>11} {'CPU s/step':>10} {'PSNR':>7} {'Gaussians':>9}")
     n300, n1500 = (30, 60) if quick else (300, 1500)
@@ -359,7 +359,7 @@ def section_opensplat(tmp: Path, quick: bool, binary: str | None) -> None:
                 n = len(morphgs.load(tmp / f"osrun-{cfg['steps']}-{threads}" / "opensplat.ply"))
                 print(f"{'OpenSplat ' + label + f' ({threads} thr)':<50} {o['s_per_step']:>11.4f} "
                       f"{o['cpu_per_step']:>10.4f} {o['psnr']:>7.2f} {n:>9}")
-    print(f"{'OpenSplat -n 300, cited (opensplat_cpu.md)':<50} {'0.149-0.175':>11} {OPENSPLAT['s_per_it_1core']:>10} "
+    print(f"{'OpenSplat -n 300, cited (docs/fit.md)':<50} {'0.149-0.175':>11} {OPENSPLAT['s_per_it_1core']:>10} "
           f"{OPENSPLAT['psnr_300']:>7.2f} {20000:>9}")
     print(f"{'OpenSplat -n 1500 densify, cited (1 core)':<50} {'':>11} {'0.26-0.30':>10} {OPENSPLAT['psnr_1500']:>7.2f} "
           f"{OPENSPLAT['gaussians_1500']:>9}")
