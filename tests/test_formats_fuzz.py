@@ -43,7 +43,10 @@ def _damaged(data: bytes, cut: float, edits: list[tuple[float, int]]) -> bytes:
 
 def _load_or_format_error(path: Path) -> None:
     try:
-        scene = morphgs.load(path)
+        with warnings.catch_warnings():
+            # a damaged file may load with a note (e.g. a SCALE read as log-space)
+            warnings.simplefilter("ignore", morphgs.MorphgsWarning)
+            scene = morphgs.load(path)
     except morphgs.SceneFormatError as e:
         assert str(path) in str(e), e
         return
@@ -69,7 +72,7 @@ def test_damaged_files_load_or_raise_scene_format_error(fmt: str, fixtures_dir: 
     tmp = tmp_path_factory.mktemp(fmt)
     suffix = "".join(Path(name).suffixes[-2:]) if name.endswith(".compressed.ply") else Path(name).suffix
 
-    @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+    @settings(max_examples=40, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
     @given(damage)
     def check(d: tuple[float, list[tuple[float, int]]]) -> None:
         p = tmp / f"damaged{suffix}"
@@ -82,7 +85,7 @@ def test_damaged_files_load_or_raise_scene_format_error(fmt: str, fixtures_dir: 
 def test_damaged_glb_files_load_or_raise(tmp_path: Path) -> None:
     data = _glb_bytes(tmp_path)
 
-    @settings(max_examples=60, deadline=None)
+    @settings(max_examples=60, deadline=None, derandomize=True)
     @given(damage)
     def check(d: tuple[float, list[tuple[float, int]]]) -> None:
         p = tmp_path / "damaged.glb"
@@ -97,7 +100,7 @@ def test_sog_with_damaged_members_loads_or_raises(fixtures_dir: Path, tmp_path: 
     src = zipfile.ZipFile(fixtures_dir / FORMATS["sog"])
     members = {i.filename: src.read(i.filename) for i in src.infolist()}
 
-    @settings(max_examples=60, deadline=None)
+    @settings(max_examples=60, deadline=None, derandomize=True)
     @given(st.sampled_from(sorted(members)), damage)
     def check(member: str, d: tuple[float, list[tuple[float, int]]]) -> None:
         buf = io.BytesIO()
@@ -118,7 +121,7 @@ def test_scenesplat_folders_with_a_damaged_array_load_or_raise(fixtures_dir: Pat
     _preprocess_gs(morphgs.load(fixtures_dir / "splatapult_test.ply"), src)
     arrays = {p.name: p.read_bytes() for p in src.glob("*.npy")}
 
-    @settings(max_examples=60, deadline=None)
+    @settings(max_examples=60, deadline=None, derandomize=True)
     @given(st.sampled_from(sorted(arrays)), damage)
     def check(member: str, d: tuple[float, list[tuple[float, int]]]) -> None:
         folder = tmp_path / "damaged"

@@ -211,3 +211,48 @@ def test_malformed_gltf(tmp_path: Path) -> None:
     morphgs.save_glb(scene, glb)
     glb.write_bytes(glb.read_bytes()[:-10])
     expect(glb, "truncated")
+
+
+def _glb(doc: dict[str, Any], bin_: bytes) -> bytes:
+    j = json.dumps(doc).encode()
+    j += b" " * (-len(j) % 4)
+    b = bin_ + b"\0" * (-len(bin_) % 4)
+    return (struct.pack("<III", 0x46546C67, 2, 28 + len(j) + len(b)) + struct.pack("<II", len(j), 0x4E4F534A) + j
+            + struct.pack("<II", len(b), 0x004E4942) + b)
+
+
+def test_log_space_scales_as_splat_transform_writes_them(fixtures_dir: Path, tmp_path: Path) -> None:
+    """playcanvas/splat-transform's write-glb.ts stores SCALE in log space (the extension's review
+    draft); the release candidate says linear and never negative. A SCALE with negative values
+    is read as log-space, with a warning naming the generator, instead of silently becoming a
+    scene of vanishing Gaussians."""
+    scene = morphgs.load(fixtures_dir / "metalsplatter_train3.ply")
+    ours = tmp_path / "linear.glb"
+    morphgs.save(scene, ours)
+    doc, bin_ = _parse_glb(ours.read_bytes())
+    # the same file as splat-transform writes it: SCALE = the PLY's log-scales, its generator
+    acc = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"][f"{EXT}:SCALE"]]
+    off = doc["bufferViews"][acc["bufferView"]]["byteOffset"] + acc.get("byteOffset", 0)
+    linear = _attribute(doc, bin_, f"{EXT}:SCALE")
+    assert (linear > 0).all()
+    buf = bytearray(bin_)
+    buf[off : off + linear.nbytes] = np.log(linear).astype(np.float32).tobytes()
+    doc["asset"]["generator"] = "splat-transform 1.7.0"
+    st = tmp_path / "splat-transform.glb"
+    st.write_bytes(_glb(doc, bytes(buf)))
+
+    with pytest.warns(morphgs.MorphgsWarning, match=r"splat-transform 1\.7\.0.*log-space") as w:
+        back = morphgs.load(st)
+    assert str(st) in str(w[0].message)
+    want = morphgs.load(ours)
+    np.testing.assert_allclose(np.asarray(back.log_scales), np.asarray(want.log_scales), atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(back.means), np.asarray(want.means))
+    r1 = morphgs.render(back, morphgs.trajectory.for_scene(back, n_frames=1, resolution=(64, 48))[0]).rgb
+    r2 = morphgs.render(want, morphgs.trajectory.for_scene(want, n_frames=1, resolution=(64, 48))[0]).rgb
+    assert np.abs(r1 - r2).max() < 1e-3
+    # a file with linear scales (ours) loads without the warning
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", morphgs.MorphgsWarning)
+        morphgs.load(ours)

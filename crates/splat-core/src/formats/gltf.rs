@@ -8,7 +8,7 @@
 //! |---|---|---|
 //! | `POSITION` | VEC3 | mean, glTF axes (+Y up, +Z front, +X left: "LUF") |
 //! | `KHR_gaussian_splatting:ROTATION` | VEC4 float / normalized byte, short | unit quaternion, glTF order (x,y,z,w) |
-//! | `KHR_gaussian_splatting:SCALE` | VEC3 float / (normalized) ubyte, ushort | linear scale |
+//! | `KHR_gaussian_splatting:SCALE` | VEC3 float / (normalized) ubyte, ushort | linear scale (see below) |
 //! | `KHR_gaussian_splatting:OPACITY` | SCALAR float / normalized ubyte, ushort | sigmoid(logit), in [0,1] |
 //! | `KHR_gaussian_splatting:SH_DEGREE_0_COEF_0` | VEC3 float | DC coefficient |
 //! | `KHR_gaussian_splatting:SH_DEGREE_l_COEF_n` | VEC3 float | degree l = 1..3, n = 0..2l (m = -l..l) |
@@ -17,6 +17,13 @@
 //! PLY's RDF axes, so reading maps glTF's LUF to RDF and writing maps back: both are the
 //! 180-degree rotation about Z (x and y negated; quaternion x and y negated; SH by parity), what
 //! playcanvas/splat-transform's GLB writer applies (`Transform.PLY`, a 180-degree Z rotation).
+//!
+//! **Log-space scales.** The extension's review draft stored `SCALE` in log space; the release
+//! candidate says "Scale values are linear and MUST NOT be negative". playcanvas/splat-transform's
+//! GLB writer still writes log-space scales (`write-glb.ts`: "log-space"). A `SCALE` accessor
+//! holding any negative value cannot be linear, so it is read as log-space, with a note (the
+//! caller's MorphgsWarning) naming the file and the generator; read as linear, such a file would
+//! have silently become a scene of vanishing Gaussians. morphgs writes linear scales.
 //!
 //! Node transforms are applied to the splats they instance (translation, rotation and uniform
 //! positive scale; rotating higher SH bands is not supported and is refused). Sparse accessors,
@@ -143,8 +150,12 @@ pub fn read(bytes: &[u8], path: &Path, on_invalid: OnInvalid) -> Result<(Scene, 
         ));
     }
     let mut parts = Vec::with_capacity(prims.len());
+    let mut log_scaled = Vec::new();
     for (at, prim, m) in prims {
-        let mut s = g.decode_primitive(&at, prim)?;
+        let (mut s, log_space) = g.decode_primitive(&at, prim)?;
+        if log_space {
+            log_scaled.push(at.clone());
+        }
         if let Some(m) = m {
             apply_transform(&mut s, &m, path, &at)?;
         }
@@ -152,7 +163,22 @@ pub fn read(bytes: &[u8], path: &Path, on_invalid: OnInvalid) -> Result<(Scene, 
     }
     let mut scene = concat(parts);
     flip_axes(&mut scene, TO_GLTF);
-    finish(scene, "gltf", "gltf", path, on_invalid)
+    let (scene, mut report) = finish(scene, "gltf", "gltf", path, on_invalid)?;
+    if !log_scaled.is_empty() {
+        let generator = doc
+            .pointer("/asset/generator")
+            .and_then(Value::as_str)
+            .map(|g| format!(" (written by {g:?})"))
+            .unwrap_or_default();
+        report.notes.push(format!(
+            "{}{generator}: {EXT}:SCALE of {} holds negative values, which linear scales cannot; \
+             read as log-space scales, as the extension's review draft and splat-transform's GLB \
+             writer store them (the release candidate stores linear scales)",
+            path.display(),
+            log_scaled.join(", ")
+        ));
+    }
+    Ok((scene, report))
 }
 
 fn check_required(doc: &Value, path: &Path) -> Result<()> {
@@ -537,7 +563,8 @@ impl<'a> Doc<'a> {
         Ok(out)
     }
 
-    fn decode_primitive(&self, at: &str, prim: &Value) -> Result<Scene> {
+    /// The primitive's splats, and whether its `SCALE` was read as log-space (module docs).
+    fn decode_primitive(&self, at: &str, prim: &Value) -> Result<(Scene, bool)> {
         let p = self.path;
         let mode = prim.get("mode").and_then(Value::as_u64).unwrap_or(4);
         if mode != 0 {
@@ -639,10 +666,15 @@ impl<'a> Doc<'a> {
         for (q, r) in s.quats.chunks_exact_mut(4).zip(rot.chunks_exact(4)) {
             q.copy_from_slice(&[r[3], r[0], r[1], r[2]]);
         }
-        s.log_scales = scale
-            .par_iter()
-            .map(|&v| v.max(f32::MIN_POSITIVE).ln())
-            .collect();
+        let log_space = scale.par_iter().any(|&v| v < 0.0);
+        s.log_scales = if log_space {
+            scale
+        } else {
+            scale
+                .par_iter()
+                .map(|&v| v.max(f32::MIN_POSITIVE).ln())
+                .collect()
+        };
         s.opacity_logits = opacity.par_iter().map(|&a| logit_unit(a)).collect();
         let coefs: Vec<&Vec<f32>> = bands.iter().flatten().collect();
         if coefs.iter().any(|c| c.len() != n * 3) {
@@ -662,7 +694,7 @@ impl<'a> Doc<'a> {
                     }
                 });
         }
-        Ok(s)
+        Ok((s, log_space))
     }
 }
 
