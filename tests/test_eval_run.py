@@ -60,3 +60,25 @@ def test_eval_modes_do_not_mix(trained: tuple[Path, Path], tmp_path: Path) -> No
             cli.main(["eval", *argv, "--out", str(tmp_path)])
     with pytest.raises(SystemExit, match="takes depth and cameras from the curated folder"):
         cli.main(["eval", "--run", str(run), "--data", str(data), "--cameras", "c.json", "--out", str(tmp_path)])
+
+
+def test_colour_correction_hands_the_output_the_inputs_colour_shift(trained: tuple[Path, Path], tmp_path: Path) -> None:
+    """refine's default Reinhard transfer matches the output's colour statistics to the corrupted
+    input's, so the two colour shifts agree; --no-color-correct scores the model's own colours."""
+    run, data = trained
+
+    def shifts(*extra: str) -> dict[str, float]:
+        out = tmp_path / ("nocc" if extra else "cc")
+        assert cli.main(["eval", "--run", str(run), "--data", str(data), "--out", str(out), "--quiet",
+                         "--metrics", "color_shift", "--no-plots", *extra]) == 0
+        import json
+
+        overall = json.loads((out / "summary.json").read_text())["overall"]
+        return {k: overall[k]["color_shift"] for k in ("input", "output")}
+
+    cc = shifts()
+    assert cc["output"] == pytest.approx(cc["input"], abs=0.15)
+    raw = shifts("--no-color-correct")
+    assert raw["input"] == cc["input"] and abs(raw["output"] - cc["output"]) > 0.05
+    with pytest.raises(SystemExit, match="applies to --run"):
+        cli.main(["eval", "a", "b", "--no-color-correct", "--out", str(tmp_path / "x")])

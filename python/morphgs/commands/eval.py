@@ -29,6 +29,9 @@ def register(sub: Any) -> None:
     p.add_argument("--split", choices=("test", "train", "all"), default="test", help="split of --data (test)")
     p.add_argument("--checkpoint", default=None, help="checkpoint folder of --run (default: its latest)")
     p.add_argument("--save-refined", action="store_true", help="with --run: also write OUT/refined/<pair>/refined/*.png")
+    p.add_argument("--no-color-correct", action="store_true",
+                   help="with --run: skip refine's Reinhard colour transfer to the corrupted input (which hands the "
+                        "output the input's colour shift)")
     p.add_argument("--out", default="eval", help="output folder (./eval)")
     p.add_argument("--metrics", type=_metric_list, default=list(DEFAULT_METRICS),
                    help=f"comma-separated, from {','.join(SELECTABLE)} (default {','.join(DEFAULT_METRICS)}; "
@@ -67,8 +70,10 @@ def _pairs(args: argparse.Namespace, metrics: list[str]) -> tuple[Any, int | Non
         total = 2 * count_pairs(args.data, args.split)
         save = Path(args.out) / "refined" if args.save_refined else None
         return refined_pairs(args.run, args.data, split=args.split, checkpoint=args.checkpoint,
-                             device=args.device,
-                             save_refined=save), total
+                             device=args.device, save_refined=save,
+                             color_correct=not args.no_color_correct), total
+    if args.no_color_correct:
+        raise SystemExit("morphgs eval: error: --no-color-correct applies to --run")
     if args.pred is None or args.gt is None:
         raise SystemExit("morphgs eval: error: give PRED and GT (or --run RUN --data DIR)")
     if args.depth_pred and args.depth_gt and "depth" not in metrics:

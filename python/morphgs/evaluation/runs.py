@@ -36,6 +36,7 @@ def refined_pairs(
     checkpoint: str | os.PathLike[str] | None = None,
     device: str | None = None,
     save_refined: str | os.PathLike[str] | None = None,
+    color_correct: bool = True,
 ) -> Iterator[ClipPair]:
     """Yield ("input", "output") ClipPairs for every pair of the split, refining as it goes.
 
@@ -47,6 +48,9 @@ def refined_pairs(
         device: where the model runs (default: CUDA when available, else the CPU).
         save_refined: when given, each pair's refined frames are written to
             `save_refined/<pair_id>/refined/00000.png ...`.
+        color_correct: refine's Reinhard transfer to the corrupted clip's colour statistics (on
+            by default, as `morphgs refine`); it hands the output the input's mean colour, so
+            the two `color_shift` values then agree.
 
     Raises:
         FileNotFoundError, DatasetError, TrainingError: as `morphgs.inference` (each names the path).
@@ -54,7 +58,7 @@ def refined_pairs(
     from morphgs.inference import iter_refined_pairs, load_run
 
     loaded = load_run(run, checkpoint=checkpoint, device=device)
-    for rp in iter_refined_pairs(loaded, data, split=split, out=save_refined):
+    for rp in iter_refined_pairs(loaded, data, split=split, out=save_refined, color_correct=color_correct):
         rec: Any = rp.record
         cams = read_cameras(rec.cameras) if rec.cameras is not None and rec.clean_depth is not None else None
         depth_gt = Path(rec.clean_depth) if rec.clean_depth is not None else None
