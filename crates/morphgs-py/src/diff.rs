@@ -371,36 +371,7 @@ impl PyDiffRasterizer {
             .lock()?
             .projection()
             .ok_or_else(|| PyValueError::new_err("projection needs a forward first"))?;
-        let n = p.depths.len();
-        let bad = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
-        let d = PyDict::new(py);
-        d.set_item(
-            "radii",
-            Array2::from_shape_vec((n, 2), p.radii)
-                .map_err(bad)?
-                .into_pyarray(py),
-        )?;
-        d.set_item(
-            "means2d",
-            Array2::from_shape_vec((n, 2), p.means2d)
-                .map_err(bad)?
-                .into_pyarray(py),
-        )?;
-        d.set_item("depths", Array1::from_vec(p.depths).into_pyarray(py))?;
-        d.set_item(
-            "conics",
-            Array2::from_shape_vec((n, 3), p.conics)
-                .map_err(bad)?
-                .into_pyarray(py),
-        )?;
-        d.set_item("opacities", Array1::from_vec(p.opacities).into_pyarray(py))?;
-        d.set_item(
-            "colors",
-            Array2::from_shape_vec((n, 3), p.colors)
-                .map_err(bad)?
-                .into_pyarray(py),
-        )?;
-        Ok(d)
+        crate::render::projection_dict(py, p)
     }
 
     /// Every contributing (pixel, Gaussian) pair of the last forward in blend order per pixel:

@@ -205,6 +205,15 @@ fn _project<'py>(
     let view = b.view()?;
     let opts = options([0.0; 3], 0.99, sh_degree, antialiased)?;
     let p = detach(py, || raster::project_all(&view, &cam, &opts))?;
+    projection_dict(py, p)
+}
+
+/// gsplat's `fully_fused_projection` outputs of a [`raster::Projection`] as a dict of arrays:
+/// radii (N,2) int32, means2d (N,2), depths (N,), conics (N,3), opacities (N,), colors (N,3).
+pub(crate) fn projection_dict(
+    py: Python<'_>,
+    p: raster::Projection,
+) -> PyResult<Bound<'_, PyDict>> {
     let n = p.depths.len();
     let bad = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
     let d = PyDict::new(py);
