@@ -12,6 +12,8 @@ use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use splat_core::camera::Camera;
+
+use crate::render::slice_of;
 use splat_core::raster::diff::{
     DensifyStats, DepthKind, DiffOptions, Gradients, ImageGrads, ViewGrads, Workspace,
 };
@@ -32,20 +34,6 @@ struct Params<'py> {
     colors: Option<PyReadonlyArray2<'py, f32>>,
 }
 
-fn slice<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
-    a: &'a numpy::PyReadonlyArray<'_, T, D>,
-    name: &str,
-) -> PyResult<&'a [T]> {
-    // as_slice also accepts Fortran order, whose memory order is not the row-major layout
-    if !a.is_c_contiguous() {
-        return Err(PyValueError::new_err(format!(
-            "{name} must be a C-contiguous array"
-        )));
-    }
-    a.as_slice()
-        .map_err(|_| PyValueError::new_err(format!("{name} must be a C-contiguous array")))
-}
-
 impl Params<'_> {
     fn view(&self) -> PyResult<SceneView<'_>> {
         let k = self.sh_rest.shape()[1];
@@ -58,19 +46,22 @@ impl Params<'_> {
             return Err(PyValueError::new_err("sh_rest must be (N,K,3)"));
         }
         SceneView::new(
-            slice(&self.means, "means")?,
-            slice(&self.quats, "quats")?,
-            slice(&self.log_scales, "log_scales")?,
-            slice(&self.opacity_logits, "opacity_logits")?,
-            slice(&self.sh0, "sh0")?,
-            slice(&self.sh_rest, "sh_rest")?,
+            slice_of(&self.means, "means")?,
+            slice_of(&self.quats, "quats")?,
+            slice_of(&self.log_scales, "log_scales")?,
+            slice_of(&self.opacity_logits, "opacity_logits")?,
+            slice_of(&self.sh0, "sh0")?,
+            slice_of(&self.sh_rest, "sh_rest")?,
             degree,
         )
         .map_err(|e| CoreError(e).into())
     }
 
     fn colors(&self) -> PyResult<Option<&[f32]>> {
-        self.colors.as_ref().map(|c| slice(c, "colors")).transpose()
+        self.colors
+            .as_ref()
+            .map(|c| slice_of(c, "colors"))
+            .transpose()
     }
 }
 
@@ -159,8 +150,8 @@ impl PyDiffRasterizer {
             ));
         }
         let cam = Camera::from_matrices(
-            slice(&world_to_camera, "world_to_camera")?,
-            slice(&K, "K")?,
+            slice_of(&world_to_camera, "world_to_camera")?,
+            slice_of(&K, "K")?,
             width,
             height,
             near,
@@ -273,9 +264,15 @@ impl PyDiffRasterizer {
         let scene = p.view()?;
         let colors = p.colors()?;
         let grads = ImageGrads {
-            rgb: v_rgb.as_ref().map(|a| slice(a, "v_rgb")).transpose()?,
-            depth: v_depth.as_ref().map(|a| slice(a, "v_depth")).transpose()?,
-            alpha: v_alpha.as_ref().map(|a| slice(a, "v_alpha")).transpose()?,
+            rgb: v_rgb.as_ref().map(|a| slice_of(a, "v_rgb")).transpose()?,
+            depth: v_depth
+                .as_ref()
+                .map(|a| slice_of(a, "v_depth"))
+                .transpose()?,
+            alpha: v_alpha
+                .as_ref()
+                .map(|a| slice_of(a, "v_alpha"))
+                .transpose()?,
         };
         let n = scene.len();
         let k = scene.sh_rest_k();

@@ -18,7 +18,8 @@ use crate::errors::detach;
 use crate::pool;
 use crate::scene::{PyGaussianScene, SceneBorrow};
 
-fn slice_of<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
+/// The row-major data of a C-contiguous array (a clear ValueError naming `name` otherwise).
+pub(crate) fn slice_of<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
     a: &'a numpy::PyReadonlyArray<'_, T, D>,
     name: &str,
 ) -> PyResult<&'a [T]> {

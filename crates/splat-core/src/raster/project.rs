@@ -67,6 +67,25 @@ pub(crate) struct Projector {
 }
 
 impl Projector {
+    /// The unit view direction from the camera centre to `mean` (zero at the centre) and that
+    /// distance: the SH evaluation direction of the forward, and of the backward, which needs
+    /// the distance for its gradient.
+    #[inline(always)]
+    pub(crate) fn view_dir(&self, mean: [f32; 3]) -> ([f32; 3], f32) {
+        let d = [
+            (mean[0] as f64 - self.center[0]) as f32,
+            (mean[1] as f64 - self.center[1]) as f32,
+            (mean[2] as f64 - self.center[2]) as f32,
+        ];
+        let dn = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        let dir = if dn > 0.0 {
+            [d[0] / dn, d[1] / dn, d[2] / dn]
+        } else {
+            [0.0; 3]
+        };
+        (dir, dn)
+    }
+
     pub(crate) fn new(cam: &Camera, opts: &RenderOptions, sh_degree: u8) -> Self {
         let (w, h) = (cam.width as f32, cam.height as f32);
         let (fx, fy, cx, cy) = (cam.fx as f32, cam.fy as f32, cam.cx as f32, cam.cy as f32);
@@ -384,17 +403,7 @@ impl Projector {
         let sh0 = &scene.sh0[i * 3..i * 3 + 3];
         let q = &scene.quats[i * 4..i * 4 + 4];
         // colour along the view direction mean - camera centre
-        let d = [
-            (mean[0] as f64 - self.center[0]) as f32,
-            (mean[1] as f64 - self.center[1]) as f32,
-            (mean[2] as f64 - self.center[2]) as f32,
-        ];
-        let dn = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-        let dir = if dn > 0.0 {
-            [d[0] / dn, d[1] / dn, d[2] / dn]
-        } else {
-            [0.0; 3]
-        };
+        let (dir, _) = self.view_dir([mean[0], mean[1], mean[2]]);
         let k = scene.sh_rest_k() * 3;
         let rest = &scene.sh_rest[i * k..i * k + k];
         // every stored value must be finite, including SH bands this render does not use

@@ -268,17 +268,7 @@ pub(crate) fn gauss_backward(
     match ctx.colors {
         Some(_) => out.color = v_rgb,
         None => {
-            let dvec = [
-                (mean[0] as f64 - p.center[0]) as f32,
-                (mean[1] as f64 - p.center[1]) as f32,
-                (mean[2] as f64 - p.center[2]) as f32,
-            ];
-            let dn = (dvec[0] * dvec[0] + dvec[1] * dvec[1] + dvec[2] * dvec[2]).sqrt();
-            let dir = if dn > 0.0 {
-                [dvec[0] / dn, dvec[1] / dn, dvec[2] / dn]
-            } else {
-                [0.0; 3]
-            };
+            let (dir, dn) = p.view_dir(mean);
             let k = sc.sh_rest_k() * 3;
             let sh0 = &sc.sh0[i * 3..i * 3 + 3];
             let rest = &sc.sh_rest[i * k..i * k + k];
