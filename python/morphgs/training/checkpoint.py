@@ -5,7 +5,11 @@ random states, the loop's `TrainState`) plus the model's `save_trained` output
 (`trained.safetensors` for the built-in models; accelerate's own copy of the weights is skipped)
 and `state.json` (step, wall time). It is written under `.tmp-step-NNNNNNN` and renamed into place
 once complete, so a killed run leaves either a whole checkpoint or a temporary the next run
-removes. `--resume` takes the highest complete step. The last `keep` checkpoints are kept.
+removes. The last `keep` checkpoints are kept.
+
+`checksums.json` (size and sha256 of every file, morphgs.reliability) is written last, before the
+rename. `--resume` takes the highest step that verifies against it and loads; each damaged one
+(truncated by a crash during a copy, a full disk, a bad sync) is skipped with a warning.
 """
 
 from __future__ import annotations
@@ -17,7 +21,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["TrainState", "checkpoint_dir", "latest_checkpoint", "list_checkpoints", "save_checkpoint"]
+from morphgs.reliability import verify_checksums, write_checksums
+
+__all__ = ["TrainState", "checkpoint_dir", "latest_checkpoint", "list_checkpoints", "save_checkpoint",
+           "verify_checkpoint"]
 
 CHECKPOINTS = "checkpoints"
 STATE_FILE = "state.json"
@@ -62,6 +69,12 @@ def latest_checkpoint(run_dir: str | os.PathLike[str]) -> Path | None:
     return found[-1][1] if found else None
 
 
+def verify_checkpoint(folder: str | os.PathLike[str]) -> str | None:
+    """None when a checkpoint's files match the checksums written with them, else what is wrong
+    (naming the file). Checkpoints from before checksums existed pass."""
+    return verify_checksums(folder)
+
+
 def _fsync_dir(path: Path) -> None:
     try:
         fd = os.open(path, os.O_RDONLY)
@@ -97,6 +110,7 @@ def save_checkpoint(accelerator: Any, run_dir: str | os.PathLike[str], step: int
             if f.is_file():
                 with open(f, "rb") as fh:
                     os.fsync(fh.fileno())
+        write_checksums(tmp)
         os.replace(tmp, final)
         _fsync_dir(final.parent)
         for _, old in list_checkpoints(run_dir)[:-keep]:
