@@ -32,6 +32,7 @@ def register(sub: Any) -> None:
     p.add_argument("--restart", action="store_true", help="start over instead of resuming a run in --out")
     p.add_argument("--print-config", action="store_true", help="print the effective config as TOML and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--wait", action="store_true", help="if another process writes --out, wait for it")
     p.set_defaults(func=run)
 
 
@@ -66,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         res = fit(args.data, args.out, config=cfg, views=args.views, holdout=args.holdout, init=args.init,
                   images=args.images, downscale=args.downscale, resume=not args.restart,
-                  progress=not args.no_progress)
+                  progress=not args.no_progress, wait=args.wait)
     except KeyboardInterrupt:
         print(f"morphgs fit: interrupted; a checkpoint is in {args.out}: rerun the same command to resume",
               file=sys.stderr)

@@ -13,16 +13,24 @@ A new command gets all of it with a few lines::
 
     from morphgs.reliability import folder_lock, sigterm_raises
 
+    def register(sub):
+        p = sub.add_parser("ablate", ...)
+        add_wait_argument(p)                        # --wait
+
     def run(args):
-        with folder_lock(args.out, command="ablate", wait=args.wait), sigterm_raises():
-            ...   # KeyboardInterrupt / Preempted reach cli.main, which prints the resume line
+        with folder_lock(args.out, command="ablate", wait=args.wait):
+            ...   # SIGTERM arrives as Preempted (cli.main installs sigterm_raises), printed with
+                  # the resume line of cli._RESUME
+
+or, on the API function that writes the folder, `@locks_folder("ablate")` (adds `wait=`).
 """
 
 from __future__ import annotations
 
 from morphgs.reliability.checksums import ChecksumError, verify_checksums, write_checksums
 from morphgs.reliability.errors import one_line, unwrap_worker_message
-from morphgs.reliability.lock import LOCK_PREFIX, FolderBusyError, FolderLock, add_wait_argument, folder_lock, is_lock_file
+from morphgs.reliability.lock import LOCK_PREFIX, FolderBusyError, FolderLock, add_wait_argument, folder_lock, is_lock_file, \
+    locks_folder
 from morphgs.reliability.signals import Preempted, StopRequest, sigterm_raises
 
 __all__ = [
@@ -35,6 +43,7 @@ __all__ = [
     "add_wait_argument",
     "folder_lock",
     "is_lock_file",
+    "locks_folder",
     "one_line",
     "sigterm_raises",
     "unwrap_worker_message",

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import functools
+import inspect
 import json
 import os
 import socket
@@ -33,12 +35,14 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from morphgs._core import MorphgsError, MorphgsWarning
 
+_F = TypeVar("_F", bound=Callable[..., Any])
+
 __all__ = ["LOCK_PREFIX", "FolderBusyError", "FolderLock", "Holder", "add_wait_argument", "folder_lock",
-           "is_lock_file"]
+           "is_lock_file", "locks_folder"]
 
 LOCK_PREFIX = ".morphgs"
 _MAIN = f"{LOCK_PREFIX}.lock"
@@ -46,6 +50,8 @@ _MAIN = f"{LOCK_PREFIX}.lock"
 
 # descriptors of the locks this process holds; a forked child closes its copies (see below)
 _HELD: set[int] = set()
+# unsharded locks this process holds, by lock file: taking one again nests (no second flock)
+_OWNED: dict[str, int] = {}
 
 
 def _close_in_child() -> None:
@@ -55,6 +61,7 @@ def _close_in_child() -> None:
         except OSError:
             pass
     _HELD.clear()
+    _OWNED.clear()
 
 
 os.register_at_fork(after_in_child=_close_in_child)
@@ -147,6 +154,7 @@ class FolderLock:
         self._fds: list[int] = []
         self._info_fd: int | None = None
         self._pid = os.getpid()
+        self._nested: str | None = None
 
     # -- paths --
     def _dir(self) -> Path:
@@ -163,6 +171,11 @@ class FolderLock:
         self._pid = os.getpid()
         self._dir().mkdir(parents=True, exist_ok=True)
         main = self.main_path()
+        key = str(main.resolve())
+        if self.shard is None and key in _OWNED:  # this process holds it already: nest
+            _OWNED[key] += 1
+            self._nested = key
+            return self
         try:
             if self.shard is None:
                 self._info_fd = self._take(main, exclusive=True)
@@ -174,6 +187,8 @@ class FolderLock:
             raise
         if self._info_fd is not None:
             self._claim(self._info_fd)
+        if self.shard is None:
+            _OWNED[key] = 1
         return self
 
     def release(self) -> None:
@@ -182,9 +197,17 @@ class FolderLock:
             self._fds.clear()
             self._info_fd = None
             return
+        if self._nested is not None:
+            _OWNED[self._nested] -= 1
+            self._nested = None
+            return
+        if self.shard is None and self._fds:
+            _OWNED.pop(str(self.main_path().resolve()), None)
         if self._info_fd is not None:
             try:
                 os.ftruncate(self._info_fd, 0)
+                if self.beside:  # leave nothing beside OUT (a waiting process re-opens: see _take)
+                    os.unlink(self.main_path())
             except OSError:
                 pass
             self._info_fd = None
@@ -200,23 +223,27 @@ class FolderLock:
         self.release()
 
     def _take(self, path: Path, *, exclusive: bool) -> int | None:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        self._fds.append(fd)
-        _HELD.add(fd)
         announced = False
         while True:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            self._fds.append(fd)
+            _HELD.add(fd)
             try:
                 if exclusive:
                     fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 else:
                     self._take_shared(fd)
-                return fd
+                if self._same_file(fd, path):
+                    return fd
+                self._drop(fd)  # its holder removed the file on release: lock the new one
+                continue
             except BlockingIOError:
-                pass
+                self._drop(fd)
             except OSError as e:
                 if e.errno in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
                     warnings.warn(f"{path}: the filesystem does not support locks ({e.strerror}); nothing stops a "
                                   "second process writing the same folder", MorphgsWarning, stacklevel=3)
+                    self._drop(fd)
                     return None
                 raise
             busy = self.busy_message()
@@ -226,6 +253,19 @@ class FolderLock:
                 self.say(f"morphgs {self.command}: {busy}; waiting for it to end")
                 announced = True
             time.sleep(self.poll)
+
+    def _drop(self, fd: int) -> None:
+        self._fds.remove(fd)
+        _HELD.discard(fd)
+        os.close(fd)
+
+    @staticmethod
+    def _same_file(fd: int, path: Path) -> bool:
+        try:
+            st = os.stat(path)
+        except FileNotFoundError:
+            return False
+        return (st.st_ino, st.st_dev) == (os.fstat(fd).st_ino, os.fstat(fd).st_dev)
 
     def _take_shared(self, fd: int) -> None:
         """Shared lock of a shard on the folder; a stale unsharded holder's record is cleared first."""
@@ -288,3 +328,21 @@ def add_wait_argument(parser: Any) -> None:
     """The `--wait` flag of a command that writes a folder."""
     parser.add_argument("--wait", action="store_true",
                         help="if another process is writing the output folder, wait for it instead of stopping")
+
+
+def locks_folder(command: str, *, folder_arg: str = "out", beside: bool = False) -> Callable[[_F], _F]:
+    """Decorate a function that writes the folder given as its `folder_arg` argument: it runs with
+    the folder locked, and takes one more keyword, `wait` (see `FolderLock`)."""
+
+    def deco(func: _F) -> _F:
+        sig = inspect.signature(func)
+
+        @functools.wraps(func)
+        def wrapper(*args: Any, wait: bool = False, **kwargs: Any) -> Any:
+            folder = sig.bind_partial(*args, **kwargs).arguments[folder_arg]
+            with folder_lock(folder, command=command, wait=wait, beside=beside):
+                return func(*args, **kwargs)
+
+        return wrapper  # type: ignore[return-value]
+
+    return deco
