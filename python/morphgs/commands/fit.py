@@ -68,10 +68,13 @@ def run(args: argparse.Namespace) -> int:
         res = fit(args.data, args.out, config=cfg, views=args.views, holdout=args.holdout, init=args.init,
                   images=args.images, downscale=args.downscale, resume=not args.restart,
                   progress=not args.no_progress, wait=args.wait)
-    except KeyboardInterrupt:
-        print(f"morphgs fit: interrupted; a checkpoint is in {args.out}: rerun the same command to resume",
+    except KeyboardInterrupt as e:
+        from morphgs.reliability import Preempted
+
+        why = "stopped by SIGTERM" if isinstance(e, Preempted) else "interrupted"
+        print(f"morphgs fit: {why}; a checkpoint is in {args.out}: rerun the same command to resume",
               file=sys.stderr)
-        return 130
+        return 143 if isinstance(e, Preempted) else 130
     lp = f" LPIPS {res.heldout_lpips:.4f}" if res.heldout_lpips is not None else ""
     held = (f", held-out PSNR {res.heldout_psnr:.3f} dB SSIM {res.heldout_ssim:.4f}{lp} on {len(res.heldout_views)} views"
             if res.heldout_psnr is not None else "")

@@ -104,10 +104,13 @@ def compact(path: str | os.PathLike[str], drop: Iterable[str] = ()) -> int:
 def append(path: str | os.PathLike[str], record: dict[str, Any]) -> None:
     """Append one record as a single write, then flush and fsync."""
     line = json.dumps(record, sort_keys=True, separators=(",", ":")) + "\n"
-    with open(path, "a", encoding="utf-8") as f:
-        f.write(line)
-        f.flush()
-        os.fsync(f.fileno())
+    try:
+        with open(path, "a", encoding="utf-8") as f:
+            f.write(line)
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as e:  # a full disk: name the file (the pair is redone by the next run)
+        raise OSError(e.errno, f"cannot append pair {record.get('pair_id')} ({e.strerror})", str(path)) from None
 
 
 def expected_files(record: dict[str, Any]) -> list[str]:

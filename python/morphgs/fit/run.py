@@ -292,10 +292,19 @@ def _restore(core: Any, run: Path, train_imgs: Any, tw2c: Any, tk: Any, fp: byte
         if not ck.is_file():
             continue
         try:
-            return core.Trainer.restore(ck, train_imgs, tw2c, tk, fingerprint=fp, **common)
+            trainer = core.Trainer.restore(ck, train_imgs, tw2c, tk, fingerprint=fp, **common)
         except MorphgsError as e:
             damaged.append(ck.name)
             warnings.warn(f"checkpoint {ck} is damaged ({e}); skipping it", MorphgsWarning, stacklevel=3)
+            continue
+        if damaged:  # resumed from the previous one: it is also the one to keep at the next checkpoint
+            cur = run / _CUR
+            cur.unlink(missing_ok=True)
+            try:
+                os.link(ck, cur)
+            except OSError:
+                pass
+        return trainer
     raise FitRunError(f"{run}: no checkpoint verifies ({', '.join(damaged)} damaged); rerun with --restart "
                       "(resume=False) to start over")
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import sys
 import time
 import warnings
@@ -332,7 +333,12 @@ def _load_newest_good(accelerator: Any, run_dir: Path) -> Path:
             except Exception as e:  # noqa: BLE001 - any failure to load means a damaged checkpoint
                 problem = f"cannot be loaded ({type(e).__name__}: {unwrap_worker_message(str(e)).splitlines()[0]})"
         damaged.append(ckpt.name)
-        warnings.warn(f"checkpoint {ckpt} is damaged ({problem}); skipping it", MorphgsWarning, stacklevel=2)
+        aside = ckpt.with_name(f"damaged-{ckpt.name}")
+        if accelerator.is_main_process:
+            shutil.rmtree(aside, ignore_errors=True)
+            os.replace(ckpt, aside)  # out of the way of the checkpoint this run will write at that step
+        warnings.warn(f"checkpoint {ckpt} is damaged ({problem}); skipping it (moved to {aside.name})",
+                      MorphgsWarning, stacklevel=2)
     raise TrainingError(f"{run_dir}: no checkpoint verifies ({', '.join(damaged)} damaged), nothing to resume from; "
                         "start over without --resume in a new --out folder (or delete this one)")
 
