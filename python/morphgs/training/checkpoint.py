@@ -21,13 +21,18 @@ import time
 from pathlib import Path
 from typing import Any
 
-from morphgs.reliability import verify_checksums, write_checksums
+from morphgs._core import MorphgsError
+from morphgs.reliability import one_line, verify_checksums, write_checksums
 
-__all__ = ["TrainState", "checkpoint_dir", "latest_checkpoint", "list_checkpoints", "save_checkpoint",
+__all__ = ["CheckpointWriteError", "TrainState", "checkpoint_dir", "latest_checkpoint", "list_checkpoints", "save_checkpoint",
            "verify_checkpoint"]
 
 CHECKPOINTS = "checkpoints"
 STATE_FILE = "state.json"
+
+
+class CheckpointWriteError(MorphgsError):
+    """A checkpoint that could not be written (a full disk, an unwritable run folder)."""
 
 
 class TrainState:
@@ -97,6 +102,23 @@ def save_checkpoint(accelerator: Any, run_dir: str | os.PathLike[str], step: int
     tmp = final.with_name(f".tmp-{final.name}")
     if final.exists():
         return final
+    try:
+        _write(accelerator, tmp, step, info)
+    except Exception as e:  # a full disk: no half-written checkpoint, the earlier ones kept
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise CheckpointWriteError(f"{final}: cannot write the checkpoint ({one_line(e)}); the earlier checkpoints "
+                                   "are kept: free some space, then rerun with --resume") from None
+    if accelerator.is_main_process:
+        os.replace(tmp, final)
+        _fsync_dir(final.parent)
+        for _, old in list_checkpoints(run_dir)[:-keep]:
+            shutil.rmtree(old, ignore_errors=True)
+    accelerator.wait_for_everyone()
+    return final
+
+
+def _write(accelerator: Any, tmp: Path, step: int, info: dict[str, Any] | None) -> None:
+    """Every file of a checkpoint into `tmp`, checksums last, all fsynced."""
     if accelerator.is_main_process:
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
@@ -111,12 +133,6 @@ def save_checkpoint(accelerator: Any, run_dir: str | os.PathLike[str], step: int
                 with open(f, "rb") as fh:
                     os.fsync(fh.fileno())
         write_checksums(tmp)
-        os.replace(tmp, final)
-        _fsync_dir(final.parent)
-        for _, old in list_checkpoints(run_dir)[:-keep]:
-            shutil.rmtree(old, ignore_errors=True)
-    accelerator.wait_for_everyone()
-    return final
 
 
 def remove_stale_temporaries(run_dir: str | os.PathLike[str]) -> None:
