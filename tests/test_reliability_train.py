@@ -7,6 +7,7 @@ bytes, a full disk, and a damaged latent cache encoded again."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 from pathlib import Path
 
@@ -122,15 +123,18 @@ def test_skip_bad_skips_logs_and_counts_the_pair_and_stops_past_the_share(data: 
 
 
 def test_sigterm_checkpoints_and_the_resumed_run_gives_the_same_losses_and_bytes(data: Path, tmp_path: Path) -> None:
-    sections = dict(optim={"max_steps": 16}, run={"checkpoint_every": 4, "keep_checkpoints": 5})
+    sections = dict(data={"num_workers": 1}, optim={"max_steps": 16},
+                    run={"checkpoint_every": 4, "keep_checkpoints": 5})
     whole = _run(*_train(data, tmp_path / "whole", sections))
     assert whole.returncode == 0, whole.stderr
     run = tmp_path / "run"
-    p = _start(*_train(data, run, sections))
+    p = _start(*_train(data, run, sections), start_new_session=True)
     _until(lambda: (run / "checkpoints" / "step-0000004").is_dir(), p)
-    p.send_signal(signal.SIGSTOP)  # the chosen point: after the first checkpoint
-    p.send_signal(signal.SIGTERM)
-    p.send_signal(signal.SIGCONT)
+    # the chosen point: after the first checkpoint; to the whole process group (the DataLoader
+    # worker too), as a cluster sends it
+    os.killpg(p.pid, signal.SIGSTOP)
+    os.killpg(p.pid, signal.SIGTERM)
+    os.killpg(p.pid, signal.SIGCONT)
     _, err = p.communicate(timeout=300)
     assert p.returncode == 143, err
     assert "Traceback" not in err
