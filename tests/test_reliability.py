@@ -221,6 +221,30 @@ def test_sigterm_stops_curate_keeping_finished_pairs_and_a_rerun_gives_the_same_
     assert _pair_bytes(out) == _pair_bytes(reference)
 
 
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_sigkill_or_sigterm_at_a_random_point_then_a_rerun_gives_the_same_bytes(seed: int, tmp_path: Path,
+                                                                              reference: Path) -> None:
+    import random
+
+    rnd = random.Random(seed)
+    sig = rnd.choice([signal.SIGKILL, signal.SIGTERM])
+    out = tmp_path / "ds"
+    p = _start("curate", "--out", str(out), *QUICK_CURATE)
+    time.sleep(rnd.uniform(0.0, 1.5))  # somewhere between start-up and the end of the run
+    p.send_signal(sig)
+    _, err = p.communicate(timeout=120)
+    assert "Traceback" not in err
+    # finished, killed, stopped by the handler (143), or terminated by SIGTERM during start-up, before
+    # the CLI installs its handler
+    assert p.returncode in (0, -signal.SIGKILL, 143, -signal.SIGTERM), err
+    for rec in _lines(out / "manifest.jsonl"):
+        assert manifest.is_complete(out, rec)
+    again = _run("curate", "--out", str(out), *QUICK_CURATE)
+    assert again.returncode == 0, again.stderr
+    assert _pair_bytes(out) == _pair_bytes(reference)
+    assert len(_lines(out / "manifest.jsonl")) == 6
+
+
 @pytest.fixture(scope="module")
 def fit_data(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
     """A tiny posed dataset, a fit config (checkpoints every 20 of 400 steps) and its straight run."""

@@ -79,12 +79,15 @@ def test_resume_skips_damaged_checkpoints_for_the_newest_that_verifies(data: Pat
     assert r.returncode == 0, r.stderr
     ck = run / "checkpoints"
     want, losses = _weights(ck / "step-0000006"), _losses(run)
-    _damage(ck / "step-0000006" / "optimizer.bin")
-    _damage(ck / "step-0000004" / "trained.safetensors")
+    _damage(ck / "step-0000006" / "optimizer.bin")  # found by loading it (as a checkpoint without checksums)
+    (ck / "step-0000006" / "checksums.json").unlink()
+    _damage(ck / "step-0000004" / "trained.safetensors")  # found by its checksum
     again = _run("train", "--no-progress", "--out", str(run), "--resume")
     assert again.returncode == 0, again.stderr
     for step in ("step-0000006", "step-0000004"):
         assert f"morphgs train: warning: checkpoint {ck / step} is damaged (" in again.stderr
+    assert "step-0000006 is damaged (cannot be loaded (" in again.stderr
+    assert f"step-0000004 is damaged ({ck / 'step-0000004' / 'trained.safetensors'} has " in again.stderr
     assert f"resumed {run} at step 2 (step-0000002)" in again.stderr
     assert _weights(ck / "step-0000006") == want  # the same bytes as the run never damaged
     assert _losses(run) == losses
@@ -94,6 +97,7 @@ def test_resume_skips_damaged_checkpoints_for_the_newest_that_verifies(data: Pat
     r = _run("train", "--no-progress", "--out", str(run), "--resume")
     line = one_error_line(r.returncode, r.stderr, "train")
     assert f"{run}: no checkpoint verifies (step-0000006, step-0000004, step-0000002 damaged)" in line
+    assert "Traceback" not in r.stderr and "PytorchStreamReader" not in line
     assert "start over without --resume" in line
 
 
