@@ -118,6 +118,7 @@ def test_skip_bad_skips_logs_and_counts_the_pair_and_stops_past_the_share(data: 
     assert "Traceback" not in r.stderr
     assert f"morphgs train: warning: skipping pair {pair}: " in r.stderr
     assert f"skipped 1 unreadable pair(s) of 3 (data.skip_bad); listed in {run / 'bad_pairs.jsonl'}" in r.stderr
+    assert f"{run}: 10 steps, " in r.stdout and ", 1 unreadable pair(s) skipped (bad_pairs.jsonl)" in r.stdout
     logged = [json.loads(ln) for ln in (run / "bad_pairs.jsonl").read_text().splitlines()]
     assert [e["pair_id"] for e in logged] == [pair] and str(frame) in logged[0]["error"]
     # more bad pairs than the share allows: one line, stop

@@ -102,7 +102,8 @@ def run(args: argparse.Namespace) -> int:
         v = result.validation
         print(f"validation at step {result.steps}: PSNR {v['psnr_input']:.2f} -> {v['psnr_output']:.2f} dB, "
               f"SSIM {v['ssim_input']:.4f} -> {v['ssim_output']:.4f} (input -> refined, vs clean)")
-    print(f"{result.run_dir}: {result.steps} steps, checkpoint {result.checkpoint}")
+    skipped = f", {result.bad_pairs} unreadable pair(s) skipped (bad_pairs.jsonl)" if result.bad_pairs else ""
+    print(f"{result.run_dir}: {result.steps} steps, checkpoint {result.checkpoint}{skipped}")
     if result.preempted:
         print(f"morphgs train: stopped by {result.preempted} at step {result.steps} with a checkpoint; rerun with "
               f"--out {result.run_dir} --resume to continue", file=sys.stderr)
