@@ -215,20 +215,18 @@ def curate(
         morphgs.reliability.FolderBusyError: another process (not a shard of this run) writes
         `out` (names its pid, host and start time).
     """
+    args = dict(locals())  # every argument, by name
+    del args["wait"]
     with ExitStack() as stack:
         if not dry_run:
             stack.enter_context(folder_lock(out, command="curate", shard=(shard_index, num_shards), wait=wait,
                                             say=log))
-        return _curate(scenes, out, configs, pairs_per_scene, frames, resolution, seed, test_fraction, split_seed,
-                       blur_sigma, depth, video, fps, background, trajectory, stride, orbit_arc_degrees,
-                       fov_y_degrees, chunk, workers, backend, ray_address, shard_index, num_shards,
-                       builtin_scenes, builtin_gaussians, dry_run, progress, log)
-    raise AssertionError("unreachable")  # pragma: no cover
+        return _curate(**args)
 
 
-def _curate(scenes: Iterable[str | os.PathLike[str]], out: str | os.PathLike[str], configs: Sequence[str | ConfigSpec],
-            pairs_per_scene: int, frames: int, resolution: tuple[int, int], seed: int, test_fraction: float,
-            split_seed: int, blur_sigma: float, depth: bool, video: bool, fps: int,
+def _curate(*, scenes: Iterable[str | os.PathLike[str]], out: str | os.PathLike[str],
+            configs: Sequence[str | ConfigSpec], pairs_per_scene: int, frames: int, resolution: tuple[int, int],
+            seed: int, test_fraction: float, split_seed: int, blur_sigma: float, depth: bool, video: bool, fps: int,
             background: tuple[float, float, float], trajectory: str, stride: int | None, orbit_arc_degrees: float,
             fov_y_degrees: float, chunk: int, workers: int, backend: str, ray_address: str | None,
             shard_index: int, num_shards: int, builtin_scenes: int, builtin_gaussians: int, dry_run: bool,

@@ -244,6 +244,7 @@ def _run(accelerator: Any, resolved: ResolvedConfig, run_dir: Path, data_dir: Pa
                 break
     finally:
         stop_request.__exit__(None, None, None)
+        _close_loader(batches)
         bar.close()
         logs.close()
     result.bad_pairs = bad.count
@@ -272,6 +273,14 @@ def _next_batch(batches: Any) -> Any:
         except Exception:  # noqa: BLE001 - a type that cannot be rebuilt from its message
             clean = DatasetError(text)
         raise clean from None
+
+
+def _close_loader(batches: Any) -> None:
+    """Stop the DataLoader's workers now (a sentinel each, then a join), not at interpreter exit,
+    where an error's traceback may still hold the iterator."""
+    shutdown = getattr(batches, "_shutdown_workers", None)
+    if shutdown is not None:
+        shutdown()
 
 
 def _stop_requested(accelerator: Any, request: StopRequest) -> bool:
