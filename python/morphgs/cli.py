@@ -15,6 +15,7 @@ from morphgs._core import MorphgsError
 _COMMAND_MODULES = (
     "morphgs.commands.info",
     "morphgs.commands.curate",
+    "morphgs.commands.calibrate",
     "morphgs.commands.export",
     "morphgs.commands.fit",
     "morphgs.commands.export_difix",
