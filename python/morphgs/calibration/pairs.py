@@ -4,6 +4,7 @@ cameras with the same seeds at any strength)."""
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,7 +43,7 @@ def _read_frames(path: Path, what: str) -> np.ndarray:
     return np.asarray(read_clip(path), dtype=np.float32) / np.float32(255.0)
 
 
-def read_real_pairs(folder: str | Path, *, regimes: Sequence[str] | None = None) -> list[RealPair]:
+def read_real_pairs(folder: str | os.PathLike[str], *, regimes: Sequence[str] | None = None) -> list[RealPair]:
     """The pairs of a curated folder (its manifest*.jsonl), sorted by pair id.
 
     Any pair whose corrupted side is real counts, e.g. `sparse:K` pairs or the user's own

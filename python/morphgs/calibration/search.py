@@ -136,7 +136,7 @@ def _bisect(measure: Measure, target: float, lo: float, hi: float, *, tol_db: fl
     return best
 
 
-def search(measure: Measure, real_frame_psnr: Sequence[float], *, grid: Sequence[float] = DEFAULT_GRID,
+def search(measure: Measure, real_frame_psnr: Sequence[float] | np.ndarray, *, grid: Sequence[float] = DEFAULT_GRID,
            probs: Sequence[float] = PROBS, tol_db: float = 0.05, iters: int = 10) -> SearchResult:
     """Scan, check monotonicity, bisect to the real median PSNR, match quantiles (module doc).
 
@@ -149,11 +149,12 @@ def search(measure: Measure, real_frame_psnr: Sequence[float], *, grid: Sequence
     cache: dict[float, np.ndarray] = {}
     raw = measure
 
-    def measure(s: float) -> np.ndarray:  # memoised: every strength is rendered once
+    def memo(s: float) -> np.ndarray:  # every strength is rendered once
         if s not in cache:
             cache[s] = np.asarray(raw(s), dtype=np.float64)
         return cache[s]
 
+    measure = memo
     real = np.asarray(real_frame_psnr, dtype=np.float64)
     g = np.asarray(sorted(float(s) for s in grid))
     if len(g) < 2 or g[0] <= 0:
