@@ -178,3 +178,12 @@ def test_help_lists_every_config_form_and_the_models(capsys: pytest.CaptureFixtu
         main(["train", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "tiny" in text and "sandbox" in text and "controlnet" in text and "--list-models" in text
+
+
+def test_gaussian_i_gets_the_same_noise_whichever_ops_run(room: morphgs.GaussianScene) -> None:
+    """SPEC §2's contract for the new ops: the draws of Gaussian i depend on (seed, op, i) only."""
+    alone = Strength("morphological", 1.0, {"log_scale": 0.5, "rotation": 0.5}).apply(room, seed=9)
+    pruned, mask = Strength("morphological", 1.0).apply(room, seed=9, return_mask=True)
+    assert 0 < mask.sum() < len(room)
+    np.testing.assert_array_equal(pruned.log_scales, alone.log_scales[mask])
+    np.testing.assert_array_equal(pruned.quats, alone.quats[mask])
