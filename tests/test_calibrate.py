@@ -66,6 +66,8 @@ def test_search_reports_non_monotone_and_unreachable() -> None:
     assert not far.reachable and far.most_severe_psnr == pytest.approx(19.5) and far.most_severe_strength == 4.0
     assert far.unreachable_frames == 1.0 and far.median_strength is None
     assert far.quantiles["strength"] == [4.0] * len(far.quantiles["p"])  # the most severe, reported
+    mild = search(measure, [40.0, 41.0, 42.0, 43.0], grid=grid)
+    assert mild.reachable and mild.below_grid_frames == 1.0 and mild.median_strength == 0.5  # said, not hidden
     s, unreachable = frame_strengths(np.array([1.0, 2.0]), np.array([[30.0, 20.0]]), np.array([31.0]))
     assert s.tolist() == [1.0] and not unreachable[0]
 

@@ -87,6 +87,9 @@ def write_report(out: Path, doc: dict[str, Any], plot_data: Sequence[dict[str, A
                               f"{v['to_psnr']:.2f} dB" for v in s["violations"])
             lines += ["", f"**{r['family']} / {r['regime']}: severity does not rise monotonically with strength** "
                           f"({steps}); frames are matched on the running minimum of their curves."]
+        if s.get("below_grid_frames", 0.0) > 0:
+            lines += ["", f"{r['family']} / {r['regime']}: {100 * s['below_grid_frames']:.0f}% of the real frames are milder "
+                          f"than the smallest strength scanned (s = {s['grid'][0]:.4g}); they get that strength."]
         if not s["reachable"]:
             lines += ["", f"**{r['family']} / {r['regime']} is unreachable**: the real median is "
                           f"{s['target_median_psnr']:.2f} dB, the family reaches at most "

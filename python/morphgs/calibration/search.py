@@ -15,7 +15,8 @@ T_j(s). The search:
 4. frames more severe than the most severe value the family reaches are **unreachable**: their
    s_j is the most severe grid strength and they are counted (never clipped silently); when the
    real median itself is out of reach, the family is unreachable for these pairs, with the most
-   severe median PSNR it does reach.
+   severe median PSNR it does reach. Frames milder than the smallest grid strength get it and are
+   counted too (`below_grid_frames`).
 
 These functions are pure: they take `measure` and return plain data.
 """
@@ -110,6 +111,7 @@ class SearchResult:
     bisection: list[tuple[float, float]]
     quantiles: dict[str, list[float]]
     unreachable_frames: float
+    below_grid_frames: float = 0.0
     frame_strengths: list[float] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
@@ -191,4 +193,5 @@ def search(measure: Measure, real_frame_psnr: Sequence[float] | np.ndarray, *, g
         most_severe_psnr=most_severe, most_severe_strength=float(g[k_min]),
         median_strength=med_s, median_psnr_reached=med_p, bisection=bis,
         quantiles={"p": [float(p) for p in probs], "strength": [float(v) for v in q]},
-        unreachable_frames=float(unreach.mean()), frame_strengths=s_j.tolist())
+        unreachable_frames=float(unreach.mean()),
+        below_grid_frames=float(np.mean(real >= monotone_envelope(all_curves)[:, 0])), frame_strengths=s_j.tolist())
