@@ -68,7 +68,7 @@ def write_report(out: Path, doc: dict[str, Any], plot_data: Sequence[dict[str, A
              f"{doc['resolution'][0]}x{doc['resolution'][1]}, seed {doc['seed']}.", "",
              "## Strength search", "",
              "| family | regime | real median PSNR | monotone | reachable | median strength (PSNR) "
-             "| most severe reached | unreachable frames | strength quantiles p5 / p50 / p95 | config |",
+             "| most severe reached | unreachable pairs | strength quantiles (over pairs) p5 / p50 / p95 | config |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in doc["results"]:
         s = r["search"]
@@ -94,7 +94,7 @@ def write_report(out: Path, doc: dict[str, Any], plot_data: Sequence[dict[str, A
             lines += ["", f"**{r['family']} / {r['regime']} is unreachable**: the real median is "
                           f"{s['target_median_psnr']:.2f} dB, the family reaches at most "
                           f"{s['most_severe_psnr']:.2f} dB (s = {s['most_severe_strength']:.4g}). Its config uses the "
-                          "most severe strength for the frames it cannot reach."]
+                          "most severe strength for the pairs it cannot reach."]
     lines += ["", "## Each op's share of the error", "",
               "MSE of each op alone at the median strength (the most severe one when unreachable), as a share of "
               "their sum.", "", "| family | regime | strength | shares |", "|---|---|---|---|"]

@@ -75,8 +75,9 @@ def _calibrate_one(family: str, regime: str, pairs: list[RealPair], bench: Bench
                    held: list[RealPair], *, grid: Sequence[float], lpips: bool, say: Callable[[str], None]) -> dict[str, Any]:
     base = Strength(family)
     real_psnr = np.concatenate([stats.frame_psnr(p.corrupted, p.clean) for p in pairs])
+    pair_of_frame = np.concatenate([np.full(len(p.clean), k) for k, p in enumerate(pairs)])
     t0 = time.perf_counter()
-    res = search(lambda s: bench.frame_psnr(base.at(s)), real_psnr, grid=grid)
+    res = search(lambda s: bench.frame_psnr(base.at(s)), real_psnr, grid=grid, pairs=pair_of_frame)
     say(f"calibrate: {family} vs {regime}: real median {res.target_median_psnr:.2f} dB; "
         + (f"median strength {res.median_strength:.4g} ({res.median_psnr_reached:.2f} dB)" if res.reachable
            else f"UNREACHABLE (most severe {res.most_severe_psnr:.2f} dB at s={res.most_severe_strength:.4g})")

@@ -11,7 +11,9 @@ T_j(s). The search:
 3. matches quantiles: frame j's strength s_j solves T_j(s_j) = real PSNR of frame j (on the
    decreasing envelope of T_j over the evaluated points, interpolated in log s); the strength
    distribution is the quantile table of the s_j. Real severity varies with each frame's distance
-   to the training views, and so does s_j;
+   to the training views, and so does s_j. Given each frame's pair, the table is over pairs
+   instead (pair k's strength matches its median PSNR), since curate draws one strength per pair;
+   `unreachable_frames` and `below_grid_frames` then count pairs;
 4. frames more severe than the most severe value the family reaches are **unreachable**: their
    s_j is the most severe grid strength and they are counted (never clipped silently); when the
    real median itself is out of reach, the family is unreachable for these pairs, with the most
@@ -113,6 +115,7 @@ class SearchResult:
     unreachable_frames: float
     below_grid_frames: float = 0.0
     frame_strengths: list[float] = field(default_factory=list)
+    pair_strengths: list[float] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -139,7 +142,8 @@ def _bisect(measure: Measure, target: float, lo: float, hi: float, *, tol_db: fl
 
 
 def search(measure: Measure, real_frame_psnr: Sequence[float] | np.ndarray, *, grid: Sequence[float] = DEFAULT_GRID,
-           probs: Sequence[float] = PROBS, tol_db: float = 0.05, iters: int = 10) -> SearchResult:
+           probs: Sequence[float] = PROBS, tol_db: float = 0.05, iters: int = 10,
+           pairs: Sequence[int] | np.ndarray | None = None) -> SearchResult:
     """Scan, check monotonicity, bisect to the real median PSNR, match quantiles (module doc).
 
     Args:
@@ -147,6 +151,9 @@ def search(measure: Measure, real_frame_psnr: Sequence[float] | np.ndarray, *, g
         real_frame_psnr: the real pairs' per-frame PSNR (F,).
         grid: increasing strengths > 0 (a log grid). probs: the quantile table's probabilities.
         tol_db: bisection tolerance and the monotonicity check's tolerance. iters: bisection steps.
+        pairs: the pair index of each frame. When given, the quantile table is over pairs: pair
+            k's strength solves median_j∈k T_j(s) = the real pair's median PSNR (curate draws one
+            strength per pair); the per-frame strengths are still reported.
     """
     cache: dict[float, np.ndarray] = {}
     raw = measure
@@ -185,7 +192,21 @@ def search(measure: Measure, real_frame_psnr: Sequence[float] | np.ndarray, *, g
     all_s = np.asarray(pts)
     all_curves = np.stack([cache[s] for s in pts], axis=1)
     s_j, unreach = frame_strengths(all_s, all_curves, real)
-    q = np.quantile(s_j, probs)
+    below = real >= monotone_envelope(all_curves)[:, 0]
+    pair_s: list[float] = []
+    matched = s_j
+    if pairs is not None:
+        ids = np.asarray(pairs)
+        if ids.shape != real.shape:
+            raise ValueError(f"pairs gives {ids.shape[0]} frames for {len(real)} real frames")
+        keys = sorted(set(ids.tolist()))
+        curves_p = np.stack([np.median(all_curves[ids == k], axis=0) for k in keys])
+        targets_p = np.array([np.median(real[ids == k]) for k in keys])
+        sp, unreach_p = frame_strengths(all_s, curves_p, targets_p)
+        pair_s, matched = sp.tolist(), sp
+        unreach = unreach_p
+        below = targets_p >= monotone_envelope(curves_p)[:, 0]
+    q = np.quantile(matched, probs)
     q = np.maximum.accumulate(q)
     return SearchResult(
         target_median_psnr=target, grid=g.tolist(), grid_median_psnr=medians.tolist(),
@@ -193,5 +214,5 @@ def search(measure: Measure, real_frame_psnr: Sequence[float] | np.ndarray, *, g
         most_severe_psnr=most_severe, most_severe_strength=float(g[k_min]),
         median_strength=med_s, median_psnr_reached=med_p, bisection=bis,
         quantiles={"p": [float(p) for p in probs], "strength": [float(v) for v in q]},
-        unreachable_frames=float(unreach.mean()),
-        below_grid_frames=float(np.mean(real >= monotone_envelope(all_curves)[:, 0])), frame_strengths=s_j.tolist())
+        unreachable_frames=float(unreach.mean()), below_grid_frames=float(below.mean()),
+        frame_strengths=s_j.tolist(), pair_strengths=pair_s)
