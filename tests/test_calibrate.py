@@ -84,6 +84,17 @@ def test_recovers_a_reachable_hidden_strength(hidden_strength: Path, tmp_path: P
     assert q[0.05] == pytest.approx(0.8, rel=0.05) and q[0.95] == pytest.approx(0.8, rel=0.05)
     assert set(r["op_shares"]) == {"keep", "log_scale", "rotation"}
     assert sum(r["op_shares"].values()) == pytest.approx(1.0)
+    # ops fixed by the user: the same proportions as a file recover the same strength; a keep-only
+    # family keeps only its op (in the config and the shares)
+    same, keep = tmp_path / "same.json", tmp_path / "keep-only.json"
+    same.write_text(json.dumps({"family": "morphological", "ops": {"keep": 0.5, "log_scale": 0.5, "rotation": 0.5}}))
+    keep.write_text(json.dumps({"family": "morphological", "ops": {"keep": 0.5}}))
+    doc = calibrate(out=tmp_path / "calib2", real=hidden_strength, families=[str(same), str(keep)],
+                    builtin_gaussians=GAUSSIANS, grid=GRID, plots=False, log=lambda m: None)
+    r_same, r_keep = doc["results"]
+    assert r_same["family"] == "same" and r_same["search"]["median_strength"] == pytest.approx(0.8, rel=0.02)
+    assert r_keep["op_shares"] == {"keep": 1.0} and r_keep["config"]["ops"] == {"keep": 0.5}
+    assert json.loads((tmp_path / "calib2" / "configs" / "keep-only-hidden.json").read_text())["ops"] == {"keep": 0.5}
 
 
 def test_matches_a_hidden_paper_config(hidden_paper: Path, tmp_path: Path) -> None:
@@ -156,6 +167,10 @@ def test_bad_input(hidden_strength: Path, tmp_path: Path, capsys: pytest.Capture
     out = str(tmp_path / "c")
     assert "--family blurry: unknown family; valid families: spatial" in _err(
         capsys, ["calibrate", "--real", str(hidden_strength), "--family", "blurry", "--out", out])
+    bad_family = tmp_path / "fam.json"
+    bad_family.write_text(json.dumps({"family": "morphological", "ops": {"prune": 0.5}}))
+    assert f"--family {bad_family}: unknown strength op(s) 'prune'" in _err(
+        capsys, ["calibrate", "--real", str(hidden_strength), "--family", str(bad_family), "--out", out])
     assert "--regime sparse:96: leaves 1 training view(s) of 96 for scene sample-0" in _err(
         capsys, ["calibrate", "--regime", "sparse:96", "--out", out])
     assert "--regime morphological: expected sparse:K or sparse-n:N" in _err(

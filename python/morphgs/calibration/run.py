@@ -71,14 +71,37 @@ def _pair_stats(corrupted: np.ndarray, clean: np.ndarray, lpips: bool) -> dict[s
     return stats.pair_stats(corrupted, clean, lpips=lpips)
 
 
-def _calibrate_one(family: str, regime: str, pairs: list[RealPair], bench: Bench, held_bench: Bench | None,
+def _family(spec: str) -> tuple[str, Strength]:
+    """A --family: a family name (its ops at the preset's proportions) or a JSON file
+    {"family", "ops"} fixing the ops and their proportions; (label, base config at strength 1)."""
+    if spec.lower().endswith(".json"):
+        path = Path(spec)
+        try:
+            d = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError) as e:
+            raise CalibrationError(f"--family {spec}: cannot read JSON ({e})") from None
+        if not isinstance(d, dict):
+            raise CalibrationError(f"--family {spec}: expected a JSON object {{\"family\", \"ops\"}}")
+        try:
+            cfg = Strength.from_dict({k: v for k, v in d.items() if k not in ("strength", "quantiles")})
+        except (TypeError, ValueError) as e:
+            raise CalibrationError(f"--family {spec}: {e}") from None
+        return path.stem, cfg.at(1.0)
+    if spec not in FAMILIES:
+        raise CalibrationError(f"--family {spec}: unknown family; valid families: {', '.join(FAMILIES)} "
+                               "(or a JSON file {\"family\", \"ops\"})")
+    return spec, Strength(spec)
+
+
+def _calibrate_one(label: str, base: Strength, regime: str, pairs: list[RealPair], bench: Bench,
+                   held_bench: Bench | None,
                    held: list[RealPair], *, grid: Sequence[float], lpips: bool, say: Callable[[str], None]) -> dict[str, Any]:
-    base = Strength(family)
+    family = base.family
     real_psnr = np.concatenate([stats.frame_psnr(p.corrupted, p.clean) for p in pairs])
     pair_of_frame = np.concatenate([np.full(len(p.clean), k) for k, p in enumerate(pairs)])
     t0 = time.perf_counter()
     res = search(lambda s: bench.frame_psnr(base.at(s)), real_psnr, grid=grid, pairs=pair_of_frame)
-    say(f"calibrate: {family} vs {regime}: real median {res.target_median_psnr:.2f} dB; "
+    say(f"calibrate: {label} vs {regime}: real median {res.target_median_psnr:.2f} dB; "
         + (f"median strength {res.median_strength:.4g} ({res.median_psnr_reached:.2f} dB)" if res.reachable
            else f"UNREACHABLE (most severe {res.most_severe_psnr:.2f} dB at s={res.most_severe_strength:.4g})")
         + ("" if res.monotone else "; severity NOT monotone in strength")
@@ -107,7 +130,7 @@ def _calibrate_one(family: str, regime: str, pairs: list[RealPair], bench: Bench
                            floor_groups=[p.scene for p in every])
     gof["held_out"] = held_bench is not None
     gof["scenes"] = sorted(set(groups))
-    return {"family": family, "regime": regime, "search": res.to_dict(), "op_shares": shares,
+    return {"family": label, "base_family": family, "regime": regime, "search": res.to_dict(), "op_shares": shares,
             "op_shares_strength": s_ref, "config": config, "goodness": gof,
             "calibration_scenes": sorted({p.scene for p in pairs}),
             "_plot": {"real_psnr": real_psnr.tolist(),
@@ -146,7 +169,8 @@ def calibrate(
         out: output folder: calibration.json, configs/<family>-<regime>.json, report.md, plots,
             and real/ (the regimes' real pairs and their cached sparse fits; a rerun reuses them).
         regimes: sparse-view regimes (`sparse:K`, `sparse-n:N`, optionally `@STEPS`).
-        families: strength families (spatial, radiometric, morphological, naive).
+        families: strength families (spatial, radiometric, morphological, naive; their ops keep the
+            preset's proportions), or JSON files {"family", "ops"} fixing the ops' base values.
         real: a curated folder of real pairs instead of (or besides) regimes; each config name in
             it is a regime.
         pairs_per_scene, frames, resolution, seed: the real pairs the regimes make.
@@ -166,9 +190,9 @@ def calibrate(
 
     say = log or (lambda m: print(m, file=sys.stderr))
     t_wall, t_cpu = time.perf_counter(), _cpu_seconds()
-    for fam in families:
-        if fam not in FAMILIES:
-            raise CalibrationError(f"--family {fam}: unknown family; valid families: {', '.join(FAMILIES)}")
+    bases = [_family(f) for f in families]
+    if len({lbl for lbl, _ in bases}) != len(bases):
+        raise CalibrationError(f"--family: the families must have distinct names, got {[lbl for lbl, _ in bases]}")
     if not families:
         raise CalibrationError("at least one --family is needed")
     if not regimes and real is None:
@@ -210,8 +234,9 @@ def calibrate(
         calib, held = _split_scenes(pairs)
         bench = Bench(loaded, calib)
         held_bench = Bench(loaded, held) if held else None
-        for fam in families:
-            results.append(_calibrate_one(fam, regime, calib, bench, held_bench, held, grid=grid, lpips=lpips, say=say))
+        for label, base in bases:
+            results.append(_calibrate_one(label, base, regime, calib, bench, held_bench, held, grid=grid, lpips=lpips,
+                                          say=say))
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "configs").mkdir(exist_ok=True)
     for r in results:
@@ -221,7 +246,7 @@ def calibrate(
     from morphgs import __version__
 
     doc = {"schema": 1, "morphgs_version": __version__, "scenes": [s.describe() for s in sources],
-           "regimes": list(groups), "families": list(families), "real": None if real is None else str(real),
+           "regimes": list(groups), "families": [lbl for lbl, _ in bases], "real": None if real is None else str(real),
            "pairs_per_scene": pairs_per_scene, "seed": seed,
            "frames": sorted({len(p.clean) for ps in groups.values() for p in ps}),
            "resolution": [int(v) for v in next(iter(sizes))[::-1]],

@@ -22,7 +22,9 @@ def register(sub: Any) -> None:
     p.add_argument("--regime", action="append", dest="regimes", default=[], metavar="REGIME",
                    help="sparse-view regime: sparse:K or sparse-n:N, optionally @STEPS (fit length); repeatable")
     p.add_argument("--family", action="append", dest="families", default=[], metavar="FAMILY",
-                   help="spatial, radiometric, morphological or naive; repeatable (default: morphological)")
+                   help="spatial, radiometric, morphological or naive (ops in the preset's proportions), or a "
+                        "JSON file {\"family\": ..., \"ops\": {op: base value}} fixing them; repeatable "
+                        "(default: morphological)")
     p.add_argument("--real", default=None, metavar="DIR",
                    help="a curated folder of real pairs (any pairs whose corrupted side is real); each config "
                         "name in it is a regime")
