@@ -6,7 +6,10 @@ parameterisation's log-scale and rotation-angle noise, op ids 7 and 8): draw j o
 op k is a pure function of (seed, k, i, j), so the result does not depend on the thread count,
 on the other operations or on the other Gaussians. The integer part (SplitMix64 words) is exactly
 the kernel's; the Box-Muller step is computed in float64 here (the kernel's float32 polynomials
-agree to about 1e-6 relative).
+agree to about 1e-6 relative). NumPy's float64 log/sin/cos are single-threaded elementwise, so
+the draws are the same for any thread count; across CPUs they may differ in the last float64
+bits (NumPy picks SIMD implementations at run time), which changes a float32 result only when it
+lies within a few float64 ulps of a float32 rounding boundary (about 1 draw in 10^7).
 """
 
 from __future__ import annotations
