@@ -126,7 +126,7 @@ def test_cli_end_to_end_config_used_by_curate(hidden_strength: Path, tmp_path: P
                                               capsys: pytest.CaptureFixture[str]) -> None:
     calib = tmp_path / "calib"
     rc = main(["calibrate", "--real", str(hidden_strength), "--out", str(calib), "--family", "morphological",
-               "--family", "radiometric", "--sample-gaussians", str(GAUSSIANS), "--no-plots"])
+               "--family", "radiometric", "--sample-gaussians", str(GAUSSIANS), "--no-plots", "--grid", "0.125,16"])
     assert rc == 0
     out = capsys.readouterr().out
     assert "morphological / hidden: reachable" in out and "radiometric / hidden" in out
@@ -144,7 +144,7 @@ def test_cli_end_to_end_config_used_by_curate(hidden_strength: Path, tmp_path: P
 
 def test_sparse_regime_cached_and_deterministic(tmp_path: Path) -> None:
     args = ["calibrate", "--regime", "sparse:24@30", "--sample-gaussians", "3000", "--size", "48x32", "--frames", "4",
-            "-k", "1", "--no-plots"]
+            "-k", "1", "--no-plots", "--grid", "0.125,16"]
     assert main([*args, "--out", str(tmp_path / "a")]) == 0
     fits = sorted((tmp_path / "a" / "real" / "fits").rglob("fit.json"))
     assert len(fits) == 2

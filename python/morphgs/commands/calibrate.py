@@ -10,6 +10,18 @@ from typing import Any
 from morphgs.commands.curate import _size
 
 
+def _grid(text: str) -> list[float]:
+    from morphgs.calibration.search import log_grid
+
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"grid must look like 0.0625,128, got {text!r}") from None
+    if not (0 < lo < hi < 1e6):
+        raise argparse.ArgumentTypeError(f"grid needs 0 < LO < HI, got {text!r}")
+    return log_grid(lo, hi)
+
+
 def register(sub: Any) -> None:
     p = sub.add_parser(
         "calibrate", help="match perturbation strength to real (e.g. sparse-view) artifacts",
@@ -34,6 +46,8 @@ def register(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0, help="run seed (0)")
     p.add_argument("--sample-gaussians", type=int, default=100_000,
                    help="Gaussians per built-in sample scene when no SCENE is given (100000)")
+    p.add_argument("--grid", type=_grid, default=None, metavar="LO,HI",
+                   help="strength range of the log-grid scan, two points per octave (0.0625,128)")
     p.add_argument("--lpips", action="store_true", help="also compare LPIPS (needs the installed weights)")
     p.add_argument("--workers", "-j", type=int, default=1, help="curate workers for the regimes' pairs (1)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
@@ -48,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
         doc = calibrate(args.scenes, args.out, regimes=args.regimes, families=args.families or ["morphological"],
                         real=args.real, pairs_per_scene=args.pairs_per_scene, frames=args.frames,
                         resolution=args.size, seed=args.seed, builtin_gaussians=args.sample_gaussians,
-                        lpips=args.lpips, workers=args.workers, plots=not args.no_plots)
+                        lpips=args.lpips, **({"grid": args.grid} if args.grid else {}), workers=args.workers, plots=not args.no_plots)
     except (CalibrationError, ValueError) as e:
         print(f"morphgs calibrate: error: {e}", file=sys.stderr)
         return 2
