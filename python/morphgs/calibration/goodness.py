@@ -157,6 +157,7 @@ def compare(real_stats: Sequence[dict[str, Any]], synth_stats: Sequence[dict[str
     furthest = max(excess, key=lambda n: excess[n]) if excess else None
     within = all(e <= slack for e in excess.values()) and bool(floor["distances"])
     matched = bool(within and np.isfinite(floor["ci"][1]) and clf["ci"][0] <= floor["ci"][1])
-    return {"statistics": used, "distances": dist, "classifier": clf, "floor": floor, "matched": matched,
+    medians = {names[k]: [float(np.median(r[:, k])), float(np.median(s[:, k]))] for k in cols}
+    return {"statistics": used, "distances": dist, "medians": medians, "classifier": clf, "floor": floor, "matched": matched,
             "furthest": furthest, "furthest_excess": excess.get(furthest) if furthest else None,
             "pairs": {"real": len(r), "synthetic": len(s)}}

@@ -118,9 +118,10 @@ def write_report(out: Path, doc: dict[str, Any], plot_data: Sequence[dict[str, A
                   f"On {where}, {g['pairs']['real']} real and {g['pairs']['synthetic']} synthetic pairs: AUC "
                   f"{_f(c['auc'])} [{_f(c['ci'][0])}, {_f(c['ci'][1])}] ({c['bootstrap']} bootstrap); floor AUC "
                   f"{_f(f['auc'])} [{_f(f['ci'][0])}, {_f(f['ci'][1])}] (halves by {f['split']}). {verdict}.", "",
-                  "| statistic | distance | floor |", "|---|---|---|"]
+                  "| statistic | real median | synthetic median | distance | floor |", "|---|---|---|---|---|"]
         for n, d in g["distances"].items():
-            lines.append(f"| {n} | {_f(d)} | {_f(f['distances'].get(n))} |")
+            rm, sm = g["medians"].get(n, [None, None])
+            lines.append(f"| {n} | {_f(rm, 3)} | {_f(sm, 3)} | {_f(d)} | {_f(f['distances'].get(n))} |")
         lines.append("")
     if plots:
         folder = out / "plots"
