@@ -18,6 +18,7 @@ from morphgs._core import MorphgsWarning
 _COMMAND_MODULES = (
     "morphgs.commands.info",
     "morphgs.commands.curate",
+    "morphgs.commands.calibrate",
     "morphgs.commands.export",
     "morphgs.commands.fit",
     "morphgs.commands.export_difix",

@@ -33,26 +33,30 @@ def _as_cameras(cameras: Camera | Cameras | Sequence[Camera]) -> Cameras:
 class Corruption:
     """What a pair does to the clean scene: a perturbation config, or the 2D blur baseline."""
 
-    kind: str  # "perturb" | "blur2d" | "sparse" (the corrupted scene is a sparse-view fit, see
-    # morphgs.curation.sparse; `corrupt_scene` cannot make it)
+    kind: str  # "perturb" | "strength" | "blur2d" | "sparse" (the corrupted scene is a sparse-view
+    # fit, see morphgs.curation.sparse; `corrupt_scene` cannot make it)
     config: dict[str, Any]
     perturb_config: Any = None
     blur_sigma: float = 0.0
 
     @classmethod
     def make(cls, config: Any, *, blur_sigma: float = 2.0) -> Corruption:
-        """From a preset name, "blur2d", a PerturbConfig, a dict (`PerturbConfig.to_dict()` or
-        {"kind": "blur2d", "sigma": s}) or a curate ConfigSpec."""
+        """From a preset name, "blur2d", a PerturbConfig, a `Strength`, a dict
+        (`PerturbConfig.to_dict()`, {"kind": "blur2d", "sigma": s} or {"kind": "strength", ...},
+        see morphgs.strength) or a curate ConfigSpec."""
         import morphgs
+        from morphgs.strength import Strength, check_quantiles
 
         kind = getattr(config, "kind", None)
         params = getattr(config, "params", None)
         if isinstance(kind, str) and isinstance(params, dict):  # ConfigSpec
             if kind == "sparse":
                 return cls("sparse", {"kind": "sparse", **params})
-            if kind == "blur2d":
-                return cls.make({"kind": "blur2d", **params})
+            if kind in ("blur2d", "strength"):
+                return cls.make({"kind": kind, **params})
             config = params
+        if isinstance(config, Strength):
+            return cls("strength", config.to_dict())
         if isinstance(config, str):
             if config.lower() == "blur2d":
                 return cls.make({"kind": "blur2d", "sigma": blur_sigma})
@@ -63,13 +67,32 @@ class Corruption:
                 if not np.isfinite(sigma) or not 0.0 <= sigma <= 256.0:
                     raise ValueError(f"blur sigma must be in [0, 256] pixels, got {sigma}")
                 return cls("blur2d", {"kind": "blur2d", "sigma": sigma}, None, sigma)
+            if config.get("kind") == "strength":
+                d = dict(config)
+                if "quantiles" in d:
+                    check_quantiles(d["quantiles"])
+                Strength.from_dict({k: v for k, v in d.items() if k != "quantiles"})  # validate
+                return cls("strength", d)
             config = morphgs.PerturbConfig.from_dict({k: v for k, v in config.items() if k not in ("kind", "name")})
         if not isinstance(config, morphgs.PerturbConfig):
             raise TypeError(f"config must be a preset name, 'blur2d', a PerturbConfig or a dict, got {type(config)}")
         return cls("perturb", dict(config.to_dict()), config)
 
+    def strength(self, seed: int) -> float | None:
+        """The strength a "strength" corruption uses for pair seed `seed` (drawn from its quantile
+        table when it has one); None for the other kinds."""
+        if self.kind != "strength":
+            return None
+        from morphgs.strength import draw_strength
+
+        return draw_strength(self.config, seed)
+
     def corrupt_scene(self, scene: Any, seed: int) -> Any:
         """The perturbed copy of `scene` (None for blur2d and sparse)."""
+        if self.kind == "strength":
+            from morphgs.strength import from_config
+
+            return from_config(self.config, seed).apply(scene, seed=seed)
         if self.kind != "perturb":
             return None
         import morphgs

@@ -29,17 +29,39 @@ def _rgb(text: str) -> tuple[float, float, float]:
     return vals  # type: ignore[return-value]
 
 
+_CONFIG_FORMS = """\
+config forms (--config CFG):
+  spatial | radiometric | morphological | naive
+                      the paper's presets at its default strengths
+  NAME@SCALE          a preset with every intensity times SCALE, pruning min(SCALE*p, 1)
+                      (PerturbConfig.scaled; morphological@2 prunes everything)
+  NAME~STRENGTH       a family at STRENGTH of the smooth, scene-aware strength
+                      parameterisation (keep = 0.5^s, log-space scale noise, rotation angle;
+                      docs/perturbation.md), e.g. morphological~1.5
+  blur2d | blur2d@SIGMA
+                      the 2D baseline: clean frames blurred by SIGMA pixels (--blur-sigma)
+  sparse:K | sparse:K@STEPS
+                      a real 3DGS reconstruction from every K-th recorded view (cached in DIR/fits)
+  sparse-n:N | sparse-n:N@STEPS
+                      a reconstruction from N views spread evenly
+  FILE.json           a PerturbConfig dict, {"kind": "blur2d", "sigma"}, {"kind": "sparse",
+                      "every" | "n", "steps", "fit"} or {"kind": "strength", "family",
+                      "strength" | "quantiles", "ops"} (what morphgs calibrate writes: each pair
+                      draws its strength, recorded in the manifest)
+"""
+
+
 def register(sub: Any) -> None:
     p = sub.add_parser(
         "curate", help="render clean/corrupted training pairs from scenes into a dataset folder",
         description="Render K clean/corrupted pairs per scene and config into DIR (resumable). "
-                    "With no SCENE, the built-in synthetic sample scenes are used.")
+                    "With no SCENE, the built-in synthetic sample scenes are used.",
+        epilog=_CONFIG_FORMS, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scenes", nargs="*", metavar="SCENE",
                    help="scene file, or folder with a scene file and optional transforms.json/COLMAP")
     p.add_argument("--out", required=True, help="dataset folder (a rerun resumes in it)")
     p.add_argument("--config", action="append", dest="configs", metavar="CFG",
-                   help="corruption: spatial|radiometric|morphological|naive[@SCALE], blur2d[@SIGMA] "
-                        "or a JSON file; repeat for several (default: morphological)")
+                   help="corruption (forms below); repeat for several (default: morphological)")
     p.add_argument("--pairs-per-scene", "-k", type=int, default=2, help="pairs per scene and config (2)")
     p.add_argument("--frames", "-f", type=int, default=49, help="frames per pair (49; the paper uses 16 and 49)")
     p.add_argument("--size", type=_size, default=(832, 480), help="WxH (832x480)")

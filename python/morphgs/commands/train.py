@@ -40,7 +40,9 @@ def register(sub: Any) -> None:
                     "run.json (resolved config), checkpoints/, logs/ (CSV, TensorBoard) and previews/. "
                     "`accelerate launch -m morphgs train ...` runs it on several GPUs or machines.")
     p.add_argument("--data", default=None, help="curated folder (morphgs curate output); its test split validates")
-    p.add_argument("--model", default=None, help="registered model (default: the config's, else tiny)")
+    p.add_argument("--model", default=None,
+                   help="registered model: tiny (CPU-sized), sandbox (SD 1.5 + AnimateDiff), controlnet (Wan2.2 + "
+                        "dilated ControlNet), or a plugin's; --list-models lists them (default: the config's, else tiny)")
     p.add_argument("--out", default=None, help="run folder (required unless --list-models)")
     p.add_argument("--config", default=None, help="run config TOML (missing keys: the model's shipped config)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its latest checkpoint")

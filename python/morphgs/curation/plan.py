@@ -52,7 +52,9 @@ def scene_split(scene_id: str, *, test_fraction: float, split_seed: int = 0) -> 
 class ConfigSpec:
     """One corruption of a run: a label (used in paths) and its parameters as a dict.
 
-    kind "perturb" carries `PerturbConfig.to_dict()` in `params`; kind "blur2d" carries
+    kind "perturb" carries `PerturbConfig.to_dict()` in `params`; kind "strength" carries
+    `Strength.to_dict()` without "kind" (a fixed "strength", or a "quantiles" table of a strength
+    distribution each pair draws from, see morphgs.strength); kind "blur2d" carries
     {"sigma": pixels}; kind "sparse" carries {"every": K} or {"n": N}, optionally "steps" and
     "fit" (FitConfig overrides), see morphgs.curation.sparse.
     """
@@ -92,11 +94,14 @@ def parse_config(spec: str, *, blur_sigma: float = 2.0) -> ConfigSpec:
 
     Forms: a preset name (spatial, radiometric, morphological, naive); `NAME@S`, the preset with
     every intensity scaled by S (`PerturbConfig.scaled`); `blur2d` or `blur2d@SIGMA` (the 2D
-    baseline, sigma in pixels, default `blur_sigma`); `sparse:K` (a reconstruction from every
+    baseline, sigma in pixels, default `blur_sigma`); `NAME~S`, the family NAME at strength S of
+    the smooth, scene-aware strength parameterisation (`morphgs.strength.Strength`); `sparse:K` (a reconstruction from every
     K-th recorded view, the paper's S_K) or `sparse-n:N` (from N views spread evenly), each
     optionally `@STEPS`; or a path to a JSON file holding a `PerturbConfig.to_dict()` (or
     {"kind": "blur2d", "sigma": s}, or {"kind": "sparse", "every": K | "n": N, "steps": S,
-    "fit": {FitConfig overrides}}), labelled by the file stem.
+    "fit": {FitConfig overrides}}, or {"kind": "strength", "family", "strength": S | "quantiles":
+    {"p": [...], "strength": [...]}, "ops": {...}} as `morphgs calibrate` writes), labelled by the
+    file stem.
     """
     s = spec.strip()
     low = s.lower()
@@ -124,10 +129,20 @@ def parse_config(spec: str, *, blur_sigma: float = 2.0) -> ConfigSpec:
             if "fit" in params and not isinstance(params["fit"], dict):
                 raise ValueError(f"--config {spec}: 'fit' must be an object of fit settings")
             return ConfigSpec(p.stem, "sparse", params)
+        if d.get("kind") == "strength":
+            return ConfigSpec(p.stem, "strength", _strength_params(d, spec))
         import morphgs
 
         d = {k: v for k, v in d.items() if k not in ("kind", "name")}
         return ConfigSpec(p.stem, "perturb", dict(morphgs.PerturbConfig.from_dict(d).to_dict()))
+    if "~" in s:
+        fam, _, strength = s.partition("~")
+        try:
+            value = float(strength)
+        except ValueError:
+            raise ValueError(f"--config {spec!r}: the strength after '~' must be a number") from None
+        params = _strength_params({"family": fam.lower(), "strength": value}, spec)
+        return ConfigSpec(f"{fam.lower()}-s{strength}", "strength", params)
     name, _, factor = s.partition("@")
     name = name.lower()
     if name == "blur2d":
@@ -136,8 +151,8 @@ def parse_config(spec: str, *, blur_sigma: float = 2.0) -> ConfigSpec:
             raise ValueError(f"--config {spec}: blur sigma must be in [0, 256] pixels")
         return ConfigSpec("blur2d" if not factor else f"blur2d-s{factor}", "blur2d", {"sigma": sigma})
     if name not in PRESETS:
-        raise ValueError(f"--config {spec!r}: expected one of {', '.join(PRESETS)}, blur2d, NAME@SCALE "
-                         "or a .json file")
+        raise ValueError(f"--config {spec!r}: expected one of {', '.join(PRESETS)}, blur2d, NAME@SCALE, "
+                         "NAME~STRENGTH, sparse:K, sparse-n:N or a .json file")
     import morphgs
 
     cfg = morphgs.PerturbConfig.preset(name)
@@ -150,6 +165,26 @@ def parse_config(spec: str, *, blur_sigma: float = 2.0) -> ConfigSpec:
         cfg = cfg.scaled(f)
         label = f"{name}-x{factor}"
     return ConfigSpec(label, "perturb", dict(cfg.to_dict()))
+
+
+def _strength_params(d: dict[str, Any], spec: str) -> dict[str, Any]:
+    """Validated params of a "strength" config (a fixed strength or a quantile table)."""
+    from morphgs.strength import Strength, check_quantiles
+
+    body = {k: v for k, v in d.items() if k not in ("kind", "name", "quantiles")}
+    try:
+        cfg = Strength.from_dict(body)
+        params: dict[str, Any] = {"family": cfg.family, "ops": cfg.base}
+        if "quantiles" in d:
+            if "strength" in d:
+                raise ValueError("give either 'strength' or 'quantiles', not both")
+            p, s = check_quantiles(d["quantiles"])
+            params["quantiles"] = {"p": p, "strength": s}
+        else:
+            params["strength"] = cfg.strength
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"--config {spec}: {e}") from None
+    return params
 
 
 @dataclass(frozen=True)

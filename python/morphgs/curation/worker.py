@@ -165,7 +165,10 @@ def make_pair(
     if opts.depth:
         paths.update({"clean_depth": f"{rel}/clean", "corrupted_depth": f"{rel}/corrupted"})
     total = time.perf_counter() - t_start + load_seconds
-    extra = {"fit": fit_info} if fit_info is not None else {}
+    extra: dict[str, Any] = {"fit": fit_info} if fit_info is not None else {}
+    drawn = corruption.strength(job.seed)
+    if drawn is not None:  # the strength this pair drew (from a strength distribution or fixed)
+        extra["strength"] = drawn
     return {
         "schema": 1,
         "pair_id": job.pair_id,

@@ -1,0 +1,139 @@
+"""report.md and its plots for `morphgs calibrate` (real vs synthetic PSNR histograms, error
+spectra, a sheet of real and calibrated frames side by side)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from morphgs.calibration.stats import BAND_EDGES
+
+__all__ = ["write_report"]
+
+
+def _f(v: Any, nd: int = 2) -> str:
+    if v is None:
+        return "n/a"
+    if isinstance(v, float) and not np.isfinite(v):
+        return "n/a"
+    return f"{v:.{nd}f}" if isinstance(v, float) else str(v)
+
+
+def _plots(folder: Path, name: str, plot: dict[str, Any]) -> list[str]:
+    import matplotlib
+    import matplotlib.ticker
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from morphgs._core import _write_png
+
+    files = []
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
+    bins = np.linspace(min(plot["real_psnr"] + plot["synth_psnr"] + plot["real_held_psnr"]) - 0.5,
+                       max(plot["real_psnr"] + plot["synth_psnr"] + plot["real_held_psnr"]) + 0.5, 25)
+    ax[0].hist(plot["real_held_psnr"], bins=bins, alpha=0.6, label="real")
+    ax[0].hist(plot["synth_psnr"], bins=bins, alpha=0.6, label="calibrated synthetic")
+    ax[0].set_xlabel("per-frame PSNR (dB)")
+    ax[0].legend()
+    centres = [float(np.sqrt(a * b)) for a, b in zip(BAND_EDGES, BAND_EDGES[1:])]
+    ax[1].semilogx(centres, plot["real_spectrum"], "o-", label="real")
+    ax[1].semilogx(centres, plot["synth_spectrum"], "s-", label="calibrated synthetic")
+    ax[1].xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    ax[1].set_xticks(centres, [f"{c:.2g}" for c in centres])
+    ax[1].set_xlabel("cycles / pixel (band centres)")
+    ax[1].set_ylabel("error / signal (dB)")
+    ax[1].legend()
+    fig.tight_layout()
+    fig.savefig(folder / f"{name}-psnr-spectrum.png", dpi=80, metadata={"Software": None})
+    plt.close(fig)
+    files.append(f"{name}-psnr-spectrum.png")
+    if plot["sheet"]:
+        rows = [np.concatenate(list(t), axis=1) for t in plot["sheet"]]
+        w = max(r.shape[1] for r in rows)
+        sheet = np.concatenate([np.pad(r, ((0, 0), (0, w - r.shape[1]), (0, 0))) for r in rows], axis=0)
+        _write_png(folder / f"{name}-sheet.png", np.rint(np.clip(sheet, 0, 1) * 255).astype(np.uint8))
+        files.append(f"{name}-sheet.png")
+    return files
+
+
+def write_report(out: Path, doc: dict[str, Any], plot_data: Sequence[dict[str, Any]], *, plots: bool = True) -> None:
+    """Write out/report.md (and out/plots/*.png when `plots`)."""
+    lines = ["# morphgs calibrate report", "",
+             f"Scenes: {', '.join(doc['scenes'])}. Regimes: {', '.join(doc['regimes'])}. "
+             f"Families: {', '.join(doc['families'])}. Frames per pair {', '.join(map(str, doc['frames']))}, "
+             f"{doc['resolution'][0]}x{doc['resolution'][1]}, seed {doc['seed']}.", "",
+             "## Strength search", "",
+             "| family | regime | real median PSNR | monotone | reachable | median strength (PSNR) "
+             "| most severe reached | unreachable pairs | strength quantiles (over pairs) p5 / p50 / p95 | config |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in doc["results"]:
+        s = r["search"]
+        q = dict(zip(s["quantiles"]["p"], s["quantiles"]["strength"]))
+        med = (f"{s['median_strength']:.4g} ({s['median_psnr_reached']:.2f} dB)" if s["reachable"]
+               else "**unreachable**")
+        lines.append(f"| {r['family']} | {r['regime']} | {s['target_median_psnr']:.2f} dB | "
+                     f"{'yes' if s['monotone'] else '**no**'} | {'yes' if s['reachable'] else '**no**'} | {med} | "
+                     f"{s['most_severe_psnr']:.2f} dB at s={s['most_severe_strength']:.4g} | "
+                     f"{100 * s['unreachable_frames']:.0f}% | {q[0.05]:.3g} / {q[0.5]:.3g} / {q[0.95]:.3g} | "
+                     f"`{r['config_file']}` |")
+    for r in doc["results"]:
+        s = r["search"]
+        if not s["monotone"]:
+            steps = "; ".join(f"s {v['from_strength']:.3g} -> {v['to_strength']:.3g}: {v['from_psnr']:.2f} -> "
+                              f"{v['to_psnr']:.2f} dB" for v in s["violations"])
+            lines += ["", f"**{r['family']} / {r['regime']}: severity does not rise monotonically with strength** "
+                          f"({steps}); frames are matched on the running minimum of their curves."]
+        if s.get("below_grid_frames", 0.0) > 0:
+            lines += ["", f"{r['family']} / {r['regime']}: {100 * s['below_grid_frames']:.0f}% of the real frames are milder "
+                          f"than the smallest strength scanned (s = {s['grid'][0]:.4g}); they get that strength."]
+        if not s["reachable"]:
+            lines += ["", f"**{r['family']} / {r['regime']} is unreachable**: the real median is "
+                          f"{s['target_median_psnr']:.2f} dB, the family reaches at most "
+                          f"{s['most_severe_psnr']:.2f} dB (s = {s['most_severe_strength']:.4g}). Its config uses the "
+                          "most severe strength for the pairs it cannot reach."]
+    lines += ["", "## Each op's share of the error", "",
+              "MSE of each op alone at the median strength (the most severe one when unreachable), as a share of "
+              "their sum.", "", "| family | regime | strength | shares |", "|---|---|---|---|"]
+    for r in doc["results"]:
+        sh = ", ".join(f"{k} {100 * v:.0f}%" for k, v in r["op_shares"].items())
+        lines.append(f"| {r['family']} | {r['regime']} | {r['op_shares_strength']:.4g} | {sh} |")
+    lines += ["", "## Goodness of fit", "",
+              "Distances: W1 / IQR of the real values per statistic. Classifier: out-of-fold AUC of a logistic "
+              "regression on every statistic (0.5 = indistinguishable), 95% bootstrap interval. Floor: the same "
+              "between two halves of the real pairs (by scene). \"matched\" only within that floor: every distance at most "
+              "its floor + 0.5 and the AUC interval reaching the floor's.", ""]
+    for r in doc["results"]:
+        g = r["goodness"]
+        where = (f"held-out scene(s) {', '.join(g['scenes'])}" if g["held_out"]
+                 else f"in-sample (one scene, {', '.join(g['scenes'])}: no held-out scene)")
+        c, f = g["classifier"], g["floor"]
+        verdict = ("**matched** (within the real-vs-real floor)" if g["matched"]
+                   else "**not matched**")
+        verdict += f"; furthest off: `{g['furthest']}` ({_f(g['furthest_excess'])} IQR beyond its floor)"
+        lines += [f"### {r['family']} / {r['regime']}", "",
+                  f"On {where}, {g['pairs']['real']} real and {g['pairs']['synthetic']} synthetic pairs: AUC "
+                  f"{_f(c['auc'])} [{_f(c['ci'][0])}, {_f(c['ci'][1])}] ({c['bootstrap']} bootstrap); floor AUC "
+                  f"{_f(f['auc'])} [{_f(f['ci'][0])}, {_f(f['ci'][1])}] (halves by {f['split']}). {verdict}.", "",
+                  "| statistic | real median | synthetic median | distance | floor |", "|---|---|---|---|---|"]
+        for n, d in g["distances"].items():
+            rm, sm = g["medians"].get(n, [None, None])
+            lines.append(f"| {n} | {_f(rm, 3)} | {_f(sm, 3)} | {_f(d)} | {_f(f['distances'].get(n))} |")
+        lines.append("")
+    if plots:
+        folder = out / "plots"
+        folder.mkdir(parents=True, exist_ok=True)
+        lines += ["## Plots", ""]
+        for r, pd in zip(doc["results"], plot_data):
+            name = f"{r['family']}-{''.join(c if c.isalnum() else '-' for c in r['regime'])}"
+            files = _plots(folder, name, pd)
+            lines += [f"### {r['family']} / {r['regime']}", "",
+                      "PSNR histograms (real held-out vs calibrated synthetic) and error spectra:", "",
+                      f"![]({'plots/' + files[0]})", ""]
+            if len(files) > 1:
+                lines += ["Middle frames, per pair: clean | real corrupted | calibrated synthetic:", "",
+                          f"![]({'plots/' + files[1]})", ""]
+    (out / "report.md").write_text("\n".join(lines) + "\n", encoding="utf-8")

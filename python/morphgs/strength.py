@@ -1,0 +1,235 @@
+"""The strength parameterisation: one smooth, scene-aware severity knob s >= 0 per family.
+
+`PerturbConfig.scaled(k)` (the `NAME@K` form) multiplies the paper's absolute parameters
+linearly and clips pruning at 1, so `morphological@2` prunes every Gaussian (a cliff), and its
+scale noise is an absolute sigma in scene units whatever the scene's size. `Strength` is the
+calibration-friendly alternative (docs/perturbation.md, "Strength"). At strength s, with the
+family's base values b (the values at s = 1, `BASE`, or the user's own):
+
+| op | formula at strength s |
+|---|---|
+| keep | each Gaussian kept with probability keep = b_keep ** s (so prune = 1 - b_keep ** s < 1 for every finite s; a larger s prunes a superset) |
+| log_scale | log s_i' = log s_i + s * b * z_i per axis, z ~ N(0, 1): relative to each Gaussian's own scale |
+| rotation | q_i' = exp(omega_i) * q_i, omega_i = s * b / sqrt(3) * z_i, z ~ N(0, I3): an isotropic rotation of RMS angle s * b radians |
+| position | the kernel's position jitter with gamma = s * b (a fraction of the scene extent E_avg) |
+| color | the kernel's DC-colour noise with sigma = s * b |
+| opacity | the kernel's opacity noise with sigma = s * b (activated opacity, clamped) |
+
+Every op is the identity at s = 0, every op's noise grows continuously with s, and the same seed
+gives the same z at every s (common random numbers), so severity is a smooth function of s.
+keep, position, colour and opacity run in the Rust kernel (op ids 4, 1, 2, 3); log_scale and
+rotation draw from the same counter generator with op ids 7 and 8 (`morphgs.noise`), keyed by
+the Gaussian's index in the input scene.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from morphgs._core import GaussianScene
+from morphgs.noise import OP_LOG_SCALE, OP_ROTATION_ANGLE, normals
+
+__all__ = ["BASE", "FAMILIES", "OPS", "Strength"]
+
+#: The ops of the strength parameterisation, in application order.
+OPS: tuple[str, ...] = ("position", "color", "opacity", "keep", "log_scale", "rotation")
+
+#: Base values (strength 1) of every op. keep = 0.5 is the paper's p_prune; 0.5 in log scale is a
+#: factor e^0.5 = 1.65 at one sigma; rotation 0.5 rad (29 degrees) RMS; position, colour and
+#: opacity are the paper's sigmas.
+BASE: dict[str, float] = {"position": 0.002, "color": 0.05, "opacity": 0.05, "keep": 0.5,
+                          "log_scale": 0.5, "rotation": 0.5}
+
+#: The families (the paper's categories) and their ops.
+FAMILIES: dict[str, tuple[str, ...]] = {
+    "spatial": ("position",),
+    "radiometric": ("color", "opacity"),
+    "morphological": ("keep", "log_scale", "rotation"),
+    "naive": OPS,
+}
+
+
+def _number(value: Any, what: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{what} must be a number, got {type(value).__name__}")
+    v = float(value)
+    if not (math.isfinite(v) and v >= 0.0):
+        raise ValueError(f"{what} must be a finite number >= 0, got {value!r}")
+    return v
+
+
+@dataclasses.dataclass(frozen=True)
+class Strength:
+    """A family at strength s (see the module docstring for the formulas).
+
+    Attributes:
+        family: "spatial", "radiometric", "morphological" or "naive" (informational once `ops`
+            is given; it names the config).
+        strength: s, a finite number >= 0.
+        ops: the base value (at s = 1) of each enabled op; ops not listed are disabled. Default:
+            the family's ops at `BASE`, so the preset's proportions are kept.
+
+    Raises:
+        ValueError: an unknown family or op, a negative or non-finite value, keep outside (0, 1].
+        TypeError: a value that is not a number.
+    """
+
+    family: str
+    strength: float = 1.0
+    ops: Mapping[str, float] | None = None
+
+    def __post_init__(self) -> None:
+        if self.family not in FAMILIES:
+            raise ValueError(f"unknown family {self.family!r}; valid families: {', '.join(FAMILIES)}")
+        object.__setattr__(self, "strength", _number(self.strength, "strength"))
+        ops = dict(self.ops) if self.ops is not None else {k: BASE[k] for k in FAMILIES[self.family]}
+        unknown = sorted(set(ops) - set(OPS))
+        if unknown:
+            raise ValueError(f"unknown strength op(s) {', '.join(map(repr, unknown))}; valid ops: {', '.join(OPS)}")
+        clean = {k: _number(ops[k], f"ops.{k}") for k in OPS if k in ops and ops[k] is not None}
+        if "keep" in clean and not 0.0 < clean["keep"] <= 1.0:
+            raise ValueError(f"ops.keep must be a keep fraction in (0, 1], got {clean['keep']!r}")
+        object.__setattr__(self, "ops", clean)
+
+    @property
+    def base(self) -> dict[str, float]:
+        """The enabled ops and their base values (at strength 1)."""
+        assert self.ops is not None
+        return dict(self.ops)
+
+    def at(self, strength: float) -> Strength:
+        """The same family and ops at another strength."""
+        return Strength(self.family, strength, self.ops)
+
+    def only(self, op: str) -> Strength:
+        """This config with every op but `op` disabled (for each op's share of the error)."""
+        if op not in self.base:
+            raise ValueError(f"op {op!r} is not enabled in this config ({', '.join(self.base)})")
+        return Strength(self.family, self.strength, {op: self.base[op]})
+
+    def values(self) -> dict[str, float]:
+        """The effective parameters at this strength: keep fraction, sigmas, RMS angle."""
+        s = self.strength
+        return {k: (b ** s if k == "keep" else s * b) for k, b in self.base.items()}
+
+    def to_dict(self) -> dict[str, Any]:
+        """{"kind": "strength", "family", "strength", "ops"} (what configs and manifests record)."""
+        return {"kind": "strength", "family": self.family, "strength": self.strength, "ops": self.base}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Strength:
+        """Inverse of `to_dict` ("kind" and "name" are ignored; "ops" defaults to the family's).
+
+        Raises:
+            ValueError: a missing family, an unknown key or an invalid value (named).
+        """
+        unknown = sorted(set(data) - {"kind", "name", "family", "strength", "ops"})
+        if unknown:
+            raise ValueError(f"unknown strength config key(s) {', '.join(map(repr, unknown))}; "
+                             "valid keys: family, strength, ops")
+        if "family" not in data:
+            raise ValueError("a strength config needs a 'family'")
+        ops = data.get("ops")
+        if ops is not None and not isinstance(ops, Mapping):
+            raise ValueError("'ops' must be an object of op base values")
+        return cls(str(data["family"]), data.get("strength", 1.0), ops)
+
+    def apply(self, scene: GaussianScene, *, seed: int, return_mask: bool = False) -> Any:
+        """The perturbed copy of `scene` (seeded; bit-identical for any thread count).
+
+        Returns the scene, or (scene, keep-mask) with return_mask=True.
+        """
+        from morphgs.perturb import PerturbConfig, perturb
+
+        v = self.values()
+        cfg = PerturbConfig(position_jitter=v.get("position"), color_noise=v.get("color"),
+                            opacity_noise=v.get("opacity"), prune=1.0 - v["keep"] if "keep" in v else None,
+                            scale_noise=None, rotation_noise=None)
+        out, mask = perturb(scene, cfg, seed=seed, return_mask=True)
+        sigma_log, angle = v.get("log_scale", 0.0), v.get("rotation", 0.0)
+        if sigma_log > 0.0 or angle > 0.0:
+            idx = np.flatnonzero(mask)
+            log_scales, quats = out.log_scales, out.quats
+            if sigma_log > 0.0:
+                z = normals(seed, OP_LOG_SCALE, idx, 3)
+                log_scales = (log_scales.astype(np.float64) + sigma_log * z).astype(np.float32)
+            if angle > 0.0:
+                omega = normals(seed, OP_ROTATION_ANGLE, idx, 3) * (angle / math.sqrt(3.0))
+                quats = _rotate(quats, omega)
+            out = GaussianScene.from_arrays(means=out.means, quats=quats, log_scales=log_scales,
+                                            opacity_logits=out.opacity_logits, sh0=out.sh0,
+                                            sh_rest=out.sh_rest, extras=out.extras)
+        return (out, mask) if return_mask else out
+
+
+def _rotate(quats: np.ndarray, omega: np.ndarray) -> np.ndarray:
+    """exp(omega) * q for unit quaternions q (w, x, y, z) and rotation vectors omega (radians)."""
+    q = quats.astype(np.float64)
+    q /= np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-30)
+    theta = np.linalg.norm(omega, axis=1, keepdims=True)
+    half = 0.5 * theta
+    # sin(theta/2)/theta, finite at theta = 0
+    k = np.where(theta > 1e-12, np.sin(half) / np.maximum(theta, 1e-300), 0.5)
+    dw, dv = np.cos(half)[:, 0], omega * k
+    w, v = q[:, 0], q[:, 1:]
+    out = np.empty_like(q)
+    out[:, 0] = dw * w - np.einsum("ij,ij->i", dv, v)
+    out[:, 1:] = dw[:, None] * v + w[:, None] * dv + np.cross(dv, v)
+    return out.astype(np.float32)
+
+
+#: Op id of a pair's strength draw from a strength distribution (`draw_strength`).
+OP_STRENGTH_DRAW = 9
+
+
+def check_quantiles(table: Any, where: str = "quantiles") -> tuple[list[float], list[float]]:
+    """Validate a strength quantile table {"p": [...], "strength": [...]}.
+
+    p must rise strictly from 0 to 1 and the strengths must be finite, >= 0 and non-decreasing.
+
+    Raises:
+        ValueError: naming `where` and the problem.
+    """
+    if not isinstance(table, Mapping) or set(table) != {"p", "strength"}:
+        raise ValueError(f"{where} must be an object {{\"p\": [...], \"strength\": [...]}}")
+    p, s = table["p"], table["strength"]
+    if not (isinstance(p, list) and isinstance(s, list)) or len(p) != len(s) or len(p) < 2:
+        raise ValueError(f"{where}: 'p' and 'strength' must be lists of the same length >= 2")
+    try:
+        pf = [float(x) for x in p]
+        sf = [_number(x, f"{where}.strength") for x in s]
+    except TypeError as e:
+        raise ValueError(f"{where}: {e}") from None
+    if pf[0] != 0.0 or pf[-1] != 1.0 or any(b <= a for a, b in zip(pf, pf[1:])):
+        raise ValueError(f"{where}.p must rise strictly from 0 to 1, got {p}")
+    if any(b < a for a, b in zip(sf, sf[1:])):
+        raise ValueError(f"{where}.strength must be non-decreasing, got {s}")
+    return pf, sf
+
+
+def draw_strength(config: Mapping[str, Any], seed: int) -> float:
+    """The strength a pair of pair seed `seed` uses under a strength config.
+
+    A fixed "strength" is returned as is; a "quantiles" table {"p", "strength"} (the inverse CDF
+    of a strength distribution, linear between its points) is sampled at u, the uniform of index
+    0 in op `OP_STRENGTH_DRAW` of the seed's stream: a pure function of the seed.
+    """
+    if "quantiles" not in config:
+        return _number(config.get("strength", 1.0), "strength")
+    from morphgs.noise import uniforms
+
+    p, s = check_quantiles(config["quantiles"])
+    u = float(uniforms(int(seed), OP_STRENGTH_DRAW, [0])[0])
+    return float(np.interp(u, p, s))
+
+
+def from_config(config: Mapping[str, Any], seed: int) -> Strength:
+    """The `Strength` of one pair: `config` with its strength drawn (see `draw_strength`)."""
+    fixed = {k: v for k, v in config.items() if k != "quantiles"}
+    fixed["strength"] = draw_strength(config, seed)
+    return Strength.from_dict(fixed)

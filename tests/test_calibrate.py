@@ -1,0 +1,193 @@
+"""`morphgs calibrate`: the search's failure modes, recovery of hidden known configs from stand-in
+"real" pairs, the command end to end (its config used by `curate`), a sparse-view regime
+(cached, deterministic for any worker count) and the bad-input errors."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import morphgs
+from morphgs import synthetic
+from morphgs.calibration import stats
+from morphgs.calibration.pairs import CalibrationError, read_real_pairs
+from morphgs.calibration.run import calibrate
+from morphgs.calibration.search import frame_strengths, log_grid, search
+from morphgs.cli import main
+from morphgs.curation import load_manifest
+
+GAUSSIANS = 20_000
+SMALL = ["--frames", "6", "--size", "96x64", "--sample-gaussians", str(GAUSSIANS), "--no-progress",
+         "--test-fraction", "0", "-k", "3"]
+GRID = log_grid(2.0**-3, 2.0**4, per_octave=2)
+
+
+def _stand_in(root: Path, name: str, config: dict) -> Path:
+    """Stand-in "real" pairs: the built-in scenes curated with a hidden JSON config."""
+    f = root / f"{name}.json"
+    f.write_text(json.dumps(config))
+    out = root / f"real-{name}"
+    assert main(["curate", "--out", str(out), "--config", str(f), *SMALL]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def hidden_strength(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _stand_in(tmp_path_factory.mktemp("real"), "hidden",
+                     {"kind": "strength", "family": "morphological", "strength": 0.8})
+
+
+@pytest.fixture(scope="module")
+def hidden_paper(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _stand_in(tmp_path_factory.mktemp("real"), "paper", {"prune": 0.3, "scale_noise": 0.004,
+                                                                 "rotation_noise": 0.05})
+
+
+def test_search_reports_non_monotone_and_unreachable() -> None:
+    # frame j's PSNR falls with s, then rises again past s = 4 (e.g. a scene pruned to black frames)
+    offsets = np.array([0.0, 1.0, 2.0, 3.0])
+
+    def measure(s: float) -> np.ndarray:
+        return 30.0 - 6.0 * math.log2(s) + offsets if s <= 4 else 18.0 + 3.0 * math.log2(s / 4) + offsets
+
+    grid = log_grid(0.5, 16.0, per_octave=1)
+    res = search(measure, [25.0, 24.0, 27.0, 26.5], grid=grid)
+    assert not res.monotone and res.violations[0]["from_strength"] == 4.0
+    assert res.reachable and abs(res.median_psnr_reached - res.target_median_psnr) <= 0.05
+    # frame 0's curve is 30 - 6 log2 s: T = 25 at s = 2^(5/6)
+    assert res.frame_strengths[0] == pytest.approx(2 ** (5 / 6), rel=1e-3)
+    far = search(measure, [10.0, 11.0, 12.0, 13.0], grid=grid)
+    assert not far.reachable and far.most_severe_psnr == pytest.approx(19.5) and far.most_severe_strength == 4.0
+    assert far.unreachable_frames == 1.0 and far.median_strength is None
+    assert far.quantiles["strength"] == [4.0] * len(far.quantiles["p"])  # the most severe, reported
+    mild = search(measure, [40.0, 41.0, 42.0, 43.0], grid=grid)
+    assert mild.reachable and mild.below_grid_frames == 1.0 and mild.median_strength == 0.5  # said, not hidden
+    s, unreachable = frame_strengths(np.array([1.0, 2.0]), np.array([[30.0, 20.0]]), np.array([31.0]))
+    assert s.tolist() == [1.0] and not unreachable[0]
+
+
+def test_recovers_a_reachable_hidden_strength(hidden_strength: Path, tmp_path: Path) -> None:
+    doc = calibrate(out=tmp_path / "calib", real=hidden_strength, builtin_gaussians=GAUSSIANS, grid=GRID,
+                    plots=False, log=lambda m: None)
+    (r,) = doc["results"]
+    s = r["search"]
+    assert s["monotone"] and s["reachable"] and s["unreachable_frames"] == 0.0
+    # the same cameras and seeds: the hidden strength is recovered (bisection tolerance 0.05 dB)
+    assert s["median_strength"] == pytest.approx(0.8, rel=0.02)
+    q = dict(zip(s["quantiles"]["p"], s["quantiles"]["strength"]))
+    assert q[0.05] == pytest.approx(0.8, rel=0.05) and q[0.95] == pytest.approx(0.8, rel=0.05)
+    assert set(r["op_shares"]) == {"keep", "log_scale", "rotation"}
+    assert sum(r["op_shares"].values()) == pytest.approx(1.0)
+    # ops fixed by the user: the same proportions as a file recover the same strength; a keep-only
+    # family keeps only its op (in the config and the shares)
+    same, keep = tmp_path / "same.json", tmp_path / "keep-only.json"
+    same.write_text(json.dumps({"family": "morphological", "ops": {"keep": 0.5, "log_scale": 0.5, "rotation": 0.5}}))
+    keep.write_text(json.dumps({"family": "morphological", "ops": {"keep": 0.5}}))
+    doc = calibrate(out=tmp_path / "calib2", real=hidden_strength, families=[str(same), str(keep)],
+                    builtin_gaussians=GAUSSIANS, grid=GRID, plots=False, log=lambda m: None)
+    r_same, r_keep = doc["results"]
+    assert r_same["family"] == "same" and r_same["search"]["median_strength"] == pytest.approx(0.8, rel=0.02)
+    assert r_keep["op_shares"] == {"keep": 1.0} and r_keep["config"]["ops"] == {"keep": 0.5}
+    assert json.loads((tmp_path / "calib2" / "configs" / "keep-only-hidden.json").read_text())["ops"] == {"keep": 0.5}
+
+
+def test_matches_a_hidden_paper_config(hidden_paper: Path, tmp_path: Path) -> None:
+    """A hidden PerturbConfig (its own prune, absolute scale and rotation sigmas) is not in the
+    strength family; the calibrated pairs on the held-out scene match its PSNR within 1 dB and
+    its SSIM within 0.03 (medians over pairs), and the report names the statistic furthest off."""
+    doc = calibrate(out=tmp_path / "calib", real=hidden_paper, builtin_gaussians=GAUSSIANS, grid=GRID,
+                    log=lambda m: None)
+    (r,) = doc["results"]
+    g = r["goodness"]
+    assert g["held_out"] and g["scenes"] == ["sample-1"] and r["calibration_scenes"] == ["sample-0"]
+    real = [p for p in read_real_pairs(hidden_paper) if p.scene == "sample-1"]
+    real_psnr = np.median([stats.frame_psnr(p.corrupted, p.clean).mean() for p in real])
+    assert abs(g["distances"]["psnr"]) < 2.0
+    report = (tmp_path / "calib" / "report.md").read_text()
+    assert ("**matched**" in report) == g["matched"] and g["furthest"] in report
+    # curate with the produced config: the pairs' PSNR and SSIM match the real ones
+    out = tmp_path / "synthetic"
+    assert main(["curate", "--out", str(out), "--config", str(tmp_path / "calib" / r["config_file"]), *SMALL]) == 0
+    synth = [p for p in read_real_pairs(out) if p.scene == "sample-1"]
+    synth_psnr = np.median([stats.frame_psnr(p.corrupted, p.clean).mean() for p in synth])
+    assert abs(synth_psnr - real_psnr) < 1.0
+    ssim = [np.median([stats.frame_ssim(p.corrupted, p.clean).mean() for p in ps]) for ps in (real, synth)]
+    assert abs(ssim[0] - ssim[1]) < 0.03
+    assert (tmp_path / "calib" / "plots" / "morphological-paper-psnr-spectrum.png").is_file()
+
+
+def test_cli_end_to_end_config_used_by_curate(hidden_strength: Path, tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    calib = tmp_path / "calib"
+    rc = main(["calibrate", "--real", str(hidden_strength), "--out", str(calib), "--family", "morphological",
+               "--family", "radiometric", "--sample-gaussians", str(GAUSSIANS), "--no-plots", "--grid", "0.125,16"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "morphological / hidden: reachable" in out and "radiometric / hidden" in out
+    doc = json.loads((calib / "calibration.json").read_text())
+    assert [r["family"] for r in doc["results"]] == ["morphological", "radiometric"]
+    cfg = calib / "configs" / "morphological-hidden.json"
+    table = json.loads(cfg.read_text())["quantiles"]
+    data = tmp_path / "data"
+    assert main(["curate", "--out", str(data), "--config", str(cfg), *SMALL]) == 0
+    recs = list(load_manifest(data).values())
+    assert len(recs) == 6 and all(r["config_name"] == "morphological-hidden" for r in recs)
+    assert all(table["strength"][0] <= r["strength"] <= table["strength"][-1] for r in recs)
+    assert {"timings.json", "report.md", "calibration.json", "configs"} <= {p.name for p in calib.iterdir()}
+
+
+def test_sparse_regime_cached_and_deterministic(tmp_path: Path) -> None:
+    args = ["calibrate", "--regime", "sparse:24@30", "--sample-gaussians", "3000", "--size", "48x32", "--frames", "4",
+            "-k", "1", "--no-plots", "--grid", "0.125,16"]
+    assert main([*args, "--out", str(tmp_path / "a")]) == 0
+    fits = sorted((tmp_path / "a" / "real" / "fits").rglob("fit.json"))
+    assert len(fits) == 2
+    stamp = [f.stat().st_mtime_ns for f in fits]
+    assert main([*args, "--out", str(tmp_path / "a")]) == 0  # resumed: the fits are reused
+    assert [f.stat().st_mtime_ns for f in fits] == stamp
+    assert main([*args, "--out", str(tmp_path / "b"), "--workers", "2"]) == 0
+    for name in ("calibration.json", "report.md", "configs/morphological-sparse-24-30.json"):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
+
+
+def _err(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("morphgs calibrate: error: "), err
+    return err[0]
+
+
+def test_bad_input(hidden_strength: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = str(tmp_path / "c")
+    assert "--family blurry: unknown family; valid families: spatial" in _err(
+        capsys, ["calibrate", "--real", str(hidden_strength), "--family", "blurry", "--out", out])
+    bad_family = tmp_path / "fam.json"
+    bad_family.write_text(json.dumps({"family": "morphological", "ops": {"prune": 0.5}}))
+    assert f"--family {bad_family}: unknown strength op(s) 'prune'" in _err(
+        capsys, ["calibrate", "--real", str(hidden_strength), "--family", str(bad_family), "--out", out])
+    assert "--regime sparse:96: leaves 1 training view(s) of 96 for scene sample-0" in _err(
+        capsys, ["calibrate", "--regime", "sparse:96", "--out", out])
+    assert "--regime morphological: expected sparse:K or sparse-n:N" in _err(
+        capsys, ["calibrate", "--regime", "morphological", "--out", out])
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert f"--real {empty}: no pairs" in _err(capsys, ["calibrate", "--real", str(empty), "--out", out])
+    assert "give at least one --regime" in _err(capsys, ["calibrate", "--out", out])
+    # one pair's corrupted frames at another size
+    bad = tmp_path / "bad"
+    shutil.copytree(hidden_strength, bad)
+    rec = sorted(load_manifest(bad).values(), key=lambda r: r["pair_id"])[0]
+    for png in sorted((bad / rec["paths"]["corrupted"]).glob("*.png")):
+        Image.open(png).resize((48, 32)).save(png)
+    msg = _err(capsys, ["calibrate", "--real", str(bad), "--out", out])
+    assert f"{bad / rec['paths']['dir']}: corrupted frames (32, 48) x 6 and clean frames (64, 96) x 6 differ" in msg
+    other = tmp_path / "other.ply"
+    morphgs.save_ply(synthetic.scene(n_gaussians=500, seed=3), other)
+    with pytest.raises(CalibrationError, match=r"scene\(s\) sample-0, sample-1 are not among the scenes \(other\)"):
+        calibrate([str(other)], out, real=hidden_strength, log=lambda m: None)
