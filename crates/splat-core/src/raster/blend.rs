@@ -158,23 +158,6 @@ pub(super) fn row_span(my: f32, ey: f32, y0f: f32) -> (u32, u32) {
     (lo, hi.max(0) as u32)
 }
 
-/// The 1/255 contour's extent on the pixel row whose centre is `py`, as the kernels test it:
-/// `None` when the row misses the contour (disc < 0 or NaN), else (left, right), the pixel
-/// x range [mx - (sq - b dy) / a, mx + (sq + b dy) / a] (NaN bounds reach every column). The
-/// same float operations as the kernels' row test, so binning by it drops no row they keep.
-#[cfg(test)]
-pub(super) fn row_contour(s: &Splat, py: f32) -> Option<(f32, f32)> {
-    let (mx, my) = (s.xy[0], s.xy[1]);
-    let dy = my - py;
-    let bdy = s.conic[1] * dy;
-    let disc = s.two_a_level - dy * dy * s.conic_det;
-    if disc.is_nan() || disc < 0.0 {
-        return None;
-    }
-    let sq = disc.sqrt();
-    Some((mx - (sq - bdy) * s.inv_a, mx + (sq + bdy) * s.inv_a))
-}
-
 /// The same rows as a bit mask (bit r: row r).
 #[inline(always)]
 pub(super) fn row_mask(my: f32, ey: f32, y0f: f32) -> u32 {
