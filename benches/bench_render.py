@@ -1,8 +1,9 @@
 """Rasterizer benchmark: garden scene (gsplat's profiling setup) and the grid-5 scene.
 
-Prints per-frame wall times, stage times, blend throughput (Gaussian-pixel evaluations per
-second), the 1 -> N thread speed-up and the ratio against gsplat's torch reference on CPU
-(its projection plus the float64 reference blend of tests/render_reference.py).
+Prints per-frame wall and CPU times, stage times, the blend's evaluations beside the useful ones
+(alpha >= 1/255 before the pixel stops: the limit a lossless blend could reach) and their ratio,
+blend throughput (Gaussian-pixel evaluations per second), the 1 -> N thread speed-up and the
+ratio against gsplat's torch reference on CPU (its projection plus the float64 reference blend of tests/render_reference.py).
 
     python benches/bench_render.py            # full run (< 3 minutes on 2 cores)
     python benches/bench_render.py --quick    # tiny smoke run
@@ -47,7 +48,13 @@ def _worker(args: argparse.Namespace) -> None:
         cpus.append(time.process_time() - c0)
         stats.append(r.stats)
     best = int(np.argmin(walls))
-    print(json.dumps({"n": len(scene), "wall": walls, "cpu": cpus, "stats": stats[best]}))
+    # one more render, untimed, counting the evaluations that can change a pixel (alpha >=
+    # 1/255 before the pixel stops): counting slows the blend, so the timed renders do not
+    os.environ["MORPHGS_COUNT_USEFUL"] = "1"
+    useful = morphgs.render(scene, cam).stats["useful_evaluations"]
+    del os.environ["MORPHGS_COUNT_USEFUL"]
+    print(json.dumps({"n": len(scene), "wall": walls, "cpu": cpus, "stats": stats[best],
+                      "useful": useful}))
 
 
 def run(grid: int, width: int, height: int, threads: int, repeat: int, simd: str = "auto") -> dict:
@@ -65,9 +72,12 @@ def row(label: str, threads: int, res: dict) -> str:
     s = res["stats"]
     w = np.array(res["wall"]) * 1e3
     rate = s["evaluations"] / s["blend_s"] / 1e9
-    return (f"{label:<26} {threads:>3} {np.median(w):9.1f} {w.min():9.1f} "
+    c = np.array(res["cpu"]) * 1e3
+    useful = res["useful"]
+    return (f"{label:<26} {threads:>3} {np.median(w):9.1f} {w.min():9.1f} {np.median(c):7.1f} "
             f"{s['project_s']*1e3:7.1f} {s['sort_s']*1e3:6.1f} {s['bin_s']*1e3:6.1f} "
-            f"{s['blend_s']*1e3:7.1f} {s['evaluations']/1e6:8.1f} {rate:6.2f}")
+            f"{s['blend_s']*1e3:7.1f} {s['evaluations']/1e6:8.1f} {useful/1e6:8.1f} "
+            f"{100*useful/max(s['evaluations'], 1):5.1f} {rate:6.2f}")
 
 
 def reference_ratio(quick: bool) -> None:
@@ -119,10 +129,13 @@ def main() -> None:
         configs = [("garden 162x105", 1, 162, 105)]
     else:
         configs.append(("garden grid-5 1920x1080", 5, 1920, 1080))
-    print(f"morphgs {morphgs.__version__}; {ncpu} CPUs; times per frame; stage columns in ms "
-          f"from the best run; G/s = blend evaluations per blend second")
-    print(f"{'scene':<26} {'thr':>3} {'median ms':>9} {'best ms':>9} {'proj':>7} {'sort':>6} "
-          f"{'bin':>6} {'blend':>7} {'evals M':>8} {'G/s':>6}")
+    print(f"morphgs {morphgs.__version__}; {ncpu} CPUs; times per frame; cpu = median process "
+          f"CPU ms; stage columns in ms from the best run; useful = evaluations with alpha >= "
+          f"1/255 on a pixel not yet stopped (the ones that can change it), eff% = useful / "
+          f"evals (the blend's efficiency); G/s = blend evaluations per blend second")
+    print(f"{'scene':<26} {'thr':>3} {'median ms':>9} {'best ms':>9} {'cpu ms':>7} {'proj':>7} "
+          f"{'sort':>6} {'bin':>6} {'blend':>7} {'evals M':>8} {'useful M':>8} {'eff%':>5} "
+          f"{'G/s':>6}")
     for label, grid, w, h in configs:
         results = {}
         for threads in sorted({1, ncpu}):

@@ -16,7 +16,7 @@ CASES = {
     # script, arguments, modules it needs, a line its report must hold
     "pair": ("bench_pair.py", ["--quick"], [], "end to end (curate call)"),
     "perturb": ("bench_perturb.py", ["--quick"], [], "morphological"),
-    "render": ("bench_render.py", ["--quick"], [], "speed-up 1 -> 2 threads"),
+    "render": ("bench_render.py", ["--quick"], [], "useful M"),
     "data": ("bench_data.py", ["--quick"], ["torch"], "PairDataset"),
     "train": ("bench_train.py", ["--quick", "--steps", "2"], ["torch", "accelerate"], "tiny refiner training step"),
     "refiners": ("bench_refiners.py", ["--steps", "2", "--threads", "1"], ["torch", "diffusers", "peft"],

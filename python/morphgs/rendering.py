@@ -35,7 +35,9 @@ class Render:
             (H,W) or (F,H,W).
         alpha: float32 accumulated opacity 1 - T, (H,W) or (F,H,W).
         stats: counts and stage times of the native render: frames, gaussians, visible,
-            intersections, evaluations (Gaussian-pixel evaluations), project_s, sort_s, bin_s,
+            intersections, evaluations (Gaussian-pixel evaluations), useful_evaluations (those
+            with alpha >= 1/255 on a pixel not yet stopped; counted only when the environment
+            variable MORPHGS_COUNT_USEFUL=1, else 0, as counting slows the blend), project_s, sort_s, bin_s,
             blend_s (seconds, summed over frames), simd, threads.
     """
 

@@ -174,6 +174,7 @@ impl PyDiffRasterizer {
                 sh_degree,
                 antialiased,
                 simd: crate::render::simd_from_env()?,
+                count_useful: false,
             },
             depth,
             slot_budget,

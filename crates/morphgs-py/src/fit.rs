@@ -121,6 +121,7 @@ fn config_from(d: &Bound<'_, PyDict>) -> PyResult<FitConfig> {
             antialiased: get(d, "antialiased", base.render.antialiased)?,
             sh_degree: None,
             simd: crate::render::simd_from_env()?,
+            count_useful: false,
         },
     };
     cfg.validate().map_err(CoreError)?;

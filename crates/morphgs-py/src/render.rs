@@ -88,7 +88,14 @@ fn options(
         sh_degree,
         antialiased,
         simd: simd_from_env()?,
+        count_useful: count_useful_from_env(),
     })
+}
+
+/// Whether `MORPHGS_COUNT_USEFUL` (set and not "0") asks render to count the useful
+/// evaluations (stats `useful_evaluations`; for benchmarks, it slows the blend).
+fn count_useful_from_env() -> bool {
+    std::env::var("MORPHGS_COUNT_USEFUL").is_ok_and(|v| !v.is_empty() && v != "0")
 }
 
 fn stats_dict<'py>(py: Python<'py>, s: &RenderStats) -> PyResult<Bound<'py, PyDict>> {
@@ -98,6 +105,7 @@ fn stats_dict<'py>(py: Python<'py>, s: &RenderStats) -> PyResult<Bound<'py, PyDi
     d.set_item("visible", s.visible)?;
     d.set_item("intersections", s.intersections)?;
     d.set_item("evaluations", s.evaluations)?;
+    d.set_item("useful_evaluations", s.useful)?;
     d.set_item("project_s", s.project_s)?;
     d.set_item("sort_s", s.sort_s)?;
     d.set_item("bin_s", s.bin_s)?;

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import os
 import sys
-from collections.abc import Callable, Iterable, Sequence, Sized
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -155,23 +155,62 @@ def _source(pair: ClipPair, what: str) -> str:
     return "an array" if isinstance(v, np.ndarray) else str(v)
 
 
-def _clip_metrics(pair: ClipPair, chosen: list[str], opts: dict[str, Any], step: Callable[[str], None]) -> dict[str, np.ndarray]:
-    """{metric: (F,) values} for one pair (pair metrics NaN on frame 0)."""
+def _same_clip(a: Clip, b: Clip) -> bool:
+    """Whether two clip sources are the same clip: one array object, or one resolved path."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return a is b
+    return Path(a).resolve() == Path(b).resolve()
+
+
+def _partner_pred(partner: ClipPair | None, gt: np.ndarray) -> np.ndarray | None:
+    """The next pair's prediction, when it scores against this pair's target and loads with the
+    target's shape; else None (its own turn then reports any problem, in its own name)."""
+    if partner is None:
+        return None
+    try:
+        other = _load_clip(partner.pred, "pred", partner.name)
+    except (MorphgsError, OSError):
+        return None
+    return other if other.shape == gt.shape else None
+
+
+#: A pair's prediction, loaded, and its per-frame LPIPS, computed with the previous pair's.
+_Handoff = tuple[np.ndarray, np.ndarray]
+
+
+def _clip_metrics(pair: ClipPair, chosen: list[str], opts: dict[str, Any], step: Callable[[str], None], *,
+                  handed: _Handoff | None = None,
+                  partner: ClipPair | None = None) -> tuple[dict[str, np.ndarray], _Handoff | None]:
+    """{metric: (F,) values} for one pair (pair metrics NaN on frame 0). `handed`: this pair's
+    prediction and LPIPS from the previous pair's turn. `partner`: the next pair when it shares
+    this pair's target; its LPIPS is then computed here, with the target's LPIPS features
+    computed once for both, and handed over (the second value)."""
     from morphgs import metrics as M
 
-    pred = _load_clip(pair.pred, "pred", pair.name)
+    pred = handed[0] if handed is not None else _load_clip(pair.pred, "pred", pair.name)
     gt = _load_clip(pair.gt, "gt", pair.name)
     _same_size(pair, pred, gt, ("pred", "gt"))
     n = len(gt)
     out: dict[str, np.ndarray] = {}
+    handoff: _Handoff | None = None
     for name, fn in (("psnr", M.psnr), ("ssim", M.ssim), ("color_shift", M.color_shift)):
         if name in chosen:
             step(name)
             out[name] = np.asarray(fn(pred, gt, reduction="none"), dtype=np.float64)
     if "lpips" in chosen:
         step("lpips")
-        out["lpips"] = np.asarray(M.lpips(pred, gt, net=opts["lpips_net"], weights=opts["lpips_weights"],
-                                          device=opts["device"], reduction="none"), dtype=np.float64)
+        lp = {"net": opts["lpips_net"], "weights": opts["lpips_weights"], "device": opts["device"]}
+        other = None if handed is not None else _partner_pred(partner, gt)
+        if handed is not None:
+            out["lpips"] = handed[1]
+        elif other is not None:
+            from morphgs.metrics.perceptual import lpips_many
+
+            mine, theirs = lpips_many([pred, other], gt, **lp)
+            out["lpips"] = np.asarray(mine, dtype=np.float64)
+            handoff = (other, np.asarray(theirs, dtype=np.float64))
+        else:
+            out["lpips"] = np.asarray(M.lpips(pred, gt, reduction="none", **lp), dtype=np.float64)
     depth_gt = None
     if pair.depth_gt is not None:
         depth_gt = _load_depth(pair.depth_gt, "depth_gt", pair.name)
@@ -198,7 +237,7 @@ def _clip_metrics(pair: ClipPair, chosen: list[str], opts: dict[str, Any], step:
         errs_d = M.depth_metrics(depth_pred, depth_gt, align=opts["depth_align"], reduction="none")
         for key, vals in errs_d.items():
             out[f"depth_{key}"] = np.asarray(vals, dtype=np.float64)
-    return out
+    return out, handoff
 
 
 def _nanmean(values: Sequence[float] | np.ndarray) -> float:
@@ -259,7 +298,8 @@ def evaluate(
     """Measure every pair and write the per-frame CSV, the Markdown tables and the plots.
 
     Args:
-        pairs: `ClipPair`s (any iterable, consumed once; clips are read one pair at a time).
+        pairs: `ClipPair`s (any iterable, consumed once; clips are read one pair at a time, and
+            two consecutive pairs with the same `gt` share its LPIPS features).
         metrics: any of "psnr", "ssim", "lpips", "color_shift", "eflow", "ewarp", "depth"
             ("depth": the seven depth errors, for pairs with both depths).
         out_dir: where to write `per_frame.csv`, `summary.md`, `summary.json` and `plots/`
@@ -286,18 +326,24 @@ def evaluate(
         from morphgs.metrics import lpips_model
 
         lpips_model(lpips_net, weights=lpips_weights, device=device)
-    if total is None and isinstance(pairs, Sized):
-        total = len(pairs)
+    # the pairs are light (paths or arrays): listed, so a pair can see whether the next one
+    # scores against the same target (`eval --run`: input, then output, against one clean clip)
+    pair_list = list(pairs)
+    if total is None:
+        total = len(pair_list)
     stages = sum(m in chosen for m in ("psnr", "ssim", "lpips", "color_shift", "depth")) + any(m in chosen for m in ("eflow", "ewarp"))
     bar = _Steps(_progress(None if total is None else total * stages, progress))
     columns: list[str] = []
     per_clip: list[tuple[ClipPair, dict[str, np.ndarray]]] = []
     try:
-        for pair in pairs:
+        handed: _Handoff | None = None
+        for i, pair in enumerate(pair_list):
             def stage(what: str, _name: str = pair.name) -> None:
                 bar.begin(f"{_name}: {what}")
 
-            values = _clip_metrics(pair, chosen, opts, stage)
+            nxt = pair_list[i + 1] if i + 1 < len(pair_list) else None
+            partner = nxt if nxt is not None and handed is None and _same_clip(pair.gt, nxt.gt) else None
+            values, handed = _clip_metrics(pair, chosen, opts, stage, handed=handed, partner=partner)
             bar.finish()
             per_clip.append((pair, values))
             columns += [k for k in values if k not in columns]

@@ -123,18 +123,36 @@ class LPIPS(nn.Module):
 
     def layer_distances(self, pred: torch.Tensor, target: torch.Tensor) -> list[torch.Tensor]:
         """The five per-layer maps (N, 1, h_k, w_k) of weighted squared feature differences."""
-        x = torch.cat([pred, target]) * 2 - 1
+        return [d[0] for d in self.layer_distances_many([pred], target)]
+
+    def layer_distances_many(self, preds: list[torch.Tensor], target: torch.Tensor) -> list[list[torch.Tensor]]:
+        """`layer_distances` of several predictions against one target, the target's features
+        computed once: per layer, one (N, 1, h_k, w_k) map per prediction."""
+        x = torch.cat([*preds, target]) * 2 - 1
         x = (x - self.shift.to(x.dtype)) / self.scale.to(x.dtype)
         out = []
         start = 0
-        n = pred.shape[0]
+        n = target.shape[0]
+        k_preds = len(preds)
         for k, end in enumerate(_SLICE_ENDS[self.net]):
             for layer in self.features[start:end]:
                 x = layer(x)
             start = end
             f = x / (x.square().sum(dim=1, keepdim=True).sqrt() + 1e-10)
-            out.append(self.lins[k]((f[:n] - f[n:]).square()))
+            t = f[k_preds * n:]
+            out.append([self.lins[k]((f[i * n:(i + 1) * n] - t).square()) for i in range(k_preds)])
         return out
+
+    def distances_many(self, preds: list[torch.Tensor], target: torch.Tensor) -> list[torch.Tensor]:
+        """LPIPS per image, one (N,) tensor per prediction, of (N, 3, H, W) images in [0, 1]
+        against one target batch, whose features are computed once (no mask)."""
+        totals: list[torch.Tensor | None] = [None] * len(preds)
+        for per_pred in self.layer_distances_many(preds, target):
+            for i, d in enumerate(per_pred):
+                v = d.mean(dim=(1, 2, 3))
+                prev = totals[i]
+                totals[i] = v if prev is None else prev + v
+        return [t for t in totals if t is not None]
 
     def forward(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         """LPIPS per image, (N,), of (N, 3, H, W) images in [0, 1]; `mask` (N, H, W) weights pixels

@@ -35,6 +35,31 @@ impl Default for TileOut {
     }
 }
 
+/// What a tile's blend did: Gaussian-pixel evaluations (16 per row evaluated) and, of those,
+/// the useful ones: alpha >= 1/255 on a pixel that had not stopped yet, the only ones that can
+/// change (or stop) a pixel. Their ratio is the blend's efficiency.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub(crate) struct Counts {
+    pub evals: u64,
+    pub useful: u64,
+}
+
+impl std::ops::Add for Counts {
+    type Output = Counts;
+    fn add(self, o: Counts) -> Counts {
+        Counts {
+            evals: self.evals + o.evals,
+            useful: self.useful + o.useful,
+        }
+    }
+}
+
+impl std::iter::Sum for Counts {
+    fn sum<I: Iterator<Item = Counts>>(it: I) -> Counts {
+        it.fold(Counts::default(), |a, b| a + b)
+    }
+}
+
 /// Blend parameters shared by every tile of a frame.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct BlendParams {
@@ -43,6 +68,8 @@ pub(crate) struct BlendParams {
     pub max_alpha: f32,
     pub background: [f32; 3],
     pub simd: Simd,
+    /// Count the useful evaluations ([`Counts::useful`]; 0 when false).
+    pub count_useful: bool,
 }
 
 #[inline(always)]
@@ -176,17 +203,17 @@ pub(super) fn prefetch(splats: &[Splat], i: usize) {
     let _ = (splats, i);
 }
 
-/// Blend one tile's list into `out` (which starts as `TileOut::default()`); returns the number
-/// of Gaussian-pixel evaluations (16 per row evaluated).
+/// Blend one tile's list into `out` (which starts as `TileOut::default()`); returns the
+/// Gaussian-pixel evaluations (16 per row evaluated) and the useful ones among them.
 #[inline(always)]
-fn blend_tile_impl<'a, const FMA: bool>(
+fn blend_tile_impl<'a, const FMA: bool, const COUNT: bool>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
     splats: &[Splat],
     lists: impl Iterator<Item = &'a [u32]>,
     out: &mut TileOut,
-) -> u64 {
+) -> Counts {
     let mut px = [0.0f32; LANES];
     for (l, v) in px.iter_mut().enumerate() {
         *v = (x0 + l as u32) as f32 + 0.5;
@@ -206,6 +233,7 @@ fn blend_tile_impl<'a, const FMA: bool>(
     let max_alpha = p.max_alpha;
     let y0f = y0 as f32;
     let mut evals = 0u64;
+    let mut useful = 0u64;
     for list in lists {
         for (k, &gi) in list.iter().enumerate() {
             if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
@@ -258,6 +286,9 @@ fn blend_tile_impl<'a, const FMA: bool>(
                     let alpha = select(e < max_alpha, e, max_alpha);
                     let t = trow[l];
                     let valid = (alpha >= ALPHA_THRESHOLD) & (t > 0.0);
+                    if COUNT {
+                        useful += valid as u64;
+                    }
                     let wt = alpha * t;
                     let tn = t - wt;
                     let contrib = valid & (tn > T_MIN);
@@ -278,13 +309,13 @@ fn blend_tile_impl<'a, const FMA: bool>(
                     alive[r] = false;
                     alive_rows -= 1;
                     if alive_rows == 0 {
-                        return evals;
+                        return Counts { evals, useful };
                     }
                 }
             }
         }
     }
-    evals
+    Counts { evals, useful }
 }
 
 /// The generic kernel compiled for AVX2 + FMA: the reference the explicit kernels are tested
@@ -298,19 +329,19 @@ pub(super) fn blend_tile_generic_fma<'a>(
     splats: &[Splat],
     lists: impl Iterator<Item = &'a [u32]>,
     out: &mut TileOut,
-) -> u64 {
-    blend_tile_impl::<true>(x0, y0, p, splats, lists, out)
+) -> Counts {
+    blend_tile_impl::<true, true>(x0, y0, p, splats, lists, out)
 }
 
-fn blend_tile_scalar<'a>(
+fn blend_tile_scalar<'a, const COUNT: bool>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
     splats: &[Splat],
     lists: impl Iterator<Item = &'a [u32]>,
     out: &mut TileOut,
-) -> u64 {
-    blend_tile_impl::<false>(x0, y0, p, splats, lists, out)
+) -> Counts {
+    blend_tile_impl::<false, COUNT>(x0, y0, p, splats, lists, out)
 }
 
 pub(crate) fn blend_tile<'a>(
@@ -320,17 +351,37 @@ pub(crate) fn blend_tile<'a>(
     splats: &[Splat],
     lists: impl Iterator<Item = &'a [u32]>,
     out: &mut TileOut,
-) -> u64 {
+) -> Counts {
+    if p.count_useful {
+        blend_tile_counting::<true>(x0, y0, p, splats, lists, out)
+    } else {
+        blend_tile_counting::<false>(x0, y0, p, splats, lists, out)
+    }
+}
+
+/// [`blend_tile`] with the useful evaluations counted (`COUNT`) or not (0): counting costs the
+/// AVX-512 kernel about 15% of its time, so only benchmarks ask for it.
+#[inline(always)]
+fn blend_tile_counting<'a, const COUNT: bool>(
+    x0: u32,
+    y0: u32,
+    p: &BlendParams,
+    splats: &[Splat],
+    lists: impl Iterator<Item = &'a [u32]>,
+    out: &mut TileOut,
+) -> Counts {
     match p.simd {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `Simd::resolve` only yields Avx512 when the CPU reports these features.
         Simd::Avx512 => unsafe {
-            super::blend_avx512::blend_tile_avx512(x0, y0, p, splats, lists, out)
+            super::blend_avx512::blend_tile_avx512::<COUNT>(x0, y0, p, splats, lists, out)
         },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `Simd::resolve` only yields Avx2 when the CPU reports AVX2 and FMA.
-        Simd::Avx2 => unsafe { super::blend_avx2::blend_tile_avx2(x0, y0, p, splats, lists, out) },
-        _ => blend_tile_scalar(x0, y0, p, splats, lists, out),
+        Simd::Avx2 => unsafe {
+            super::blend_avx2::blend_tile_avx2::<COUNT>(x0, y0, p, splats, lists, out)
+        },
+        _ => blend_tile_scalar::<COUNT>(x0, y0, p, splats, lists, out),
     }
 }
 
@@ -394,7 +445,7 @@ impl FrameOut {
 }
 
 /// Blend every tile of a frame and write rgb (H,W,3), depth (H,W) and alpha (H,W).
-/// Returns the number of Gaussian-pixel evaluations.
+/// Returns the Gaussian-pixel evaluations and the useful ones.
 pub(crate) fn blend_frame(
     sorted: &[Splat],
     bins: &TileBins,
@@ -402,7 +453,7 @@ pub(crate) fn blend_frame(
     rgb: &mut [f32],
     depth: &mut [f32],
     alpha: &mut [f32],
-) -> u64 {
+) -> Counts {
     blend_frame_impl(sorted, bins, p, rgb, depth, alpha, None, true)
 }
 
@@ -418,7 +469,7 @@ pub(crate) fn blend_frame_saving(
     alpha: &mut [f32],
     saved: &mut [TileOut],
     expected_depth: bool,
-) -> u64 {
+) -> Counts {
     blend_frame_impl(
         sorted,
         bins,
@@ -440,7 +491,7 @@ fn blend_frame_impl(
     alpha: &mut [f32],
     saved: Option<&mut [TileOut]>,
     expected_depth: bool,
-) -> u64 {
+) -> Counts {
     let (tiles_x, tiles_y) = (bins.tiles_x as usize, bins.tiles_y as usize);
     let (width, height) = (p.width as usize, p.height as usize);
     assert!(rgb.len() == width * height * 3 && depth.len() == width * height);
@@ -464,7 +515,7 @@ fn blend_frame_impl(
             }
             // SAFETY: tile t is written by this task only (see `FrameOut`).
             unsafe { out.tile(x0, y0, None, p.background) };
-            return 0;
+            return Counts::default();
         }
         let mut local;
         let buf = match buf {

@@ -3,8 +3,8 @@
 //! and lane masks held in vectors instead of mask registers. Same formulas and operation order
 //! as `blend_tile_impl::<true>`, so the same image bits (tested).
 use super::blend::{
-    prefetch, row_mask, BlendParams, Slot, TileOut, CHUNK, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16,
-    EXP_MAGIC, LANES, PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
+    prefetch, row_mask, BlendParams, Counts, Slot, TileOut, CHUNK, EXP2_16THS, EXP_C_HI, EXP_C_LO,
+    EXP_K16, EXP_MAGIC, LANES, PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
 };
 use super::project::{Splat, ALPHA_THRESHOLD};
 
@@ -15,14 +15,14 @@ const HALF: usize = 8;
 /// row evaluated while the row has live pixels, as the generic kernel counts them).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-pub(super) fn blend_tile_avx2<'a>(
+pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
     splats: &[Splat],
     lists: impl Iterator<Item = &'a [u32]>,
     out: &mut TileOut,
-) -> u64 {
+) -> Counts {
     use std::arch::x86_64::*;
 
     // live lanes per row as 16 bits (low half: bits 0-7); rows and lanes outside the image
@@ -75,6 +75,7 @@ pub(super) fn blend_tile_avx2<'a>(
     // lane l of a half holds bit l: turns an 8-bit live mask into lane masks
     let lane_bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
     let mut evals = 0u64;
+    let mut useful = 0u64;
     let mut slots = [Slot::default(); CHUNK];
     let t_ptr = out.t.as_mut_ptr() as *mut f32;
     let c0_ptr = out.c[0].as_mut_ptr() as *mut f32;
@@ -228,6 +229,9 @@ pub(super) fn blend_tile_avx2<'a>(
                         let ev = _mm256_mul_ps(y, _mm256_castsi256_ps(scale));
                         let alpha = _mm256_min_ps(ev, max_alpha);
                         let valid = _mm256_and_ps(lv, _mm256_cmp_ps::<_CMP_GE_OQ>(alpha, thr));
+                        if COUNT {
+                            useful += _mm256_movemask_ps(valid).count_ones() as u64;
+                        }
                         let w = _mm256_mul_ps(alpha, t);
                         let tn = _mm256_sub_ps(t, w);
                         let contrib = _mm256_and_ps(valid, _mm256_cmp_ps::<_CMP_GT_OQ>(tn, t_min));
@@ -260,9 +264,9 @@ pub(super) fn blend_tile_avx2<'a>(
                 }
             }
             if alive == 0 {
-                return evals;
+                return Counts { evals, useful };
             }
         }
     }
-    evals
+    Counts { evals, useful }
 }

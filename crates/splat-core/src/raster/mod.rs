@@ -96,6 +96,9 @@ pub struct RenderOptions {
     pub antialiased: bool,
     /// Blend kernel selection.
     pub simd: Simd,
+    /// Count the useful evaluations in [`RenderStats::useful`] (costs the blend about 15%;
+    /// for benchmarks). The images are the same bytes either way.
+    pub count_useful: bool,
 }
 
 impl Default for RenderOptions {
@@ -106,6 +109,7 @@ impl Default for RenderOptions {
             sh_degree: None,
             antialiased: false,
             simd: Simd::Auto,
+            count_useful: false,
         }
     }
 }
@@ -152,8 +156,13 @@ pub struct RenderStats {
     pub visible: u64,
     /// Gaussian-tile pairs.
     pub intersections: u64,
-    /// Gaussian-pixel evaluations in the blend (16 per tile row a Gaussian's box reaches).
+    /// Gaussian-pixel evaluations in the blend (16 per tile row whose pixels the Gaussian's
+    /// 1/255 contour may reach).
     pub evaluations: u64,
+    /// The evaluations that can change a pixel: alpha >= 1/255 before the pixel stopped.
+    /// `useful / evaluations` is the blend's efficiency. Counted only with
+    /// [`RenderOptions::count_useful`] (else 0).
+    pub useful: u64,
     pub project_s: f64,
     pub sort_s: f64,
     pub bin_s: f64,
@@ -167,6 +176,7 @@ impl RenderStats {
         self.visible += o.visible;
         self.intersections += o.intersections;
         self.evaluations += o.evaluations;
+        self.useful += o.useful;
         self.project_s += o.project_s;
         self.sort_s += o.sort_s;
         self.bin_s += o.bin_s;
@@ -230,8 +240,11 @@ pub fn render_into(
         max_alpha: opts.max_alpha,
         background: opts.background,
         simd: opts.simd.resolve(),
+        count_useful: opts.count_useful,
     };
-    stats.evaluations = blend::blend_frame(&sorted, &bins, &params, rgb, depth, alpha);
+    let counts = blend::blend_frame(&sorted, &bins, &params, rgb, depth, alpha);
+    stats.evaluations = counts.evals;
+    stats.useful = counts.useful;
     sort::recycle(sorted);
     let t4 = Instant::now();
     stats.project_s = (t1 - t0).as_secs_f64();
@@ -446,6 +459,7 @@ mod tests {
                 max_alpha,
                 background: [0.0; 3],
                 simd: Simd::Auto,
+                count_useful: true,
             };
             for t in 0..(tx * ty) as usize {
                 let (x0, y0) = ((t as u32 % tx) * 16, (t as u32 / tx) * 16);
@@ -459,7 +473,14 @@ mod tests {
                     let mut o = blend::TileOut::default();
                     // SAFETY: AVX2 and FMA are present.
                     let e = unsafe {
-                        blend_avx2::blend_tile_avx2(x0, y0, &p, &sorted, bins.lists(t), &mut o)
+                        blend_avx2::blend_tile_avx2::<true>(
+                            x0,
+                            y0,
+                            &p,
+                            &sorted,
+                            bins.lists(t),
+                            &mut o,
+                        )
                     };
                     got.push(("avx2", o, e));
                 }
@@ -467,7 +488,14 @@ mod tests {
                     let mut o = blend::TileOut::default();
                     // SAFETY: the AVX-512 features are present.
                     let e = unsafe {
-                        blend_avx512::blend_tile_avx512(x0, y0, &p, &sorted, bins.lists(t), &mut o)
+                        blend_avx512::blend_tile_avx512::<true>(
+                            x0,
+                            y0,
+                            &p,
+                            &sorted,
+                            bins.lists(t),
+                            &mut o,
+                        )
                     };
                     got.push(("avx512", o, e));
                 }
@@ -492,6 +520,50 @@ mod tests {
             }
         }
         assert!(checked > 50);
+    }
+
+    /// Counting the useful evaluations changes no output byte; the count lies between 1 and
+    /// the evaluations, and every x86 kernel counts the same.
+    #[test]
+    fn useful_evaluations_are_counted_on_request_without_changing_the_image() {
+        let s = scene(5000);
+        let mut counts = Vec::new();
+        for simd in [Simd::Avx512, Simd::Avx2, Simd::Scalar] {
+            if simd.resolve() != simd {
+                continue;
+            }
+            let off = render(
+                &s,
+                &RenderOptions {
+                    simd,
+                    ..Default::default()
+                },
+            );
+            let on = render(
+                &s,
+                &RenderOptions {
+                    simd,
+                    count_useful: true,
+                    ..Default::default()
+                },
+            );
+            assert_eq!((off.0, off.1, off.2), (on.0, on.1, on.2));
+            assert_eq!(off.3.useful, 0);
+            assert_eq!(off.3.evaluations, on.3.evaluations);
+            assert!(
+                on.3.useful > 0 && on.3.useful < on.3.evaluations,
+                "{:?}",
+                on.3
+            );
+            counts.push((simd, on.3.useful));
+        }
+        // the FMA kernels give the same alphas, so the same count
+        let fma: Vec<u64> = counts
+            .iter()
+            .filter(|c| c.0 != Simd::Scalar)
+            .map(|c| c.1)
+            .collect();
+        assert!(fma.windows(2).all(|w| w[0] == w[1]), "{counts:?}");
     }
 
     #[test]

@@ -357,10 +357,11 @@ impl Workspace {
             max_alpha: opts.render.max_alpha,
             background: opts.render.background,
             simd: opts.render.simd.resolve(),
+            count_useful: opts.render.count_useful,
         };
         self.tiles
             .resize_with((tiles_x * tiles_y) as usize, TileOut::default);
-        stats.evaluations = blend::blend_frame_saving(
+        let counts = blend::blend_frame_saving(
             &self.sorted,
             &self.bins,
             &blend,
@@ -370,6 +371,8 @@ impl Workspace {
             &mut self.tiles,
             opts.depth == DepthKind::Expected,
         );
+        stats.evaluations = counts.evals;
+        stats.useful = counts.useful;
         let t4 = Instant::now();
         stats.project_s = (t1 - t0).as_secs_f64();
         stats.sort_s = (t2 - t1).as_secs_f64();
