@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from morphgs._core import GaussianScene, MorphgsError
-from morphgs.camera import Cameras
+from morphgs.camera import Camera
 from morphgs.fit.config import FitConfig
 from morphgs.fit.data import PosedImages, describe, load_posed_images
 from morphgs.fit.views import ViewSelection, select_views
@@ -78,7 +78,7 @@ class FitResult:
     heldout_lpips: float | None = None
 
 
-def scene_scale_of(cameras: Cameras) -> float:
+def scene_scale_of(cameras: Sequence[Camera]) -> float:
     """INRIA's cameras_extent / gsplat's scene_scale: 1.1 x the largest distance of a camera
     centre from their mean (1.0 when the cameras coincide, e.g. one view)."""
     c = np.stack([cam.center for cam in cameras]) if len(cameras) else np.zeros((1, 3))
@@ -174,7 +174,7 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
-def _inria_cameras(cams: Cameras, names: list[str]) -> list[dict[str, Any]]:
+def _inria_cameras(cams: Sequence[Camera], names: list[str]) -> list[dict[str, Any]]:
     out = []
     for i, (c, n) in enumerate(zip(cams, names)):
         c2w = c.camera_to_world
@@ -189,7 +189,7 @@ def _preview(render: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate([r, truth], axis=1))
 
 
-def _stack(cams: Cameras) -> tuple[np.ndarray, np.ndarray]:
+def _stack(cams: Sequence[Camera]) -> tuple[np.ndarray, np.ndarray]:
     w2c = np.ascontiguousarray(np.stack([c.world_to_camera for c in cams]), np.float64)
     k = np.ascontiguousarray(np.stack([c.K for c in cams]), np.float64)
     return w2c, k
@@ -322,8 +322,11 @@ def fit(
         raise MorphgsError(f"downscale must be >= 1, got {downscale}")
     posed = data if isinstance(data, PosedImages) else load_posed_images(data, images=images)
     sel: ViewSelection = select_views(len(posed), views, holdout=holdout)
-    train_imgs, train_cams = posed.load(sel.train, downscale=downscale)
-    eval_imgs, eval_cams = posed.load(sel.heldout, downscale=downscale)
+    run = Path(out)
+    run.mkdir(parents=True, exist_ok=True)
+    cache = run / "undistorted"  # undistorted photos live in the run, never beside the user's data
+    train_imgs, train_cams, train_masks = posed.read(sel.train, downscale=downscale, cache=cache)
+    eval_imgs, eval_cams, eval_masks = posed.read(sel.heldout, downscale=downscale, cache=cache)
     scale = float(cfg.scene_scale) if not isinstance(cfg.scene_scale, str) else scene_scale_of(train_cams)
     native = cfg.native(scale)
     init_key = f"scene object {hashlib.sha256(np.asarray(init.means).tobytes()).hexdigest()[:16]}" \
@@ -332,8 +335,6 @@ def fit(
              "downscale": downscale, "init": init_key, "format": 1}
     fingerprint = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
 
-    run = Path(out)
-    run.mkdir(parents=True, exist_ok=True)
     ck_path = run / "checkpoint.bin"
     id_path = run / "run.json"
     if id_path.is_file() and resume:
@@ -365,7 +366,7 @@ def fit(
             "source": posed.source, "views": sel.spec, "holdout": sel.holdout, "downscale": downscale,
             "train": [{"index": i, "name": names[i]} for i in sel.train],
             "heldout": [{"index": i, "name": names[i]} for i in sel.heldout]}, indent=1) + "\n")
-        all_cams = Cameras.from_list(list(train_cams) + list(eval_cams))
+        all_cams = list(train_cams) + list(eval_cams)
         _write_atomic(run / "cameras.json", json.dumps(_inria_cameras(
             all_cams, [names[i] for i in sel.train + sel.heldout]), indent=1) + "\n")
         _write_atomic(id_path, json.dumps({"fingerprint": fingerprint, "init": init_desc, "scene_scale": scale,
