@@ -193,3 +193,27 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
 
 def render_u8(scene: morphgs.GaussianScene, cam: Camera) -> np.ndarray:
     return np.rint(np.clip(np.asarray(morphgs.render(scene, cam).rgb), 0, 1) * 255).astype(np.uint8)
+
+
+def forward_facing_cameras(size: tuple[int, int] = (64, 48), grid: tuple[int, int] = (5, 4),
+                           spacing: float = 0.12) -> list[Camera]:
+    """An LLFF-style capture of the room: cameras on a small grid, every one looking the same way
+    (at the room's centre from the orbit's first position)."""
+    from morphgs.camera import _invert_rigid, look_at_c2w
+
+    o = synthetic.suggested_orbit()
+    c0 = np.asarray(o.center, float)
+    eye0 = c0 + np.array([o.radius, 0, o.height - c0[2]])
+    fwd = (c0 - eye0) / np.linalg.norm(c0 - eye0)
+    right = np.cross(fwd, [0, 0, 1])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    b = spacing * o.radius
+    w, h = size
+    f = 0.5 * w / np.tan(np.radians(30))
+    cams = []
+    for j in range(grid[1]):
+        for i in range(grid[0]):
+            e = eye0 + right * (i - (grid[0] - 1) / 2) * b + up * (j - (grid[1] - 1) / 2) * b
+            cams.append(Camera(f, f, w / 2, h / 2, w, h, _invert_rigid(look_at_c2w(e, e + fwd, (0, 0, 1)))))
+    return cams

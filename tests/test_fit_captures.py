@@ -222,3 +222,79 @@ def test_sparse_pairs_from_a_mixed_orientation_capture_keep_each_photo_as_it_is(
     meta = json.loads((out / rec["fit"]["dir"] / "data" / "transforms.json").read_text())
     got = sorted({(f["w"], f["h"]) for f in meta["frames"]})
     assert (48, 64) in got and (64, 48) in got  # portrait photos stay portrait, nothing stretched
+
+
+def _masked_capture(root: Path, scene, garbage_seed: int) -> tuple[Path, list[np.ndarray]]:  # type: ignore[no-untyped-def]
+    """A transforms.json capture whose photos hold a 'passer-by' (noise of `garbage_seed`) in a
+    masked box."""
+    from PIL import Image
+
+    cams = [pinhole(w2c, 48, 36) for w2c in orbit_poses(9)]
+    masks = []
+    for i in range(len(cams)):
+        m = np.ones((36, 48), bool)
+        m[6 + i:22 + i, 10 + 2 * i:26 + 2 * i] = False
+        masks.append(m)
+    root = write_transforms(root, scene, cams, masks=masks)
+    rng = np.random.default_rng(garbage_seed)
+    for i, m in enumerate(masks):
+        p = root / "images" / f"frame_{i:05d}.png"
+        img = np.asarray(Image.open(p)).copy()
+        img[~m] = rng.integers(0, 256, size=(int((~m).sum()), 3), dtype=np.uint8)
+        Image.fromarray(img).save(p)
+    return root, masks
+
+
+def test_masked_pixels_are_out_of_the_loss_and_the_heldout_metrics(scene, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    import morphgs
+
+    cfg = small_config(25, output={"eval_every": 0, "checkpoint_every": 100, "preview_every": 0,
+                                   "progress_every": 0.0, "lpips": "off"})
+    a, masks = _masked_capture(tmp_path / "a", scene, 1)
+    b, _ = _masked_capture(tmp_path / "b", scene, 2)
+    ra = fit(a, tmp_path / "ra", config=cfg, progress=False)
+    rb = fit(b, tmp_path / "rb", config=cfg, progress=False)
+    # the photos differ only under the masks: the fits are the same bytes
+    assert ra.ply.read_bytes() == rb.ply.read_bytes()
+    assert ra.heldout_psnr == rb.heldout_psnr
+    # without the masks the passer-by is learnt
+    import shutil
+
+    c = tmp_path / "c"
+    shutil.copytree(b, c)
+    meta = json.loads((c / "transforms.json").read_text())
+    for fr in meta["frames"]:
+        del fr["mask_path"]
+    shutil.rmtree(c / "masks")
+    (c / "transforms.json").write_text(json.dumps(meta))
+    rc = fit(c, tmp_path / "rc", config=cfg, progress=False)
+    assert rc.ply.read_bytes() != rb.ply.read_bytes()
+    # held-out PSNR is over the kept pixels only
+    posed = load_posed_images(a)
+    imgs, cams, ms = posed.read(ra.heldout_views)
+    vals = []
+    for im, cam, m in zip(imgs, cams, ms):
+        assert m is not None
+        r = np.clip(np.asarray(morphgs.render(ra.scene, cam).rgb), 0, 1)
+        d = (r - im.astype(np.float32) / 255.0)[m]
+        vals.append(-10 * np.log10(np.mean(d.astype(np.float64) ** 2)))
+    assert ra.heldout_psnr == pytest.approx(float(np.mean(vals)), abs=1e-3)
+
+
+def test_masks_folder_of_a_colmap_capture_and_a_missing_mask(scene, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    from PIL import Image
+
+    root = _sizes_capture(tmp_path / "cm", scene, [(40, 30)] * 4)
+    (root / "masks").mkdir()
+    for i in range(3):
+        m = np.full((30, 40), 255, np.uint8)
+        m[:10] = 0
+        Image.fromarray(m).save(root / "masks" / f"im_{i:03d}.png.png")  # COLMAP's NAME.png
+    _one_line_error(_cli("fit", str(root), "--out", str(tmp_path / "r"), "--steps", "5"), "masks", "im_003.png")
+    Image.fromarray(np.zeros((30, 40), np.uint8)).save(root / "masks" / "im_003.png")  # masks everything
+    _one_line_error(_cli("fit", str(root), "--out", str(tmp_path / "r"), "--steps", "5"), "im_003.png", "no pixel")
+    Image.fromarray(np.full((30, 40), 255, np.uint8)).save(root / "masks" / "im_003.png")
+    posed = load_posed_images(root)
+    _, _, ms = posed.read([0, 3])
+    assert ms[0] is not None and not ms[0][:10].any() and ms[0][10:].all()
+    assert ms[1] is None  # an all-kept mask is no mask

@@ -120,8 +120,11 @@ def _truncate_csv(path: Path, step: int, columns: list[str]) -> None:
     _write_atomic(path, ",".join(columns) + "\n" + "".join(rows))
 
 
-def _lpips_scorer(setting: str, images: list[np.ndarray], *, verbose: bool) -> Callable[[np.ndarray, int], float] | None:
+def _lpips_scorer(setting: str, images: list[np.ndarray], *, verbose: bool,
+                  masks: Sequence[np.ndarray | None] = ()) -> Callable[[np.ndarray, int], float] | None:
     """A function (render, held-out view index) -> LPIPS against that view's image, or None.
+    Masked pixels (`masks[view]` False) of the render are replaced by the image's own before
+    scoring, so they cannot count.
 
     "auto" gives AlexNet when torch and the weights are installed and None (with a note) when
     not; "alex"/"vgg" must work (the error says what to install); "off" is None. The scorer runs
@@ -156,8 +159,12 @@ def _lpips_scorer(setting: str, images: list[np.ndarray], *, verbose: bool) -> C
         # count (the scene's bytes never depend on it)
         threads = torch.get_num_threads()
         torch.set_num_threads(1)
+        rgb = np.clip(rgb, 0.0, 1.0)
+        m = masks[view] if view < len(masks) else None
+        if m is not None:
+            rgb = np.where(m[..., None], rgb, images[view].astype(np.float32) / 255.0)
         try:
-            return float(lpips(np.clip(rgb, 0.0, 1.0), images[view], net=net))
+            return float(lpips(rgb, images[view], net=net))
         finally:
             torch.set_num_threads(threads)
 
@@ -265,6 +272,22 @@ class _Logger:
             f.close()
 
 
+def _warn_forward_facing(init: Any, posed: PosedImages, cams: Sequence[Camera]) -> None:
+    """A MorphgsWarning when a forward-facing capture is fitted from random points."""
+    import warnings
+
+    from morphgs._core import MorphgsWarning
+    from morphgs.fit.rays import looks_forward_facing
+
+    spec = init.strip() if isinstance(init, str) else ""
+    random = spec.startswith(("random", "box")) or (spec == "auto" and posed.points is None)
+    if random and looks_forward_facing(cams):
+        warnings.warn(f"{posed.source}: the capture looks forward-facing (every camera looks within 30 degrees of "
+                      "one direction) and the fit starts from random points; random points fit several dB worse than "
+                      "SfM points (docs/fit.md, \"Initialisation\"): run COLMAP on the images and use "
+                      "--init points if you can", MorphgsWarning, stacklevel=3)
+
+
 def fit(
     data: str | os.PathLike[str] | PosedImages,
     out: str | os.PathLike[str],
@@ -291,7 +314,8 @@ def fit(
             "mcmc", "sparse") or None (the defaults).
         views: training views: "all", "every:K", "n:N" or explicit indices (see
             morphgs.fit.views); holdout: "every:8" (default), "none" or explicit indices.
-        init: "auto", "points", "random[:N]", "ply:PATH", "scene:PATH" or a GaussianScene.
+        init: "auto", "points", "random[:N]" (along the training rays), "box[:N]", "ply:PATH",
+            "scene:PATH" or a GaussianScene.
         images: image folder to use instead of the dataset's (e.g. "images_4").
         downscale: shrink images (and cameras) by this integer factor.
         steps, seed: override the config's.
@@ -352,13 +376,18 @@ def fit(
     tw2c, tk = _stack(train_cams)
     ew2c, ek = _stack(eval_cams) if len(eval_cams) else (None, None)
     common: dict[str, Any] = dict(config=native, eval_images=list(eval_imgs), eval_world_to_camera=ew2c, eval_K=ek)
+    if any(m is not None for m in train_masks + eval_masks):  # masked pixels: out of the loss and the metrics
+        common["masks"] = [None if m is None else m.astype(np.uint8) for m in train_masks]
+        common["eval_masks"] = [None if m is None else m.astype(np.uint8) for m in eval_masks]
     fp = fingerprint.encode()
     if ck_path.is_file() and resume:
         trainer = _core.Trainer.restore(ck_path, train_imgs, tw2c, tk, fingerprint=fp, **common)
         init_desc = json.loads(id_path.read_text(encoding="utf-8")).get("init", init_key) if id_path.is_file() else init_key
     else:
         centers = np.stack([c.center for c in train_cams])
-        scene0, init_desc = initial_scene(init, posed, centers, cfg, scene_scale=scale)
+        _warn_forward_facing(init, posed, train_cams)
+        scene0, init_desc = initial_scene(init, posed, centers, cfg, scene_scale=scale, train_cameras=train_cams,
+                                          train_images=train_imgs, train_masks=train_masks)
         trainer = _core.Trainer(scene0, train_imgs, tw2c, tk, **common)
         _write_atomic(run / "config.toml", cfg.to_toml())
         names = posed.names
@@ -379,7 +408,7 @@ def fit(
     _truncate_csv(run / "eval.csv", start, EVAL_COLUMNS)
     _truncate_csv(run / "eval_views.csv", start, EVAL_VIEW_COLUMNS)
 
-    score_lpips = _lpips_scorer(cfg.output.lpips, list(eval_imgs), verbose=progress)
+    score_lpips = _lpips_scorer(cfg.output.lpips, list(eval_imgs), verbose=progress, masks=eval_masks)
     bar = progress_bar(cfg.steps, start, progress)
     logger = _Logger(run, cfg, [posed.names[i] for i in sel.heldout], list(eval_imgs), bar, callback, progress,
                      score_lpips)
