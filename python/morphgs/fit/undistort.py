@@ -78,7 +78,8 @@ def transforms_distortion(model: str, dist: dict[str, float], where: str) -> Dis
     if dist.get("k4", 0.0) != 0.0:
         raise CaptureError(f"{where}: k4 = {dist['k4']} in a perspective camera (nerfstudio's r^8 term) has no "
                            f"OpenCV equivalent; {_HOW}")
-    d = (dist.get("k1", 0.0), dist.get("k2", 0.0), dist.get("p1", 0.0), dist.get("p2", 0.0), dist.get("k3", 0.0))
+    d: tuple[float, ...] = (dist.get("k1", 0.0), dist.get("k2", 0.0), dist.get("p1", 0.0), dist.get("p2", 0.0),
+                            dist.get("k3", 0.0))
     if d[4] == 0.0:
         d = d[:4]
     return Distortion(model, tuple(float(v) for v in d)) if any(v != 0.0 for v in d) else None
