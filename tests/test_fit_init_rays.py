@@ -53,7 +53,7 @@ def test_an_orbit_converges_and_is_not_forward_facing() -> None:
     o = synthetic.suggested_orbit()
     near, far, how = depth_range(cams, scene_scale_of(cams))
     d = float(np.linalg.norm(cams[0].center - np.asarray(o.center)))
-    assert "converge" in how and near == pytest.approx(d / 4, rel=1e-6) and far == pytest.approx(4 * d, rel=1e-6)
+    assert "converge" in how and near == pytest.approx(d / 2, rel=1e-6) and far == pytest.approx(3 * d, rel=1e-6)
 
 
 def test_forward_facing_capture_warns_and_ray_init_beats_the_box(tmp_path: Path) -> None:

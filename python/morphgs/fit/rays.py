@@ -10,7 +10,7 @@ The rule (documented, deterministic for a seed):
 
 1. Depth range. Where the cameras' optical axes converge (the least-squares point closest to all
    axes lies in front of at least 80 % of the cameras and the fit is well conditioned), D is the
-   median distance of the cameras to it and depths span [D / 4, 4 D]. Otherwise (axes parallel
+   median distance of the cameras to it and depths span [D / 2, 3 D]. Otherwise (axes parallel
    or diverging: forward-facing) depths span [s, 100 s] with s the scene scale (the cameras'
    spread), the usual depth / baseline ratios of handheld forward-facing captures.
 2. Each point takes a training view (round robin), a uniform random pixel of it, a depth uniform
@@ -68,7 +68,7 @@ def depth_range(cams: Sequence[Camera], scene_scale: float) -> tuple[float, floa
             if ahead.mean() >= 0.8:
                 d = float(np.median(np.linalg.norm(c - x, axis=1)))
                 if d > 1e-6:
-                    return d / 4, 4 * d, f"axes converge {d:.3g} from the cameras"
+                    return d / 2, 3 * d, f"axes converge {d:.3g} from the cameras"
     s = max(float(scene_scale), 1e-6)
     return s, 100 * s, f"axes do not converge: {s:.3g}..{100 * s:.3g} (scene scale x 1..100)"
 
