@@ -512,3 +512,23 @@ impl Trainer {
         (o / n, s / n)
     }
 }
+
+#[cfg(test)]
+mod mask_tests {
+    use super::{apply_mask, masked_metrics};
+
+    #[test]
+    fn masked_pixels_are_zeroed_and_psnr_counts_only_kept_pixels() {
+        let mask = [1u8, 0, 1, 0];
+        let mut a = vec![0.5f32; 12];
+        let mut b = vec![0.25f32; 12];
+        apply_mask(&mask, &mut [&mut a, &mut b]);
+        assert_eq!(&a[3..6], &[0.0, 0.0, 0.0]);
+        assert_eq!(&b[9..12], &[0.0, 0.0, 0.0]);
+        assert_eq!(&a[0..3], &[0.5, 0.5, 0.5]);
+        // MSE over all 4 pixels is half the MSE over the 2 kept ones: 10 log10(2) dB less
+        let (p, s) = masked_metrics(20.0, 0.9, &mask);
+        assert!((p - (20.0 - 10.0 * 2f64.log10())).abs() < 1e-12);
+        assert!((s - 0.8).abs() < 1e-12);
+    }
+}
