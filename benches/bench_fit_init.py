@@ -2,11 +2,13 @@
 from three initialisations: SfM-like points, `random` (points along the training rays) and `box`
 (uniform in the box of the camera centres, the old `random`). docs/fit.md, "Initialisation".
 
-    python benches/bench_fit_init.py [--steps 600]
+    python benches/bench_fit_init.py [--steps 600] [--layout forward|orbit]
 
 Prints one JSON line per init. The capture: tests/capture_helpers.forward_facing_cameras (a 5x4
 grid, 96x72), a 20k-Gaussian room; the "SfM points" are 3000 Gaussian centres seen by the middle
-camera. The config is tests/fit_helpers.small_config with refinement every 100 steps.
+camera. `--layout orbit`: 24 inward views of the room (tests/fit_helpers.make_dataset, 96x72,
+20k Gaussians, 3000 centres as points). The config is tests/fit_helpers.small_config with
+refinement every 100 steps.
 """
 
 from __future__ import annotations
@@ -33,18 +35,25 @@ def main() -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=600)
+    ap.add_argument("--layout", choices=("forward", "orbit"), default="forward")
     args = ap.parse_args()
     scene = synthetic.scene(20000, sh_degree=1, seed=0)
     cams = forward_facing_cameras((96, 72))
     with tempfile.TemporaryDirectory() as tmp:
-        root = write_transforms(Path(tmp) / "ff", scene, cams)
+        if args.layout == "orbit":
+            from fit_helpers import make_dataset
+
+            root, _, _ = make_dataset(Path(tmp) / "orbit", views=24, size=(96, 72), gaussians=20000, points=3000)
+        else:
+            root = write_transforms(Path(tmp) / "ff", scene, cams)
         mid = cams[7]
         m = np.asarray(scene.means)
         uv = mid.project(m)
         zc = (m @ mid.world_to_camera[:3, :3].T + mid.world_to_camera[:3, 3])[:, 2]
         vis = (zc > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < mid.width) & (uv[:, 1] >= 0) & (uv[:, 1] < mid.height)
         idx = np.random.default_rng(0).choice(np.flatnonzero(vis), size=min(3000, int(vis.sum())), replace=False)
-        write_point_ply(root / "points.ply", m[idx], np.clip(np.asarray(scene.colors)[idx], 0, 1))
+        if args.layout == "forward":
+            write_point_ply(root / "points.ply", m[idx], np.clip(np.asarray(scene.colors)[idx], 0, 1))
         cfg = small_config(args.steps, init={"random_points": 5000},
                            output={"eval_every": 0, "checkpoint_every": 100000, "preview_every": 0,
                                    "progress_every": 0.0, "lpips": "off"})
