@@ -38,6 +38,7 @@ def test_each_format_comes_back_y_down_and_the_orbit_matches_the_scene(tmp_path:
     loaded = morphgs.load(path)
     up, why = trajectory.scene_up(loaded, "file")
     assert "RDF" in why
+    np.testing.assert_allclose(_orbit(loaded, "file").camera_to_world, _orbit(loaded, up).camera_to_world)
     want = _orbit(base, (0, 0, 1)).camera_to_world
     got = _orbit(loaded, up).camera_to_world
     tol = 2e-2 * float(np.ptp(np.asarray(base.means), axis=0).max())  # spz / .splat quantise positions

@@ -18,8 +18,8 @@ the pair's path. Per (scene, views, seed, resolution, fit settings) one fit is m
   the longer side is the pair's longer side: a capture mixing portrait and landscape, or
   COLMAP's undistorted layout where every image has its own size, fits as it is) and are
   undistorted with their camera's coefficients (docs/fit.md).
-- Initialisation: random points in the cameras' box (no SfM points: they would come from all
-  views). The fit config is the `sparse` preset (3000 steps, MCMC capped at 300k Gaussians, SH
+- Initialisation: random points along the training views' rays (`init="random"`,
+  `morphgs.fit.rays`; no SfM points: they would come from all views). The fit config is the `sparse` preset (3000 steps, MCMC capped at 300k Gaussians, SH
   degree 1) unless the config says otherwise.
 
 A fit is resumable (its run folder checkpoints) and shared: worker processes take a file lock per

@@ -242,7 +242,7 @@ def for_scene(
     *,
     resolution: Sequence[int] = DEFAULT_RESOLUTION,
     fov_y_degrees: float = 50.0,
-    up: npt.ArrayLike = (0.0, 0.0, 1.0),
+    up: npt.ArrayLike | str = (0.0, 0.0, 1.0),
     elevation_degrees: float = 25.0,
     start_degrees: float = 0.0,
     arc_degrees: float = 360.0,
@@ -262,7 +262,9 @@ def for_scene(
         n_frames: number of cameras.
         resolution: (W, H).
         fov_y_degrees: vertical field of view.
-        up: world up (the synthetic scenes are z-up).
+        up: world up: a vector (the default +z suits the synthetic scenes), or a rule of
+            `scene_up`: "file" (-y: every loaded scene file is in RDF axes), "scene" (from the
+            Gaussians), "+x" ... "-z", "X,Y,Z".
         elevation_degrees: camera elevation above the box centre.
         start_degrees, arc_degrees: the part of the circle the path covers.
         percentiles: robust bound percentiles.
@@ -273,6 +275,8 @@ def for_scene(
     """
     res = check_resolution(resolution)
     assert res is not None
+    if isinstance(up, str):
+        up = scene_up(scene, up)[0]
     means = getattr(scene, "means", scene)
     weights = getattr(scene, "opacities", None)
     lo, hi = robust_bounds(means, percentiles=percentiles, weights=weights)
