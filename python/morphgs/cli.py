@@ -5,11 +5,14 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+import warnings
 from collections.abc import Sequence
+from typing import Any
 
 from morphgs import __version__
-from morphgs._core import MorphgsError
+from morphgs._core import MorphgsWarning
 
 # Order is the order shown in --help.
 _COMMAND_MODULES = (
@@ -41,17 +44,55 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# what a command that was stopped (Ctrl-C, SIGTERM) tells its user to do next
+_RESUME = {
+    "curate": "the finished pairs are kept; rerun the same command to resume",
+    "fit": "rerun the same command to resume from the last checkpoint",
+    "train": "rerun with --resume to continue from the last checkpoint",
+    "export": "nothing was left at OUT (the partial export is removed); rerun to export",
+}
+
+
+def _warning_format(command: str) -> Any:
+    """MorphgsWarnings as one `morphgs CMD: warning: ...` line; other warnings as Python shows them."""
+    plain = warnings.formatwarning
+
+    def fmt(message: Any, category: type[Warning], filename: str, lineno: int, line: str | None = None) -> str:
+        if issubclass(category, MorphgsWarning):
+            return f"morphgs {command}: warning: {message}\n"
+        return plain(message, category, filename, lineno, line)
+
+    return fmt
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command. Every failure ends in one `morphgs CMD: error: ...` line on stderr and a
+    non-zero status (MORPHGS_TRACEBACK=1 shows the traceback instead, for bug reports); Ctrl-C
+    and SIGTERM end with a line saying how to resume (exit 130 and 143)."""
+    from morphgs.reliability import Preempted, one_line, sigterm_raises
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    cmd = args.command
+    hint = _RESUME.get(cmd, "rerun the command")
+    old_format = warnings.formatwarning
+    warnings.formatwarning = _warning_format(cmd)
     try:
-        return int(args.func(args) or 0)
-    except (MorphgsError, OSError) as e:
-        print(f"morphgs {args.command}: error: {e}", file=sys.stderr)
-        return 1
+        with sigterm_raises():
+            return int(args.func(args) or 0)
+    except Preempted:
+        print(f"morphgs {cmd}: stopped by SIGTERM; {hint}", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
-        print(f"morphgs {args.command}: interrupted", file=sys.stderr)
+        print(f"morphgs {cmd}: interrupted; {hint}", file=sys.stderr)
         return 130
+    except Exception as e:  # noqa: BLE001 - the CLI's one place where every failure becomes one line
+        if os.environ.get("MORPHGS_TRACEBACK"):
+            raise
+        print(f"morphgs {cmd}: error: {one_line(e)}", file=sys.stderr)
+        return 1
+    finally:
+        warnings.formatwarning = old_format
 
 
 if __name__ == "__main__":

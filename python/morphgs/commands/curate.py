@@ -6,6 +6,8 @@ import argparse
 import sys
 from typing import Any
 
+from morphgs.reliability import add_wait_argument
+
 
 def _size(text: str) -> tuple[int, int]:
     try:
@@ -64,6 +66,7 @@ def register(sub: Any) -> None:
                    help="Gaussians per built-in sample scene when no SCENE is given (100000)")
     p.add_argument("--dry-run", action="store_true", help="show the plan and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_wait_argument(p)
     p.set_defaults(func=run)
 
 
@@ -79,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
             trajectory=args.trajectory, stride=args.stride, orbit_arc_degrees=args.orbit_arc,
             fov_y_degrees=args.fov, chunk=args.chunk, workers=args.workers, backend=args.backend,
             ray_address=args.ray_address, shard_index=args.shard_index, num_shards=args.num_shards,
-            builtin_gaussians=args.sample_gaussians, dry_run=args.dry_run, progress=not args.no_progress)
+            builtin_gaussians=args.sample_gaussians, dry_run=args.dry_run, progress=not args.no_progress,
+            wait=args.wait)
     except ValueError as e:  # bad settings: a usage error, not a crash
         print(f"morphgs curate: error: {e}", file=sys.stderr)
         return 2

@@ -7,6 +7,8 @@ import sys
 import warnings
 from typing import Any
 
+from morphgs.reliability import add_wait_argument
+
 _FORMATS = ("diffsynth", "videox-fun", "thedenk", "webdataset", "difix")
 _VIDEO = ("diffsynth", "videox-fun", "thedenk", "webdataset")
 _CAPTIONED = ("diffsynth", "videox-fun", "thedenk")
@@ -55,6 +57,7 @@ def register(sub: Any) -> None:
     p.add_argument("--relative", action="store_true", default=None, help="difix: paths relative to OUT")
     p.add_argument("--ref-offset", type=int, default=None, help="difix: frames to the reference view (half a clip)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_wait_argument(p)
     p.set_defaults(func=run)
 
 
@@ -90,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", MorphgsWarning)
         try:
-            summary = export(args.format, args.dataset, args.out, **opts)
+            summary = export(args.format, args.dataset, args.out, wait=args.wait, **opts)
         finally:
             for w in caught:
                 if issubclass(w.category, MorphgsWarning):

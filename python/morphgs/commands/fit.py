@@ -36,6 +36,7 @@ def register(sub: Any) -> None:
     p.add_argument("--restart", action="store_true", help="start over instead of resuming a run in --out")
     p.add_argument("--print-config", action="store_true", help="print the effective config as TOML and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--wait", action="store_true", help="if another process writes --out, wait for it")
     p.set_defaults(func=run)
 
 
@@ -74,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             many = fit_many(args.data, args.out, workers=args.workers, config=cfg, views=args.views,
                             holdout=args.holdout, init=args.init, images=args.images, downscale=args.downscale,
-                            resume=not args.restart,
+                            resume=not args.restart, wait=args.wait,
                             log=None if args.no_progress else (lambda m: print(f"morphgs fit: {m}", file=sys.stderr)))
         except KeyboardInterrupt:
             print(f"morphgs fit: interrupted; rerun the same command to resume in {args.out}", file=sys.stderr)
@@ -87,11 +88,14 @@ def run(args: argparse.Namespace) -> int:
     try:
         res = fit(datas[0], args.out, config=cfg, views=args.views, holdout=args.holdout, init=args.init,
                   images=args.images, downscale=args.downscale, resume=not args.restart,
-                  progress=not args.no_progress)
-    except KeyboardInterrupt:
-        print(f"morphgs fit: interrupted; a checkpoint is in {args.out}: rerun the same command to resume",
+                  progress=not args.no_progress, wait=args.wait)
+    except KeyboardInterrupt as e:
+        from morphgs.reliability import Preempted
+
+        why = "stopped by SIGTERM" if isinstance(e, Preempted) else "interrupted"
+        print(f"morphgs fit: {why}; a checkpoint is in {args.out}: rerun the same command to resume",
               file=sys.stderr)
-        return 130
+        return 143 if isinstance(e, Preempted) else 130
     lp = f" LPIPS {res.heldout_lpips:.4f}" if res.heldout_lpips is not None else ""
     held = (f", held-out PSNR {res.heldout_psnr:.3f} dB SSIM {res.heldout_ssim:.4f}{lp} on {len(res.heldout_views)} views"
             if res.heldout_psnr is not None else "")

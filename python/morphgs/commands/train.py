@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import Any
+
+from morphgs.reliability import add_wait_argument
 
 
 def _size(text: str) -> list[int]:
@@ -58,6 +61,7 @@ def register(sub: Any) -> None:
     p.add_argument("--validate-every", type=int, default=None, help="steps between validations")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--list-models", action="store_true", help="list the registered models and exit")
+    add_wait_argument(p)
     p.set_defaults(func=run)
 
 
@@ -93,10 +97,15 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as e:
         raise SystemExit(f"morphgs train: error: {e}; install the training extra: pip install 'morphgs[train]'") from None
     result = train(args.data, out=args.out, model=args.model, config=args.config, overrides=overrides_from_args(args),
-                   resume=args.resume, scenes=args.live or (), progress=not args.no_progress)
+                   resume=args.resume, scenes=args.live or (), progress=not args.no_progress, wait=args.wait)
     if result.validation:
         v = result.validation
         print(f"validation at step {result.steps}: PSNR {v['psnr_input']:.2f} -> {v['psnr_output']:.2f} dB, "
               f"SSIM {v['ssim_input']:.4f} -> {v['ssim_output']:.4f} (input -> refined, vs clean)")
-    print(f"{result.run_dir}: {result.steps} steps, checkpoint {result.checkpoint}")
+    skipped = f", {result.bad_pairs} unreadable pair(s) skipped (bad_pairs.jsonl)" if result.bad_pairs else ""
+    print(f"{result.run_dir}: {result.steps} steps, checkpoint {result.checkpoint}{skipped}")
+    if result.preempted:
+        print(f"morphgs train: stopped by {result.preempted} at step {result.steps} with a checkpoint; rerun with "
+              f"--out {result.run_dir} --resume to continue", file=sys.stderr)
+        return 143 if result.preempted == "SIGTERM" else 130
     return 0

@@ -10,6 +10,7 @@ import socket
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
+from contextlib import ExitStack
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +20,7 @@ from morphgs.curation import manifest
 from morphgs.curation.plan import ConfigSpec, PairJob, TrajectoryOptions, make_plan, parse_config
 from morphgs.curation.sources import BUILTIN_GAUSSIANS, SceneSource, builtin_sources, discover
 from morphgs.curation.worker import OutputOptions, make_pair, tmp_root
+from morphgs.reliability import folder_lock
 
 __all__ = ["CurateSummary", "curate"]
 
@@ -181,6 +183,7 @@ def curate(
     dry_run: bool = False,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
+    wait: bool = False,
 ) -> CurateSummary:
     """Curate clean/corrupted training pairs from 3DGS scenes (SPEC §5; docs/curation.md).
 
@@ -202,13 +205,33 @@ def curate(
         shard_index, num_shards: this process's share of the jobs (cluster job arrays).
         builtin_scenes, builtin_gaussians: the sample scenes used when `scenes` is empty.
         dry_run: plan and report only. progress: tqdm bar on stderr. log: message sink (stderr).
+        wait: when another process writes `out`, wait for it instead of raising FolderBusyError.
 
     Returns:
         CurateSummary (`ok` is False when a scene failed).
 
     Raises:
         ValueError: bad arguments, or `out` holds pairs made with other settings.
+        morphgs.reliability.FolderBusyError: another process (not a shard of this run) writes
+        `out` (names its pid, host and start time).
     """
+    args = dict(locals())  # every argument, by name
+    del args["wait"]
+    with ExitStack() as stack:
+        if not dry_run:
+            stack.enter_context(folder_lock(out, command="curate", shard=(shard_index, num_shards), wait=wait,
+                                            say=log))
+        return _curate(**args)
+
+
+def _curate(*, scenes: Iterable[str | os.PathLike[str]], out: str | os.PathLike[str],
+            configs: Sequence[str | ConfigSpec], pairs_per_scene: int, frames: int, resolution: tuple[int, int],
+            seed: int, test_fraction: float, split_seed: int, blur_sigma: float, depth: bool, video: bool, fps: int,
+            background: tuple[float, float, float], trajectory: str, stride: int | None, orbit_arc_degrees: float,
+            fov_y_degrees: float, chunk: int, workers: int, backend: str, ray_address: str | None,
+            shard_index: int, num_shards: int, builtin_scenes: int, builtin_gaussians: int, dry_run: bool,
+            progress: bool, log: Callable[[str], None] | None) -> CurateSummary:
+    """`curate`, with the folder locked (see there)."""
     say = log or (lambda m: print(m, file=sys.stderr))
     t_begin = time.perf_counter()
     out_dir = Path(out)
@@ -266,6 +289,12 @@ def curate(
     out_dir.mkdir(parents=True, exist_ok=True)
     _clean_stale_tmp(out_dir)
     man_path = out_dir / manifest.manifest_name(shard_index, num_shards)
+    redo = {job.pair_id for job in todo}
+    removed = manifest.compact(man_path, drop=redo)
+    if removed:
+        say(f"morphgs curate: {man_path}: rewrote it with one line per finished pair ({removed} duplicate or "
+            "unfinished line(s) removed)")
+    written: set[str] = set()
     bar = _progress(len(todo), progress)
     failed_scenes: set[str] = set()
 
@@ -278,7 +307,9 @@ def curate(
                           "skipping its remaining pairs", file=sys.stderr)
         else:
             assert rec is not None
-            manifest.append(man_path, rec)
+            if rec["pair_id"] not in written:  # one record per pair id
+                manifest.append(man_path, rec)
+                written.add(rec["pair_id"])
             summary.done += 1
             summary.records.append(rec)
         bar.update(1)
@@ -314,20 +345,31 @@ def _run_processes(todo: list[PairJob], out_dir: Path, opts: OutputOptions, work
     ctx = mp.get_context("spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
                              initargs=(_threads_per_worker(workers),)) as pool:
-        futures: dict[Future[dict[str, Any]], PairJob] = {
-            pool.submit(_run_job, job, str(out_dir), opts): job for job in todo}
-        pending = set(futures)
-        while pending:
-            done, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for fut in done:
-                job = futures[fut]
-                err = fut.exception()
-                finished(job, None if err else fut.result(), err)
-                if err is not None:  # do not spend time on the rest of a failed scene
-                    for f, j in futures.items():
-                        if j.source.id == job.source.id and f in pending and f.cancel():
-                            pending.discard(f)
-                            finished(j, None, err)
+        try:
+            _drain(pool, todo, out_dir, opts, finished)
+        except BaseException:  # Ctrl-C, SIGTERM: abandon the pairs in progress (their temporaries go next run)
+            for proc in list(getattr(pool, "_processes", {}).values()):
+                proc.terminate()
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
+
+
+def _drain(pool: ProcessPoolExecutor, todo: list[PairJob], out_dir: Path, opts: OutputOptions,
+           finished: Callable[[PairJob, Any, Any], None]) -> None:
+    futures: dict[Future[dict[str, Any]], PairJob] = {
+        pool.submit(_run_job, job, str(out_dir), opts): job for job in todo}
+    pending = set(futures)
+    while pending:
+        done, pending = wait(pending, return_when=FIRST_COMPLETED)
+        for fut in done:
+            job = futures[fut]
+            err = fut.exception()
+            finished(job, None if err else fut.result(), err)
+            if err is not None:  # do not spend time on the rest of a failed scene
+                for f, j in futures.items():
+                    if j.source.id == job.source.id and f in pending and f.cancel():
+                        pending.discard(f)
+                        finished(j, None, err)
 
 
 def _run_ray(todo: list[PairJob], out_dir: Path, opts: OutputOptions, workers: int, address: str | None,

@@ -33,12 +33,15 @@ import hashlib
 import json
 import os
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from morphgs._core import MorphgsError, MorphgsWarning
 from morphgs.camera import Cameras
+from morphgs.reliability import one_line
 
 __all__ = ["capture_cameras", "sparse_scene", "split_views"]
 
@@ -157,11 +160,25 @@ def _views_images(source: Any, scene: Any, cams: Cameras, idx: list[int]) -> tup
     return list(r.to_uint8()), list(sub), "renders"
 
 
+def _cached_result(run: Path) -> tuple[dict[str, Any], Any] | None:
+    """(fit.json, scene) of a finished cached fit, or None when it is damaged (with a warning: the
+    caller fits it again; fit resumes from its checkpoint when that verifies)."""
+    import morphgs
+
+    try:
+        summary = json.loads((run / "fit.json").read_text(encoding="utf-8"))
+        return summary, morphgs.load(run / summary["ply"])
+    except (OSError, ValueError, KeyError, TypeError, MorphgsError) as e:
+        warnings.warn(f"cached sparse fit {run} is damaged ({one_line(e)}); fitting it again", MorphgsWarning,
+                      stacklevel=3)
+        (run / "fit.json").unlink(missing_ok=True)
+        return None
+
+
 def sparse_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path) -> tuple[Any, dict[str, Any]]:
     """The cached sparse reconstruction of a `sparse` job (fitting it first when needed):
     (GaussianScene, info for the manifest)."""
-    import morphgs
-    from morphgs.fit import FitConfig, fit
+    from morphgs.fit import FitConfig, FitRunError, fit
 
     params = dict(job.config.params)
     cfg = FitConfig.preset("sparse")
@@ -180,7 +197,8 @@ def sparse_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path) 
         fcntl.flock(lock, fcntl.LOCK_EX)  # one process fits; the others wait and reuse it
         run = folder / "run"
         done = run / "fit.json"
-        if not done.is_file():
+        loaded = _cached_result(run) if done.is_file() else None
+        if loaded is None:
             cams = capture_cameras(job.source, scene, recorded, (job.width, job.height))
             train, held = split_views(len(cams), params)
             data = folder / "data"
@@ -193,11 +211,17 @@ def sparse_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path) 
             nt = len(train)
             print(f"curate: fitting {job.source.id} from {nt} of {len(cams)} views ({job.config.label}, "
                   f"{cfg.steps} steps) -> {run}", file=sys.stderr)
-            fit(data, run, config=cfg, views=list(range(nt)), holdout=list(range(nt, nt + len(held))),
-                init="random", progress=False)
-        summary = json.loads(done.read_text(encoding="utf-8"))
+            args = dict(config=cfg, views=list(range(nt)), holdout=list(range(nt, nt + len(held))), init="random",
+                        progress=False)
+            try:
+                fit(data, run, **args)
+            except FitRunError:  # no checkpoint of it verifies: fit it from the start
+                fit(data, run, resume=False, **args)
+            loaded = _cached_result(run)
+            if loaded is None:
+                raise MorphgsError(f"sparse fit {run}: its result cannot be read back after fitting")
+        summary, result = loaded
         views = json.loads((folder / "views.json").read_text(encoding="utf-8"))
-        result = morphgs.load(run / summary["ply"])
     info = {"dir": str(folder.relative_to(out_dir)), "ply": str((run / summary["ply"]).relative_to(out_dir)),
             "capture_views": views["capture_views"], "train_views": views["train"], "images": views["images"],
             "steps": summary["steps"], "gaussians": summary["gaussians"], "heldout_psnr": summary["heldout_psnr"],

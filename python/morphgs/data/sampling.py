@@ -14,6 +14,7 @@ next, whatever the worker count.
 
 from __future__ import annotations
 
+import signal
 from collections.abc import Iterator
 from typing import Any
 
@@ -65,18 +66,37 @@ class EpochSampler(torch.utils.data.Sampler):  # type: ignore[type-arg]
         return self.per_rank
 
 
+# seconds a worker keeps serving after a SIGTERM (a cluster signals the whole process group: the
+# main process finishes its step with the worker's batches, checkpoints and shuts it down)
+WORKER_GRACE_S = 120
+
+
+def _worker_sigterm(signum: int, frame: Any) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM (the main's terminate()) ends it
+    signal.alarm(WORKER_GRACE_S)  # and it ends on its own after the grace period
+
+
+def _worker_init(worker_id: int) -> None:
+    """Workers leave SIGTERM and Ctrl-C to the main process, which finishes its step, checkpoints
+    and shuts them down."""
+    signal.signal(signal.SIGTERM, _worker_sigterm)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def train_loader(dataset: Any, *, batch_size: int, num_workers: int, seed: int, rank: int, world_size: int,
                  start_batch: int) -> torch.utils.data.DataLoader:  # type: ignore[type-arg]
     """The loop's endless DataLoader over `dataset` for one rank, positioned after `start_batch`
     micro-batches. Workers are forked; their own generator is seeded from `seed` so building the
-    loader leaves torch's global random state alone.
+    loader leaves torch's global random state alone. Workers ignore SIGINT and outlive a first
+    SIGTERM by up to WORKER_GRACE_S (the main process stops them after its checkpoint).
 
     Raises:
         ValueError: fewer pairs than processes.
     """
     gen = torch.Generator().manual_seed(int(seed) ^ 0x5EED)
     common: dict[str, Any] = dict(batch_size=batch_size, num_workers=num_workers, generator=gen,
-                                  persistent_workers=False, pin_memory=False)
+                                  persistent_workers=False, pin_memory=False,
+                                  worker_init_fn=_worker_init if num_workers > 0 else None)
     if num_workers > 0:
         common["prefetch_factor"] = 2
     if isinstance(dataset, torch.utils.data.IterableDataset):

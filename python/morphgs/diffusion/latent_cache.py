@@ -16,7 +16,9 @@ its weights), the text encoder, the clip size and frame count, the window stride
 dtype, the dataset (a hash of its manifest records for the split) and the prompts. Opening a
 cache with another key is refused with a `LatentCacheError` naming every field that differs; a
 cache is built in a temporary folder and renamed into place, so a killed build never looks
-finished.
+finished. `checksums.json` (morphgs.reliability) records every file's size and sha256; a cache
+whose files no longer have their sizes (truncated by a full disk, a crash during a copy) is
+reported with a warning and encoded again.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import hashlib
 import json
 import os
 import shutil
+import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -34,7 +37,9 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
+from morphgs._core import MorphgsWarning
 from morphgs.diffusion.errors import LatentCacheError
+from morphgs.reliability import verify_checksums, write_checksums
 
 __all__ = ["CACHE_VERSION", "CacheKey", "CacheSource", "LatentCache", "build_cache", "fingerprint"]
 
@@ -201,7 +206,11 @@ def build_cache(root: str | os.PathLike[str], key: CacheKey, sources: Iterable[C
         shutil.rmtree(r)
         cache = None
     if cache is not None:
-        return cache
+        problem = verify_checksums(r, sizes_only=True)
+        if problem is None:
+            return cache
+        warnings.warn(f"latent cache {r} is damaged ({problem}); encoding it again", MorphgsWarning, stacklevel=2)
+        shutil.rmtree(r)
     _remove_dead_builds(r)
     tmp = r.with_name(f".{r.name}.building-{os.getpid()}")
     if tmp.exists():
@@ -259,4 +268,5 @@ def _encode(tmp: Path, key: CacheKey, sources: Iterable[CacheSource], *,
         save_file({"embeddings": text.to(dtype).contiguous()}, str(tmp / "text.safetensors"))
     meta = {"key": asdict(key), "items": items, "prompts": list(prompts), "latent_shape": shape}
     (tmp / "meta.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
+    write_checksums(tmp)
     return meta

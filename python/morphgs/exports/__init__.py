@@ -34,6 +34,7 @@ from morphgs.exports.source import ExportError, PairEntry, load_pairs, sample_ke
 from morphgs.exports.staging import staged_dir
 from morphgs.exports.video_trainers import export_diffsynth, export_thedenk, export_videox_fun
 from morphgs.exports.wds import export_webdataset, parse_shard_size
+from morphgs.reliability import folder_lock
 
 __all__ = [
     "FORMATS",
@@ -96,13 +97,16 @@ FORMATS: dict[str, Callable[..., ExportSummary]] = {
 }
 
 
-def export(fmt: str, dataset: str | os.PathLike[str], out: str | os.PathLike[str], **options: Any) -> ExportSummary:
+def export(fmt: str, dataset: str | os.PathLike[str], out: str | os.PathLike[str], *, wait: bool = False,
+           **options: Any) -> ExportSummary:
     """Export a curated folder in `fmt` (a key of `FORMATS`) into the folder `out`.
 
     Args:
         fmt: diffsynth, videox-fun, thedenk, webdataset or difix.
         dataset: a `morphgs curate` folder.
         out: the export folder (must not exist or be empty, unless `overwrite=True`).
+        wait: when another process exports into `out`, wait for it instead of raising
+            morphgs.reliability.FolderBusyError.
         **options: the keyword arguments of that format's function (`export_diffsynth`, ...).
 
     Returns:
@@ -116,6 +120,7 @@ def export(fmt: str, dataset: str | os.PathLike[str], out: str | os.PathLike[str
     if fn is None:
         raise ExportError(f"unknown export format {fmt!r}; one of {', '.join(FORMATS)}")
     t0 = time.perf_counter()
-    summary = fn(dataset, out, **options)
+    with folder_lock(Path(out).absolute(), command="export", beside=True, wait=wait):
+        summary = fn(dataset, out, **options)
     summary.extra.setdefault("seconds", time.perf_counter() - t0)
     return summary

@@ -11,6 +11,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from morphgs.exports.source import ExportError
+from morphgs.reliability import folder_lock
 
 __all__ = ["check_out", "staged_dir"]
 
@@ -40,10 +41,20 @@ def staged_dir(out: str | os.PathLike[str], source: Path, *, overwrite: bool = F
     The previous contents of `out` (with `overwrite`) are moved aside first and removed only once the
     new export is in place, so a crash in between leaves the old export or the new one, never a mix.
 
+    One export writes `out` at a time: the lock `.NAME.morphgs.lock` beside it (morphgs.reliability)
+    is held from the check to the rename.
+
     Raises:
-        ExportError: from `check_out`.
+        ExportError: from `check_out`. FolderBusyError: another process exports into `out`.
     """
     final = Path(out).absolute()
+    with folder_lock(final, command="export", beside=True):
+        with _staged(final, source, overwrite=overwrite) as tmp:
+            yield tmp
+
+
+@contextmanager
+def _staged(final: Path, source: Path, *, overwrite: bool) -> Iterator[Path]:
     check_out(final, source, overwrite=overwrite)
     final.parent.mkdir(parents=True, exist_ok=True)
     tag = f"{os.getpid()}-{uuid.uuid4().hex[:8]}"

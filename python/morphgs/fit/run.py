@@ -8,7 +8,8 @@ The run folder (docs/fit.md, "Run folder"):
     loss.csv                          per step: loss, L1, SSIM, train PSNR, Gaussians, ...
     eval.csv, eval_views.csv          held-out PSNR / SSIM / LPIPS (mean; per view) every eval_every steps
     previews/step_NNNNNN.png          first held-out view: render | ground truth
-    checkpoint.bin                    the state to resume from (atomic)
+    checkpoint.bin                    the state to resume from (atomic, with a checksum)
+    checkpoint.prev.bin               the one before it (a hard link), used when checkpoint.bin is damaged
     point_cloud/iteration_N/point_cloud.ply   the result, INRIA PLY layout
     fit.json                          summary (written last: its presence means done)
 
@@ -26,6 +27,7 @@ import json
 import os
 import shutil
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,11 +35,12 @@ from typing import Any
 
 import numpy as np
 
-from morphgs._core import GaussianScene, MorphgsError
+from morphgs._core import GaussianScene, MorphgsError, MorphgsWarning
 from morphgs.camera import Camera
 from morphgs.fit.config import FitConfig
 from morphgs.fit.data import PosedImages, describe, load_posed_images
 from morphgs.fit.views import ViewSelection, select_views
+from morphgs.reliability import locks_folder
 
 __all__ = ["FitResult", "FitRunError", "fit", "scene_scale_of"]
 
@@ -262,7 +265,7 @@ class _Logger:
                 self.bar.write(f"step {payload['step']}: held-out PSNR {payload['psnr']:.3f} dB, SSIM {payload['ssim']:.4f}"
                                + (f", LPIPS {lp:.4f}" if lp is not None else ""))
         elif kind == "checkpoint":
-            pass
+            _keep_previous(self.run / "checkpoint.bin")
         if self.user is not None:
             return self.user(kind, payload)
         return None
@@ -288,6 +291,48 @@ def _warn_forward_facing(init: Any, posed: PosedImages, cams: Sequence[Camera]) 
                       "--init points if you can", MorphgsWarning, stacklevel=3)
 
 
+_PREV = "checkpoint.prev.bin"
+_CUR = ".checkpoint.cur.bin"
+
+
+def _keep_previous(ck_path: Path) -> None:
+    """After a checkpoint is written: the one before it becomes checkpoint.prev.bin. Hard links
+    (no copy): .checkpoint.cur.bin is a second name of the newest, renamed to prev at the next."""
+    cur, prev = ck_path.with_name(_CUR), ck_path.with_name(_PREV)
+    try:
+        if cur.is_file():
+            os.replace(cur, prev)
+        os.link(ck_path, cur)
+    except OSError:  # no hard links here: keep the newest only
+        cur.unlink(missing_ok=True)
+
+
+def _restore(core: Any, run: Path, train_imgs: Any, tw2c: Any, tk: Any, fp: bytes, common: dict[str, Any]) -> Any:
+    """The trainer from the newest checkpoint that verifies (its checksum, its run), warning for a
+    damaged one skipped; FitRunError naming them when none does."""
+    damaged = []
+    for ck in (run / "checkpoint.bin", run / _PREV):
+        if not ck.is_file():
+            continue
+        try:
+            trainer = core.Trainer.restore(ck, train_imgs, tw2c, tk, fingerprint=fp, **common)
+        except MorphgsError as e:
+            damaged.append(ck.name)
+            warnings.warn(f"checkpoint {ck} is damaged ({e}); skipping it", MorphgsWarning, stacklevel=3)
+            continue
+        if damaged:  # resumed from the previous one: it is also the one to keep at the next checkpoint
+            cur = run / _CUR
+            cur.unlink(missing_ok=True)
+            try:
+                os.link(ck, cur)
+            except OSError:
+                pass
+        return trainer
+    raise FitRunError(f"{run}: no checkpoint verifies ({', '.join(damaged)} damaged); rerun with --restart "
+                      "(resume=False) to start over")
+
+
+@locks_folder("fit")
 def fit(
     data: str | os.PathLike[str] | PosedImages,
     out: str | os.PathLike[str],
@@ -323,6 +368,8 @@ def fit(
         progress: show a progress bar (tqdm when installed) on stderr.
         callback: also called with every event of the loop (kind, payload); see
             `_core.Trainer.run`. A true return value stops the run after a checkpoint.
+        wait: when another process writes `out`, wait for it instead of raising
+            morphgs.reliability.FolderBusyError (the folder is locked while the fit runs).
 
     Returns:
         FitResult.
@@ -367,7 +414,7 @@ def fit(
             raise FitRunError(f"{run} holds a run with another config, data, views or init; "
                               "use another folder, or resume=False (--restart) to start over")
     if not resume:
-        for name in ("checkpoint.bin", "fit.json", "loss.csv", "eval.csv", "eval_views.csv", "run.json"):
+        for name in ("checkpoint.bin", _PREV, _CUR, "fit.json", "loss.csv", "eval.csv", "eval_views.csv", "run.json"):
             (run / name).unlink(missing_ok=True)
         for d in ("previews", "point_cloud"):
             shutil.rmtree(run / d, ignore_errors=True)
@@ -380,8 +427,8 @@ def fit(
         common["masks"] = [None if m is None else m.astype(np.uint8) for m in train_masks]
         common["eval_masks"] = [None if m is None else m.astype(np.uint8) for m in eval_masks]
     fp = fingerprint.encode()
-    if ck_path.is_file() and resume:
-        trainer = _core.Trainer.restore(ck_path, train_imgs, tw2c, tk, fingerprint=fp, **common)
+    if (ck_path.is_file() or (run / _PREV).is_file()) and resume:
+        trainer = _restore(_core, run, train_imgs, tw2c, tk, fp, common)
         init_desc = json.loads(id_path.read_text(encoding="utf-8")).get("init", init_key) if id_path.is_file() else init_key
     else:
         centers = np.stack([c.center for c in train_cams])

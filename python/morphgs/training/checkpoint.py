@@ -5,7 +5,11 @@ random states, the loop's `TrainState`) plus the model's `save_trained` output
 (`trained.safetensors` for the built-in models; accelerate's own copy of the weights is skipped)
 and `state.json` (step, wall time). It is written under `.tmp-step-NNNNNNN` and renamed into place
 once complete, so a killed run leaves either a whole checkpoint or a temporary the next run
-removes. `--resume` takes the highest complete step. The last `keep` checkpoints are kept.
+removes. The last `keep` checkpoints are kept.
+
+`checksums.json` (size and sha256 of every file, morphgs.reliability) is written last, before the
+rename. `--resume` takes the highest step that verifies against it and loads; each damaged one
+(truncated by a crash during a copy, a full disk, a bad sync) is skipped with a warning.
 """
 
 from __future__ import annotations
@@ -17,10 +21,18 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["TrainState", "checkpoint_dir", "latest_checkpoint", "list_checkpoints", "save_checkpoint"]
+from morphgs._core import MorphgsError
+from morphgs.reliability import one_line, verify_checksums, write_checksums
+
+__all__ = ["CheckpointWriteError", "TrainState", "checkpoint_dir", "latest_checkpoint", "list_checkpoints", "save_checkpoint",
+           "verify_checkpoint"]
 
 CHECKPOINTS = "checkpoints"
 STATE_FILE = "state.json"
+
+
+class CheckpointWriteError(MorphgsError):
+    """A checkpoint that could not be written (a full disk, an unwritable run folder)."""
 
 
 class TrainState:
@@ -62,6 +74,12 @@ def latest_checkpoint(run_dir: str | os.PathLike[str]) -> Path | None:
     return found[-1][1] if found else None
 
 
+def verify_checkpoint(folder: str | os.PathLike[str]) -> str | None:
+    """None when a checkpoint's files match the checksums written with them, else what is wrong
+    (naming the file). Checkpoints from before checksums existed pass."""
+    return verify_checksums(folder)
+
+
 def _fsync_dir(path: Path) -> None:
     try:
         fd = os.open(path, os.O_RDONLY)
@@ -84,6 +102,23 @@ def save_checkpoint(accelerator: Any, run_dir: str | os.PathLike[str], step: int
     tmp = final.with_name(f".tmp-{final.name}")
     if final.exists():
         return final
+    try:
+        _write(accelerator, tmp, step, info)
+    except Exception as e:  # a full disk: no half-written checkpoint, the earlier ones kept
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise CheckpointWriteError(f"{final}: cannot write the checkpoint ({one_line(e)}); the earlier checkpoints "
+                                   "are kept: free some space, then rerun with --resume") from None
+    if accelerator.is_main_process:
+        os.replace(tmp, final)
+        _fsync_dir(final.parent)
+        for _, old in list_checkpoints(run_dir)[:-keep]:
+            shutil.rmtree(old, ignore_errors=True)
+    accelerator.wait_for_everyone()
+    return final
+
+
+def _write(accelerator: Any, tmp: Path, step: int, info: dict[str, Any] | None) -> None:
+    """Every file of a checkpoint into `tmp`, checksums last, all fsynced."""
     if accelerator.is_main_process:
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
@@ -97,12 +132,7 @@ def save_checkpoint(accelerator: Any, run_dir: str | os.PathLike[str], step: int
             if f.is_file():
                 with open(f, "rb") as fh:
                     os.fsync(fh.fileno())
-        os.replace(tmp, final)
-        _fsync_dir(final.parent)
-        for _, old in list_checkpoints(run_dir)[:-keep]:
-            shutil.rmtree(old, ignore_errors=True)
-    accelerator.wait_for_everyone()
-    return final
+        write_checksums(tmp)
 
 
 def remove_stale_temporaries(run_dir: str | os.PathLike[str]) -> None:

@@ -34,10 +34,14 @@ class DataConfig:
     live_configs: tuple[str, ...] = ("morphological",)
     samples_per_epoch: int = 1024
     live_threads: int = 0
+    skip_bad: bool = False
+    max_bad_share: float = 0.1
 
     def __post_init__(self) -> None:
         if self.frames < 1 or self.batch_size < 1 or self.num_workers < 0 or self.reference < 0:
             raise ValueError("frames and batch_size must be >= 1, num_workers and reference >= 0")
+        if not 0.0 <= self.max_bad_share <= 1.0:
+            raise ValueError(f"max_bad_share is a share of the pairs in [0, 1], got {self.max_bad_share}")
         if self.live and self.size is None:
             raise ValueError("live pairs need a size (the rendered frame size)")
 

@@ -14,9 +14,12 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import sys
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,13 +27,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from morphgs._core import MorphgsError
+from morphgs._core import MorphgsError, MorphgsWarning
 from morphgs.configfile import ConfigError
 from morphgs.data import DatasetError, LivePairs, PairDataset, load_records, sample_seed, train_loader
+from morphgs.data.skip import SkipBadPairs, bad_entries
 from morphgs.models.base import ModelContext, Refiner
 from morphgs.models.registry import create_model
-from morphgs.training.checkpoint import (TrainState, latest_checkpoint, remove_stale_temporaries,
-                                         save_checkpoint)
+from morphgs.reliability import StopRequest, folder_lock, is_lock_file, unwrap_worker_message
+from morphgs.training.checkpoint import (TrainState, latest_checkpoint, list_checkpoints, remove_stale_temporaries,
+                                         save_checkpoint, verify_checkpoint)
 from morphgs.training.config import ResolvedConfig, TrainConfig, resolve_config
 from morphgs.training.logs import Logs, preview_strip
 from morphgs.training.schedule import make_scheduler
@@ -38,6 +43,7 @@ from morphgs.training.schedule import make_scheduler
 __all__ = ["TrainResult", "TrainingError", "train"]
 
 RUN_FILE = "run.json"
+BAD_PAIRS = "bad_pairs.jsonl"
 _OBJECTIVE_SALT = 0x0B1EC7
 
 
@@ -56,6 +62,8 @@ class TrainResult:
     validation: dict[str, float] = field(default_factory=dict)
     stopped_early: bool = False
     seconds: float = 0.0
+    preempted: str | None = None
+    bad_pairs: int = 0
 
 
 def train(
@@ -69,6 +77,7 @@ def train(
     scenes: Sequence[str | os.PathLike[str]] = (),
     progress: bool = True,
     log: Callable[[str], None] | None = None,
+    wait: bool = False,
 ) -> TrainResult:
     """Train a refiner on a curated folder (or on live pairs) into a run folder.
 
@@ -83,13 +92,19 @@ def train(
         scenes: scene files/folders for live pairs (`[data] live = true`; none: built-in scenes).
         progress: show a progress bar (main process).
         log: where messages go (default: print to stderr on the main process).
+        wait: when another process writes `out`, wait for it instead of raising FolderBusyError.
+
+    SIGTERM and a first Ctrl-C stop the run after the current step with a checkpoint
+    (`TrainResult.preempted` names the signal); `resume=True` then continues it with the same
+    losses as a run never interrupted.
 
     Returns:
         TrainResult.
 
     Raises:
         FileNotFoundError, DatasetError, ConfigError, TrainingError: bad data, config or run folder
-        (each names the path and the problem).
+        (each names the path and the problem). morphgs.reliability.FolderBusyError: another
+        process writes `out`.
     """
     from accelerate import Accelerator
 
@@ -99,8 +114,10 @@ def train(
     data_dir = Path(data) if data is not None else _saved_data(run_dir) if resume else None
     accelerator = Accelerator(mixed_precision=_precision(cfg), gradient_accumulation_steps=cfg.optim.grad_accum,
                               cpu=_use_cpu(cfg), step_scheduler_with_optimizer=False)
+    lock = folder_lock(run_dir, command="train", wait=wait) if accelerator.is_main_process else nullcontext()
     try:
-        return _run(accelerator, resolved, run_dir, data_dir, scenes, resume, progress, log)
+        with lock:
+            return _run(accelerator, resolved, run_dir, data_dir, scenes, resume, progress, log)
     finally:
         _release(accelerator)
 
@@ -120,6 +137,9 @@ def _run(accelerator: Any, resolved: ResolvedConfig, run_dir: Path, data_dir: Pa
     # ---- data, then the run folder (every process checks, then the main one writes) ----
     _check_run_dir(run_dir, resume)
     train_ds, val_ds = _datasets(cfg, data_dir, scenes, say)
+    if cfg.data.skip_bad and isinstance(train_ds, PairDataset):
+        train_ds = SkipBadPairs(train_ds)
+        val_ds = SkipBadPairs(val_ds) if val_ds is not None else None
     accelerator.wait_for_everyone()
     if main and not resume:
         _start_run_dir(run_dir, resolved, data_dir, scenes, accelerator)
@@ -130,6 +150,7 @@ def _run(accelerator: Any, resolved: ResolvedConfig, run_dir: Path, data_dir: Pa
                        run_dir=run_dir, cache_dir=run_dir / "cache")
     torch.manual_seed(cfg.seed)  # the same initial weights on every process
     refiner = create_model(cfg.model, cfg.model_config, ctx)
+    n_pairs = len(train_ds)
     train_ds = refiner.prepare_data(train_ds, ctx=ctx, accelerator=accelerator)
     set_seed(cfg.seed, device_specific=True)  # then each process its own random stream (dropout)
 
@@ -146,12 +167,9 @@ def _run(accelerator: Any, resolved: ResolvedConfig, run_dir: Path, data_dir: Pa
 
     logs = Logs(run_dir, enabled=main)
     if resume:
-        ckpt = latest_checkpoint(run_dir)
-        if ckpt is None:
-            raise TrainingError(f"{run_dir}: nothing to resume (no complete checkpoint in {run_dir / 'checkpoints'})")
         if main:
             remove_stale_temporaries(run_dir)
-        accelerator.load_state(str(ckpt))
+        ckpt = _load_newest_good(accelerator, run_dir)
         logs.resume_at(state.step)
         say(f"resumed {run_dir} at step {state.step} ({ckpt.name})")
     else:
@@ -168,12 +186,17 @@ def _run(accelerator: Any, resolved: ResolvedConfig, run_dir: Path, data_dir: Pa
     start_step = state.step
     result = TrainResult(run_dir, state.step, run_dir)
     grad_norm = torch.zeros((), device=device)
+    bad = _BadPairs(run_dir, n_pairs, cfg.data.max_bad_share, enabled=main, say=say)
+    stop_request = StopRequest()
     try:
+        stop_request.__enter__()
         while state.step < o.max_steps:
             model_p.train()
             sums: dict[str, torch.Tensor] = {}
             for micro in range(o.grad_accum):
-                batch = _to_device(next(batches), device)
+                batch = _to_device(_next_batch(batches), device)
+                if "bad" in batch:
+                    bad.add(state.step + 1, bad_entries(batch.pop("bad")))
                 gen = torch.Generator(device=device)
                 gen.manual_seed(sample_seed(cfg.seed ^ _OBJECTIVE_SALT, state.step, micro * world + rank))
                 with accelerator.accumulate(model_p):
@@ -195,7 +218,8 @@ def _run(accelerator: Any, resolved: ResolvedConfig, run_dir: Path, data_dir: Pa
             bar.update(1)
 
             last = step == o.max_steps
-            stop = _time_up(accelerator, cfg, t0)
+            signalled = _stop_requested(accelerator, stop_request)
+            stop = signalled or _time_up(accelerator, cfg, t0)
             if cfg.run.log_every and (step % cfg.run.log_every == 0 or last or stop):
                 values = _reduce(accelerator, {**sums, "grad_norm": grad_norm.detach().float()})
                 elapsed = time.perf_counter() - t0
@@ -204,18 +228,28 @@ def _run(accelerator: Any, resolved: ResolvedConfig, run_dir: Path, data_dir: Pa
                 logs.scalars("train", step, row)
                 result.losses.append((step, values["loss"]))
                 bar.set_postfix(loss=f"{values['loss']:.4f}", lr=f"{lr:.2e}")
-            if val_ds is not None and cfg.run.validate_every and (step % cfg.run.validate_every == 0 or last or stop):
+            if val_ds is not None and cfg.run.validate_every and (step % cfg.run.validate_every == 0 or last or stop) \
+                    and not signalled:
                 result.validation = _validate(accelerator, unwrapped, val_ds, cfg, run_dir, step, logs)
             if (cfg.run.checkpoint_every and step % cfg.run.checkpoint_every == 0) or last or stop:
                 result.checkpoint = save_checkpoint(accelerator, run_dir, step, keep=cfg.run.keep_checkpoints)
             if stop and not last:
                 result.stopped_early = True
-                say(f"time limit of {cfg.run.time_limit} min reached at step {step}: checkpointed; "
-                    "resume with --resume")
+                if signalled:
+                    result.preempted = stop_request.requested or "SIGTERM"
+                    say(f"stopped by {result.preempted} at step {step}: checkpointed; resume with --resume")
+                else:
+                    say(f"time limit of {cfg.run.time_limit} min reached at step {step}: checkpointed; "
+                        "resume with --resume")
                 break
     finally:
+        stop_request.__exit__(None, None, None)
+        _close_loader(batches)
         bar.close()
         logs.close()
+    result.bad_pairs = bad.count
+    if bad.count:
+        say(f"skipped {bad.count} unreadable pair(s) of {n_pairs} (data.skip_bad); listed in {run_dir / BAD_PAIRS}")
     result.steps = state.step
     result.seconds = time.perf_counter() - t0
     if result.checkpoint == run_dir:
@@ -224,6 +258,98 @@ def _run(accelerator: Any, resolved: ResolvedConfig, run_dir: Path, data_dir: Pa
     say(f"done: {state.step} steps in {result.seconds:.1f} s; checkpoint {result.checkpoint}")
     accelerator.wait_for_everyone()
     return result
+
+
+def _next_batch(batches: Any) -> Any:
+    """The next batch; a DataLoader worker's failure re-raised as the one message behind its traceback."""
+    try:
+        return next(batches)
+    except Exception as e:
+        text = unwrap_worker_message(str(e))
+        if text == str(e):
+            raise
+        try:
+            clean = type(e)(text)
+        except Exception:  # noqa: BLE001 - a type that cannot be rebuilt from its message
+            clean = DatasetError(text)
+        raise clean from None
+
+
+def _close_loader(batches: Any) -> None:
+    """Stop the DataLoader's workers now (a sentinel each, then a join), not at interpreter exit,
+    where an error's traceback may still hold the iterator."""
+    shutdown = getattr(batches, "_shutdown_workers", None)
+    if shutdown is not None:
+        shutdown()
+
+
+def _stop_requested(accelerator: Any, request: StopRequest) -> bool:
+    """Whether SIGTERM / Ctrl-C arrived on any process (one collective when distributed)."""
+    flag = torch.tensor(float(request.requested is not None), device=accelerator.device)
+    if accelerator.num_processes > 1:
+        flag = accelerator.reduce(flag, reduction="sum")
+    return bool(flag.item() > 0)
+
+
+class _BadPairs:
+    """The pairs `data.skip_bad` skipped: one line each in RUN/bad_pairs.jsonl (kept across
+    resumes), a warning the first time each is met, and a stop past `max_share` of the pairs."""
+
+    def __init__(self, run_dir: Path, n_pairs: int, max_share: float, *, enabled: bool,
+                 say: Callable[[str], None]) -> None:
+        self.path, self.n, self.max_share, self.enabled, self.say = run_dir / BAD_PAIRS, n_pairs, max_share, enabled, say
+        self.ids: set[str] = set()
+        if enabled and self.path.is_file():
+            for line in self.path.read_text(encoding="utf-8").splitlines():
+                try:
+                    self.ids.add(str(json.loads(line)["pair_id"]))
+                except (ValueError, KeyError, TypeError):
+                    continue
+
+    @property
+    def count(self) -> int:
+        return len(self.ids)
+
+    def add(self, step: int, entries: list[tuple[str, str]]) -> None:
+        if not self.enabled:
+            return
+        for pid, msg in entries:
+            if pid in self.ids:
+                continue
+            self.ids.add(pid)
+            with open(self.path, "a", encoding="utf-8") as f:
+                f.write(json.dumps({"pair_id": pid, "step": step, "error": msg}) + "\n")
+            warnings.warn(f"skipping pair {pid}: {msg} (data.skip_bad; listed in {self.path})", MorphgsWarning,
+                          stacklevel=2)
+        if self.n and self.count > self.max_share * self.n:
+            raise TrainingError(f"{self.count} of {self.n} pairs cannot be read (more than data.max_bad_share = "
+                                f"{self.max_share}); they are listed in {self.path}")
+
+
+def _load_newest_good(accelerator: Any, run_dir: Path) -> Path:
+    """Load the newest checkpoint that verifies (checksums, then loading it), warning for each
+    damaged one skipped; TrainingError when none does."""
+    found = list_checkpoints(run_dir)
+    if not found:
+        raise TrainingError(f"{run_dir}: nothing to resume (no complete checkpoint in {run_dir / 'checkpoints'})")
+    damaged = []
+    for _, ckpt in reversed(found):
+        problem = verify_checkpoint(ckpt)
+        if problem is None:
+            try:
+                accelerator.load_state(str(ckpt))
+                return ckpt
+            except Exception as e:  # noqa: BLE001 - any failure to load means a damaged checkpoint
+                problem = f"cannot be loaded ({type(e).__name__}: {unwrap_worker_message(str(e)).splitlines()[0]})"
+        damaged.append(ckpt.name)
+        aside = ckpt.with_name(f"damaged-{ckpt.name}")
+        if accelerator.is_main_process:
+            shutil.rmtree(aside, ignore_errors=True)
+            os.replace(ckpt, aside)  # out of the way of the checkpoint this run will write at that step
+        warnings.warn(f"checkpoint {ckpt} is damaged ({problem}); skipping it (moved to {aside.name})",
+                      MorphgsWarning, stacklevel=2)
+    raise TrainingError(f"{run_dir}: no checkpoint verifies ({', '.join(damaged)} damaged), nothing to resume from; "
+                        "start over without --resume in a new --out folder (or delete this one)")
 
 
 def _release(accelerator: Any) -> None:
@@ -305,7 +431,7 @@ def _saved_data(run_dir: Path) -> Path | None:
 def _check_run_dir(run_dir: Path, resume: bool) -> None:
     if resume:
         _read_run_file(run_dir)
-    elif run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
+    elif run_dir.exists() and (not run_dir.is_dir() or any(not is_lock_file(p.name) for p in run_dir.iterdir())):
         raise TrainingError(f"{run_dir}: already exists and is not empty (pass --resume to continue that run, "
                             "or choose a new folder)")
 
@@ -433,6 +559,7 @@ def _validate(accelerator: Any, refiner: Refiner, val_ds: PairDataset, cfg: Trai
         gen = torch.Generator(device=accelerator.device)
         for i in range(min(cfg.run.val_clips or len(val_ds), len(val_ds))):
             s = val_ds[i]
+            s.pop("bad", None)  # a skipped test pair (data.skip_bad) was logged when training met it, or is not
             x = s["corrupted"][None].to(accelerator.device)
             ref = s["reference"][None].to(accelerator.device) if "reference" in s else None
             gen.manual_seed(i)
