@@ -206,6 +206,8 @@ class Trainer:
         eval_images: list[npt.NDArray[np.uint8]] | None = None,
         eval_world_to_camera: npt.NDArray[np.float64] | None = None,
         eval_K: npt.NDArray[np.float64] | None = None,
+        masks: list[npt.NDArray[np.uint8] | None] | None = None,
+        eval_masks: list[npt.NDArray[np.uint8] | None] | None = None,
     ) -> Trainer: ...
     @staticmethod
     def restore(
@@ -219,6 +221,8 @@ class Trainer:
         eval_images: list[npt.NDArray[np.uint8]] | None = None,
         eval_world_to_camera: npt.NDArray[np.float64] | None = None,
         eval_K: npt.NDArray[np.float64] | None = None,
+        masks: list[npt.NDArray[np.uint8] | None] | None = None,
+        eval_masks: list[npt.NDArray[np.uint8] | None] | None = None,
     ) -> Trainer: ...
     @property
     def step(self) -> int: ...

@@ -128,11 +128,13 @@ fn config_from(d: &Bound<'_, PyDict>) -> PyResult<FitConfig> {
     Ok(cfg)
 }
 
-/// Posed images: (H,W,3) uint8 arrays with (V,4,4) world-to-camera and (V,3,3) intrinsics.
+/// Posed images: (H,W,3) uint8 arrays with (V,4,4) world-to-camera and (V,3,3) intrinsics,
+/// and optional masks: a list of None or (H,W) uint8 arrays (0: the pixel is ignored).
 fn views_from(
     images: &Bound<'_, PyList>,
     w2c: Option<PyReadonlyArray3<'_, f64>>,
     k: Option<PyReadonlyArray3<'_, f64>>,
+    masks: Option<&Bound<'_, PyList>>,
     what: &str,
 ) -> PyResult<Vec<View>> {
     let n = images.len();
@@ -180,7 +182,41 @@ fn views_from(
             .as_slice()
             .map_err(|_| PyValueError::new_err(format!("{what} image {i} must be C-contiguous")))?
             .to_vec();
-        out.push(View::new(cam, pixels).map_err(CoreError)?);
+        let mut view = View::new(cam, pixels).map_err(CoreError)?;
+        if let Some(ms) = masks {
+            let item = ms.get_item(i)?;
+            if !item.is_none() {
+                let m: PyReadonlyArray2<'_, u8> = item.extract().map_err(|_| {
+                    PyTypeError::new_err(format!("{what} mask {i} must be a (H,W) uint8 array"))
+                })?;
+                if m.shape() != [sh[0], sh[1]] {
+                    return Err(PyValueError::new_err(format!(
+                        "{what} mask {i} is {:?}, its image is {}x{}",
+                        m.shape(),
+                        sh[1],
+                        sh[0]
+                    )));
+                }
+                let mv = m
+                    .as_slice()
+                    .map_err(|_| {
+                        PyValueError::new_err(format!("{what} mask {i} must be C-contiguous"))
+                    })?
+                    .to_vec();
+                view = view
+                    .with_mask(mv)
+                    .map_err(|e| PyValueError::new_err(format!("{what} mask {i}: {e}")))?;
+            }
+        }
+        out.push(view);
+    }
+    if let Some(ms) = masks {
+        if ms.len() != n {
+            return Err(PyValueError::new_err(format!(
+                "{what}: {} masks for {n} images",
+                ms.len()
+            )));
+        }
     }
     Ok(out)
 }
@@ -370,14 +406,16 @@ impl PyTrainer {
     ///         image's).
     ///     config: the dict of `morphgs.fit.FitConfig.native()`.
     ///     eval_images, eval_world_to_camera, eval_K: held-out views, the same way.
+    ///     masks, eval_masks: None, or one entry per image: None or a (H,W) uint8 mask (0: the
+    ///         pixel is left out of the loss and the held-out metrics).
     ///
     /// Raises:
     ///     ValueError: a bad config (names the field), no training view, an empty scene,
     ///     images and cameras that disagree.
     #[new]
     #[pyo3(signature = (scene, images, world_to_camera, K, *, config, eval_images = None,
-                        eval_world_to_camera = None, eval_K = None))]
-    #[allow(non_snake_case)]
+                        eval_world_to_camera = None, eval_K = None, masks = None, eval_masks = None))]
+    #[allow(non_snake_case, clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
         scene: &Bound<'_, PyGaussianScene>,
@@ -388,11 +426,13 @@ impl PyTrainer {
         eval_images: Option<&Bound<'_, PyList>>,
         eval_world_to_camera: Option<PyReadonlyArray3<'_, f64>>,
         eval_K: Option<PyReadonlyArray3<'_, f64>>,
+        masks: Option<&Bound<'_, PyList>>,
+        eval_masks: Option<&Bound<'_, PyList>>,
     ) -> PyResult<Self> {
         let cfg = config_from(config)?;
-        let train = views_from(images, Some(world_to_camera), Some(K), "training")?;
+        let train = views_from(images, Some(world_to_camera), Some(K), masks, "training")?;
         let eval = match eval_images {
-            Some(l) => views_from(l, eval_world_to_camera, eval_K, "held-out")?,
+            Some(l) => views_from(l, eval_world_to_camera, eval_K, eval_masks, "held-out")?,
             None => Vec::new(),
         };
         let b = scene.get().borrow(py)?;
@@ -411,7 +451,8 @@ impl PyTrainer {
     ///     another run (other fingerprint).
     #[staticmethod]
     #[pyo3(signature = (path, images, world_to_camera, K, *, config, fingerprint,
-                        eval_images = None, eval_world_to_camera = None, eval_K = None))]
+                        eval_images = None, eval_world_to_camera = None, eval_K = None,
+                        masks = None, eval_masks = None))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn restore(
         py: Python<'_>,
@@ -424,11 +465,13 @@ impl PyTrainer {
         eval_images: Option<&Bound<'_, PyList>>,
         eval_world_to_camera: Option<PyReadonlyArray3<'_, f64>>,
         eval_K: Option<PyReadonlyArray3<'_, f64>>,
+        masks: Option<&Bound<'_, PyList>>,
+        eval_masks: Option<&Bound<'_, PyList>>,
     ) -> PyResult<Self> {
         let cfg = config_from(config)?;
-        let train = views_from(images, Some(world_to_camera), Some(K), "training")?;
+        let train = views_from(images, Some(world_to_camera), Some(K), masks, "training")?;
         let eval = match eval_images {
-            Some(l) => views_from(l, eval_world_to_camera, eval_K, "held-out")?,
+            Some(l) => views_from(l, eval_world_to_camera, eval_K, eval_masks, "held-out")?,
             None => Vec::new(),
         };
         let t = detach(py, || {

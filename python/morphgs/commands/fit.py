@@ -12,9 +12,13 @@ def register(sub: Any) -> None:
         "fit", help="reconstruct a 3DGS scene from posed images (transforms.json or COLMAP) on the CPU",
         description="Optimise Gaussians to posed images with the 3DGS recipe (native, deterministic, "
                     "resumable: rerun the same command after a stop or a kill).")
-    p.add_argument("data", nargs="?", help="transforms.json, or a dataset folder (transforms.json or COLMAP "
-                                           "model + images)")
-    p.add_argument("--out", help="run folder (a rerun resumes in it)")
+    p.add_argument("data", nargs="*", help="transforms.json, or a dataset folder (transforms.json or COLMAP "
+                                           "model + images); several (or a glob, or @LIST.txt): one run each "
+                                           "under --out")
+    p.add_argument("--out", help="run folder (a rerun resumes in it); with several captures the output root, "
+                                 "one run folder per capture")
+    p.add_argument("--workers", "-j", type=int, default=1,
+                   help="captures fitted at once, in local worker processes (several captures only; 1)")
     p.add_argument("--config", help="TOML config file (partial files override the defaults)")
     p.add_argument("--preset", choices=("default", "mcmc", "sparse"), default=None,
                    help="start from a preset: default (gsplat/INRIA, 30k steps), mcmc, sparse (3000 steps, "
@@ -64,8 +68,25 @@ def run(args: argparse.Namespace) -> int:
     if not args.data or not args.out:
         print("morphgs fit: error: DATA and --out are required", file=sys.stderr)
         return 2
+    from morphgs.fit.many import expand_inputs, fit_many
+
+    datas = expand_inputs(args.data)
+    if len(datas) != 1 or len(args.data) != 1 or args.data[0] != datas[0]:
+        try:
+            many = fit_many(args.data, args.out, workers=args.workers, config=cfg, views=args.views,
+                            holdout=args.holdout, init=args.init, images=args.images, downscale=args.downscale,
+                            resume=not args.restart, wait=args.wait,
+                            log=None if args.no_progress else (lambda m: print(f"morphgs fit: {m}", file=sys.stderr)))
+        except KeyboardInterrupt:
+            print(f"morphgs fit: interrupted; rerun the same command to resume in {args.out}", file=sys.stderr)
+            return 130
+        except ValueError as e:
+            print(f"morphgs fit: error: {e}", file=sys.stderr)
+            return 2
+        print(many.text(), file=sys.stderr)
+        return 1 if many.failed else 0
     try:
-        res = fit(args.data, args.out, config=cfg, views=args.views, holdout=args.holdout, init=args.init,
+        res = fit(datas[0], args.out, config=cfg, views=args.views, holdout=args.holdout, init=args.init,
                   images=args.images, downscale=args.downscale, resume=not args.restart,
                   progress=not args.no_progress, wait=args.wait)
     except KeyboardInterrupt as e:

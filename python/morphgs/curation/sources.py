@@ -75,7 +75,11 @@ class SceneSource:
 
 def read_inria_cameras(path: str | os.PathLike[str], *, resolution: tuple[int, int] | None) -> Cameras:
     """INRIA 3DGS `cameras.json`: a list of {img_name, width, height, position, rotation, fx, fy}
-    where [rotation | position] is the camera-to-world (OpenCV axes). Sorted by img_name."""
+    where [rotation | position] is the camera-to-world (OpenCV axes). Sorted by img_name. With a
+    resolution, cameras of several sizes (a `morphgs fit` run of a real capture) are brought to
+    it by `trajectory.resize_camera`."""
+    from morphgs.trajectory import resize_camera
+
     p = Path(path)
     try:
         data = json.loads(p.read_text(encoding="utf-8"))
@@ -93,7 +97,7 @@ def read_inria_cameras(path: str | os.PathLike[str], *, resolution: tuple[int, i
                                   width=int(c["width"]), height=int(c["height"]))
         except (KeyError, TypeError, ValueError) as e:
             raise MorphgsError(f"{p}: camera {i}: {e!r}") from None
-        cams.append(cam.resized(*resolution) if resolution else cam)
+        cams.append(resize_camera(cam, *resolution) if resolution else cam)
     return Cameras.from_list(cams)
 
 

@@ -13,10 +13,13 @@ the pair's path. Per (scene, views, seed, resolution, fit settings) one fit is m
 - Training views: every K-th capture view starting with the first (the paper's S_K), or N views
   spread evenly (both ends included). Up to 8 other views, spread evenly, are held out to score
   the fit.
-- Images: the scene folder's real images when every training view has one (resized to the pair
-  resolution), else renders of the clean scene from those cameras.
-- Initialisation: random points in the cameras' box (no SfM points: they would come from all
-  views). The fit config is the `sparse` preset (3000 steps, MCMC capped at 300k Gaussians, SH
+- Images: the scene folder's real images when every training view has one, else renders of the
+  clean scene from those cameras. Real photos keep their own size and orientation (scaled so
+  the longer side is the pair's longer side: a capture mixing portrait and landscape, or
+  COLMAP's undistorted layout where every image has its own size, fits as it is) and are
+  undistorted with their camera's coefficients (docs/fit.md).
+- Initialisation: random points along the training views' rays (`init="random"`,
+  `morphgs.fit.rays`; no SfM points: they would come from all views). The fit config is the `sparse` preset (3000 steps, MCMC capped at 300k Gaussians, SH
   degree 1) unless the config says otherwise.
 
 A fit is resumable (its run folder checkpoints) and shared: worker processes take a file lock per
@@ -81,8 +84,9 @@ def split_views(n: int, params: dict[str, Any]) -> tuple[list[int], list[int]]:
     return train, held
 
 
-def _real_images(source: Any, count: int) -> list[Path] | None:
-    """The scene folder's image files in capture order, when it has one per recorded camera."""
+def _real_images(source: Any, count: int) -> Any:
+    """The scene folder's posed photos (a `PosedImages`) in capture order, when it has one per
+    recorded camera."""
     if source.cameras_kind not in ("transforms", "colmap") or source.cameras is None:
         return None
     from morphgs.fit import load_posed_images
@@ -93,7 +97,22 @@ def _real_images(source: Any, count: int) -> list[Path] | None:
         return None
     if len(posed) != count or not all(p.is_file() for p in posed.paths):
         return None
-    return posed.paths
+    return posed
+
+
+def fit_view(img: np.ndarray, cam: Any, width: int, height: int) -> tuple[np.ndarray, Any]:
+    """A photo and its camera brought to about `width` x `height` pixels the way
+    `trajectory.resize_camera` treats a camera: the photo's own orientation and aspect are kept
+    (a portrait photo of a landscape pair stays portrait, scaled so its longer side is the
+    pair's longer side), so no photo is stretched; every view keeps its own size."""
+    from PIL import Image
+
+    s = max(width, height) / max(cam.width, cam.height)
+    w, h = max(1, round(cam.width * s)), max(1, round(cam.height * s))
+    if (w, h) == (cam.width, cam.height):
+        return img, cam
+    out = np.asarray(Image.fromarray(img).resize((w, h), Image.Resampling.LANCZOS))
+    return out, cam.resized(w, h)
 
 
 def _fit_dir(out_dir: Path, job: Any, fit_cfg: dict[str, Any]) -> Path:
@@ -103,41 +122,42 @@ def _fit_dir(out_dir: Path, job: Any, fit_cfg: dict[str, Any]) -> Path:
     return out_dir / "fits" / job.source.id / f"{job.config.label}-{job.width}x{job.height}-seed{job.run_seed}-{h}"
 
 
-def _write_data(folder: Path, cams: Cameras, images: list[np.ndarray]) -> None:
-    from morphgs._core import _write_png_batch
+def _write_data(folder: Path, cams: Any, images: list[np.ndarray]) -> None:
+    """transforms.json + PNGs; sizes per frame (real photos keep their own)."""
+    from morphgs._core import _write_png, _write_png_batch
 
     (folder / "images").mkdir(parents=True, exist_ok=True)
     names = [f"view_{i:05d}.png" for i in range(len(images))]
-    _write_png_batch([folder / "images" / n for n in names], np.ascontiguousarray(np.stack(images)))
+    if len({im.shape for im in images}) == 1:
+        _write_png_batch([folder / "images" / n for n in names], np.ascontiguousarray(np.stack(images)))
+    else:
+        for n, im in zip(names, images):
+            _write_png(folder / "images" / n, np.ascontiguousarray(im))
     c0 = cams[0]
     frames = [{"file_path": f"images/{n}", "transform_matrix": (c.camera_to_world @ _GL).tolist(),
-               "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy} for n, c in zip(names, cams)]
+               "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy, "w": c.width, "h": c.height}
+              for n, c in zip(names, cams)]
     meta = {"w": c0.width, "h": c0.height, "frames": frames}
     tmp = folder / ".transforms.json.tmp"
     tmp.write_text(json.dumps(meta), encoding="utf-8")
     os.replace(tmp, folder / "transforms.json")
 
 
-def _views_images(source: Any, scene: Any, cams: Cameras, idx: list[int]) -> tuple[list[np.ndarray], str]:
+def _views_images(source: Any, scene: Any, cams: Cameras, idx: list[int]) -> tuple[list[np.ndarray], list[Any], str]:
+    """(images, their cameras, "images" | "renders"). Real photos keep their own size and
+    orientation (scaled to the pair's size, `fit_view`) and are undistorted with their camera
+    when it has distortion; renders use the capture cameras."""
     import morphgs
 
+    posed = _real_images(source, len(cams))
+    if posed is not None:
+        imgs, pcams, _ = posed.read(idx, masks=False)
+        w, h = cams[0].width, cams[0].height
+        pairs = [fit_view(im, c, w, h) for im, c in zip(imgs, pcams)]
+        return [p[0] for p in pairs], [p[1] for p in pairs], "images"
     sub = Cameras.from_list([cams[i] for i in idx])
-    paths = _real_images(source, len(cams))
-    if paths is not None:
-        from PIL import Image
-
-        from morphgs.media import _read_image
-
-        out = []
-        for i in idx:
-            img = _read_image(paths[i])
-            c = cams[i]
-            if img.shape[:2] != (c.height, c.width):
-                img = np.asarray(Image.fromarray(img).resize((c.width, c.height), Image.Resampling.LANCZOS))
-            out.append(img)
-        return out, "images"
     r = morphgs.render(scene, sub)
-    return list(r.to_uint8()), "renders"
+    return list(r.to_uint8()), list(sub), "renders"
 
 
 def _cached_result(run: Path) -> tuple[dict[str, Any], Any] | None:
@@ -184,8 +204,8 @@ def sparse_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path) 
             data = folder / "data"
             if not (data / "transforms.json").is_file():
                 order = train + held
-                imgs, kind = _views_images(job.source, scene, cams, order)
-                _write_data(data, Cameras.from_list([cams[i] for i in order]), imgs)
+                imgs, vcams, kind = _views_images(job.source, scene, cams, order)
+                _write_data(data, vcams, imgs)
                 (folder / "views.json").write_text(json.dumps(
                     {"capture_views": len(cams), "train": train, "heldout": held, "images": kind}, indent=1) + "\n")
             nt = len(train)

@@ -26,6 +26,7 @@ from morphgs.fit.config import (
 )
 from morphgs.fit.data import FitDataError, PosedImages, load_posed_images
 from morphgs.fit.init import InitError, initial_scene
+from morphgs.fit.many import ManyResult, fit_many
 from morphgs.fit.points import read_points
 from morphgs.fit.run import FitResult, FitRunError, fit, scene_scale_of
 from morphgs.fit.views import ViewSelection, ViewSelectionError, select_views
@@ -40,12 +41,14 @@ __all__ = [
     "InitConfig",
     "InitError",
     "LearningRates",
+    "ManyResult",
     "MCMCConfig",
     "OutputConfig",
     "PosedImages",
     "ViewSelection",
     "ViewSelectionError",
     "fit",
+    "fit_many",
     "initial_scene",
     "load_posed_images",
     "read_points",

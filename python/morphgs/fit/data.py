@@ -6,30 +6,46 @@ order). Cameras are in the COLMAP world frame (a transforms.json's `applied_tran
 as `trajectory.from_transforms_json` does), so COLMAP points and splats trained on the same
 reconstruction line up with them.
 
-Image sizes: an image must have its camera's size, or be a uniform downscale of it (the
-`images_2`, `images_4`, ... folders of DL3DV and Mip-NeRF 360: W/w = H/h up to rounding), in
-which case the camera is scaled to the image. Anything else is a `FitDataError` naming the file.
+Every view has its own camera and size (COLMAP's undistorted layout gives every image a slightly
+different size; phone captures mix portrait and landscape). Image sizes: an image must have its
+camera's size, or be a uniform downscale of it (the `images_2`, `images_4`, ... folders of DL3DV
+and Mip-NeRF 360: W/w = H/h up to rounding), in which case the camera is scaled to the image.
+Anything else is a `FitDataError` naming the file.
+
+Distorted cameras (COLMAP SIMPLE_RADIAL / RADIAL / OPENCV / FULL_OPENCV, a transforms.json's
+k1 k2 k3 p1 p2) are undistorted with OpenCV and cropped to the valid region
+(`morphgs.fit.undistort`), cached in the run folder; fisheye models are refused.
+
+Masks (pixels to leave out of the loss and the held-out metrics): a frame's `mask_path` in a
+transforms.json, or a `masks/` folder beside the images holding one mask per image (`NAME`,
+`NAME.png` or `STEM.png`); zero pixels are ignored, any other value is kept (nerfstudio's and
+COLMAP's convention).
 """
 
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from morphgs._core import MorphgsError
-from morphgs.camera import Camera, Cameras
+from morphgs.camera import Camera
+from morphgs.fit.undistort import Distortion, cached_undistort, colmap_distortion, transforms_distortion
+from morphgs.trajectory import CaptureError
 
 __all__ = ["FitDataError", "PosedImages", "load_posed_images"]
 
+MASK_DIR = "masks"
 
-class FitDataError(MorphgsError):
+
+class FitDataError(CaptureError):
     """Posed images that cannot be used: an image whose size disagrees with its camera, an
-    unreadable image, a dataset with no cameras (names the file)."""
+    unreadable image or mask, a dataset with no cameras (names the file). A CaptureError, hence
+    a MorphgsError and a ValueError."""
 
 
 @dataclass
@@ -37,19 +53,34 @@ class PosedImages:
     """Cameras and the image file of each, in capture order.
 
     Attributes:
-        cameras: one camera per image, at the size the file records.
+        cameras: one camera per image, at the size its cameras file records (the pinhole part
+            of a distorted camera).
         paths: the image files.
         source: the cameras file or model folder.
         points: a point-cloud file usable as initialisation (COLMAP points3D or the
             transforms.json's `ply_file_path`), or None.
         points_transform: a 4x4 map from the point file's frame to the cameras' frame, or None.
+        distortion: per view, the lens distortion to undo (None: a pinhole camera).
+        masks: per view, the mask file (None: every pixel counts).
     """
 
-    cameras: Cameras
+    cameras: Sequence[Camera]
     paths: list[Path]
     source: str
     points: Path | None = None
     points_transform: np.ndarray | None = field(default=None, repr=False)
+    distortion: list[Distortion | None] | None = field(default=None, repr=False)
+    masks: list[Path | None] | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        n = len(self.paths)
+        if len(self.cameras) != n:
+            raise FitDataError(f"{self.source}: {len(self.cameras)} cameras for {n} images")
+        self.cameras = list(self.cameras)
+        if self.distortion is None:
+            self.distortion = [None] * n
+        if self.masks is None:
+            self.masks = [None] * n
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -58,25 +89,47 @@ class PosedImages:
     def names(self) -> list[str]:
         return [p.name for p in self.paths]
 
-    def subset(self, indices: list[int]) -> PosedImages:
-        return PosedImages(Cameras.from_list([self.cameras[i] for i in indices]),
-                           [self.paths[i] for i in indices], self.source, self.points, self.points_transform)
+    @property
+    def has_masks(self) -> bool:
+        return any(m is not None for m in (self.masks or []))
 
-    def load(self, indices: list[int], *, downscale: int = 1) -> tuple[list[np.ndarray], Cameras]:
-        """Read images `indices` as uint8 (H, W, 3), with their cameras scaled to the images.
+    def subset(self, indices: list[int]) -> PosedImages:
+        d, m = self.distortion or [], self.masks or []
+        return PosedImages([self.cameras[i] for i in indices], [self.paths[i] for i in indices], self.source,
+                           self.points, self.points_transform, [d[i] for i in indices], [m[i] for i in indices])
+
+    def load(self, indices: list[int], *, downscale: int = 1,
+             cache: Path | None = None) -> tuple[list[np.ndarray], list[Camera]]:
+        """Read images `indices` as uint8 (H, W, 3), with their cameras scaled to the images
+        (undistorted, see `read`)."""
+        images, cams, _ = self.read(indices, downscale=downscale, cache=cache, masks=False)
+        return images, cams
+
+    def read(self, indices: list[int], *, downscale: int = 1, cache: Path | None = None,
+             masks: bool = True) -> tuple[list[np.ndarray], list[Camera], list[np.ndarray | None]]:
+        """Read images `indices` as uint8 (H, W, 3), their cameras and their masks.
 
         Args:
             indices: which views.
             downscale: shrink every image by this integer factor (box filter) and its camera
-                with it.
+                with it (masks: a pixel is kept when at least half of its block is).
+            cache: a folder for undistorted images (the run folder's `undistorted/`); None
+                undistorts in memory every time.
+            masks: read the masks too (else the list is all None).
+
+        Returns:
+            (images, cameras, masks): a mask is a (H, W) bool array, True where the pixel
+            counts, or None.
 
         Raises:
-            FileNotFoundError: a missing image. FitDataError: an unreadable image or one whose
-            size disagrees with its camera.
+            FileNotFoundError: a missing image or mask. FitDataError: an unreadable image or
+            mask, or one whose size disagrees with its camera. CaptureError: a distortion that
+            cannot be undone.
         """
         from morphgs.media import MediaError, _read_image
 
-        images, cams = [], []
+        dists, mpaths = self.distortion or [None] * len(self), self.masks or [None] * len(self)
+        images, cams, out_masks = [], [], []
         for i in indices:
             path = self.paths[i]
             if not path.is_file():
@@ -86,11 +139,57 @@ class PosedImages:
             except MediaError as e:
                 raise FitDataError(str(e)) from None
             cam = fit_camera_to_image(self.cameras[i], img.shape[1], img.shape[0], path)
+            mask = _read_mask(mpaths[i], img.shape[1], img.shape[0], path) if masks and mpaths[i] is not None else None
+            dist = dists[i]
+            if dist is not None:
+                img_in = img
+                img, ucam = cached_undistort(path, lambda: img_in, cam, dist, cache)
+                if mask is not None:
+                    m8 = mask.astype(np.uint8) * 255
+                    mpath = mpaths[i]
+                    assert mpath is not None
+                    mu, _ = cached_undistort(mpath, lambda: m8, cam, dist, cache, nearest=True, kind="mask")
+                    mask = mu > 127
+                cam = ucam
             if downscale > 1:
-                img, cam = _shrink(img, cam, downscale, path)
+                img, cam2 = _shrink(img, cam, downscale, path)
+                if mask is not None:
+                    mask = _shrink_mask(mask, cam2.width, cam2.height)
+                cam = cam2
+            if mask is not None and not mask.any():
+                raise FitDataError(f"{mpaths[i]}: the mask of {path.name} leaves no pixel (zero means ignored)")
             images.append(np.ascontiguousarray(img))
             cams.append(cam)
-        return images, Cameras.from_list(cams) if cams else self.cameras[:0]
+            out_masks.append(None if mask is None or mask.all() else np.ascontiguousarray(mask))
+        return images, cams, out_masks
+
+
+def _read_mask(path: Path | None, width: int, height: int, image: Path) -> np.ndarray:
+    """A mask file as (H, W) bool at the image's size (True: the pixel counts)."""
+    from PIL import Image, UnidentifiedImageError
+
+    assert path is not None
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: mask of {image.name} is missing")
+    try:
+        with Image.open(path) as im:
+            m = im.convert("L")
+            if m.size != (width, height):
+                w, h = m.size
+                if abs(round(w * height / width) - h) > 1:
+                    raise FitDataError(f"{path}: mask is {w}x{h}, its image {image.name} is {width}x{height} "
+                                       "(not a uniform rescale of it)")
+                m = m.resize((width, height), Image.Resampling.NEAREST)
+            return np.asarray(m) > 0
+    except (UnidentifiedImageError, OSError, SyntaxError) as e:
+        raise FitDataError(f"{path}: not a readable mask image ({e})") from None
+
+
+def _shrink_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
+    from PIL import Image
+
+    m = Image.fromarray(mask.astype(np.uint8) * 255).resize((width, height), Image.Resampling.BOX)
+    return np.asarray(m) >= 128
 
 
 def fit_camera_to_image(cam: Camera, width: int, height: int, path: Path | str) -> Camera:
@@ -114,26 +213,56 @@ def _shrink(img: np.ndarray, cam: Camera, f: int, path: Path) -> tuple[np.ndarra
     return out, cam.resized(nw, nh)
 
 
-def _from_transforms(path: Path, images: str | None) -> PosedImages:
-    from morphgs.trajectory import find_colmap_model, from_transforms_json
+def _with_ext(p: Path) -> Path:
+    # nerfstudio writes some file_paths without their extension
+    if not p.suffix and not p.exists():
+        for ext in (".png", ".jpg", ".jpeg", ".JPG", ".PNG"):
+            if p.with_suffix(ext).exists():
+                return p.with_suffix(ext)
+    return p
 
-    cams = from_transforms_json(path)
+
+def _mask_folder(root: Path, image_paths: list[Path], source: str) -> list[Path | None] | None:
+    """The `masks/` folder's mask of every image (None without a folder); every image needs one."""
+    d = root / MASK_DIR
+    if not d.is_dir():
+        return None
+    out: list[Path | None] = []
+    for p in image_paths:
+        cands = [d / p.name, d / f"{p.name}.png", d / f"{p.stem}.png"]
+        found = next((c for c in cands if c.is_file()), None)
+        if found is None:
+            raise FitDataError(f"{d}: no mask for image {p.name} (looked for {', '.join(c.name for c in cands)}); "
+                               f"a {MASK_DIR}/ folder needs one mask per image of {source}")
+        out.append(found)
+    return out
+
+
+def _from_transforms(path: Path, images: str | None) -> PosedImages:
+    from morphgs.trajectory import find_colmap_model, read_transforms_frames
+
+    frames = read_transforms_frames(path)
     meta = json.loads(path.read_text(encoding="utf-8"))
-    frames = sorted((f for f in meta["frames"] if isinstance(f, dict)), key=lambda f: str(f.get("file_path", "")))
     root = path.parent
-    paths = []
+    paths, cams, dists = [], [], []
+    masks: list[Path | None] = []
     for i, fr in enumerate(frames):
-        fp = fr.get("file_path")
+        fp = fr.entry.get("file_path")
         if not isinstance(fp, str) or not fp:
             raise FitDataError(f"{path}: frames[{i}] has no 'file_path'")
-        p = root / images / Path(fp).name if images else root / fp
-        # nerfstudio writes some file_paths without their extension
-        if not p.suffix and not p.exists():
-            for ext in (".png", ".jpg", ".jpeg", ".JPG", ".PNG"):
-                if p.with_suffix(ext).exists():
-                    p = p.with_suffix(ext)
-                    break
-        paths.append(p)
+        paths.append(_with_ext(root / images / Path(fp).name if images else root / fp))
+        cams.append(fr.camera)
+        dists.append(transforms_distortion(fr.camera_model, fr.distortion, f"{path}: frames[{i}] ({fp})"))
+        mp = fr.entry.get("mask_path")
+        if mp is not None and (not isinstance(mp, str) or not mp):
+            raise FitDataError(f"{path}: frames[{i}].mask_path must be a file path, got {mp!r}")
+        masks.append(_with_ext(root / mp) if mp else None)
+    if all(m is None for m in masks):
+        masks = _mask_folder(root, paths, str(path)) or masks
+    elif any(m is None for m in masks):
+        first = next(i for i, m in enumerate(masks) if m is None)
+        raise FitDataError(f"{path}: some frames have a 'mask_path' and frames[{first}] has none; give every "
+                           "frame a mask (an all-white one keeps every pixel)")
     points, transform = None, None
     model = find_colmap_model(root)
     if model is not None and _points3d(model) is not None:
@@ -143,7 +272,7 @@ def _from_transforms(path: Path, images: str | None) -> PosedImages:
         if "applied_transform" in meta:
             a = np.vstack([np.asarray(meta["applied_transform"], np.float64).reshape(-1, 4)[:3], [0, 0, 0, 1]])
             transform = np.linalg.inv(a)
-    return PosedImages(cams, paths, str(path), points, transform)
+    return PosedImages(cams, paths, str(path), points, transform, dists, masks)
 
 
 def _points3d(model: Path) -> Path | None:
@@ -154,17 +283,14 @@ def _points3d(model: Path) -> Path | None:
 
 
 def _from_colmap(model: Path, root: Path, images: str | None) -> PosedImages:
-    from morphgs.trajectory import from_colmap
-    from morphgs.trajectory.colmap import _read_images_bin, _read_images_txt
+    from morphgs.trajectory import read_colmap_views
 
-    cams = from_colmap(model)
-    if (model / "images.bin").is_file() and (model / "cameras.bin").is_file():
-        recs = _read_images_bin(model / "images.bin")
-    else:
-        recs = _read_images_txt(model / "images.txt")
-    names = sorted(r[0] for r in recs)
+    views = read_colmap_views(model)
     img_dir = root / (images or "images")
-    return PosedImages(cams, [img_dir / n for n in names], str(model), _points3d(model), None)
+    paths = [img_dir / v.name for v in views]
+    dists = [colmap_distortion(v.model, v.params, f"{model}: image {v.name} (camera {v.camera_id})") for v in views]
+    masks = _mask_folder(root, paths, str(model))
+    return PosedImages([v.camera for v in views], paths, str(model), _points3d(model), None, dists, masks)
 
 
 def load_posed_images(path: str | os.PathLike[str], *, images: str | None = None) -> PosedImages:
@@ -204,4 +330,9 @@ def load_posed_images(path: str | os.PathLike[str], *, images: str | None = None
 
 def describe(data: PosedImages) -> dict[str, Any]:
     """A JSON-able identity of the data (for the run's fingerprint)."""
-    return {"source": data.source, "names": data.names}
+    d: dict[str, Any] = {"source": data.source, "names": data.names}
+    if any(x is not None for x in data.distortion or []):
+        d["distortion"] = [None if x is None else [x.model, list(x.coeffs)] for x in data.distortion or []]
+    if data.has_masks:
+        d["masks"] = [None if m is None else str(m) for m in data.masks or []]
+    return d

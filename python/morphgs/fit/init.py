@@ -2,8 +2,10 @@
 
 Specs: `"auto"` (the dataset's points -- COLMAP points3D or a transforms.json's ply_file_path --
 when it has them, else random), `"points"` / `"colmap"` (those points, required), `"random"` or
-`"random:N"` (N points uniform in the box of the training camera centres, each half-side at
-least the scene scale, random colours, from the seeded counter-based generator), `"ply:PATH"`
+`"random:N"` (N points along the training cameras' rays, at depths derived from the cameras,
+each with the colour of its pixel: `morphgs.fit.rays`), `"box"` or `"box:N"` (N points uniform
+in the box of the training camera centres, each half-side at least the scene scale, random
+colours, from the seeded counter-based generator: the former `random`), `"ply:PATH"`
 (a PLY point cloud: x y z and optional red green blue), `"scene:PATH"` (an existing splat scene,
 used as it is), or a `GaussianScene`.
 
@@ -14,12 +16,14 @@ the point colour, higher bands zero.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from morphgs._core import GaussianScene, MorphgsError
+from morphgs.camera import Camera
 
 from morphgs.fit.config import FitConfig
 from morphgs.fit.data import PosedImages
@@ -52,7 +56,9 @@ def _from_points(pts: np.ndarray, cols: np.ndarray, cfg: FitConfig, source: str)
 
 
 def initial_scene(init: Any, data: PosedImages, train_centers: np.ndarray, cfg: FitConfig, *,
-                  scene_scale: float) -> tuple[GaussianScene, str]:
+                  scene_scale: float, train_cameras: Sequence[Camera] | None = None,
+                  train_images: Sequence[np.ndarray] | None = None,
+                  train_masks: Sequence[np.ndarray | None] | None = None) -> tuple[GaussianScene, str]:
     """The initial scene and a description of where it came from.
 
     Raises:
@@ -81,15 +87,21 @@ def initial_scene(init: Any, data: PosedImages, train_centers: np.ndarray, cfg: 
             m = data.points_transform
             pts = (pts.astype(np.float64) @ m[:3, :3].T + m[:3, 3]).astype(np.float32)
         return _from_points(pts, cols, cfg, str(data.points)), f"points {data.points}"
-    if spec == "random" or spec.startswith("random:"):
+    kind = spec.split(":", 1)[0]
+    if kind in ("random", "box") and (spec == kind or spec.startswith(kind + ":")):
         n = cfg.init.random_points
-        if spec.startswith("random:"):
+        if ":" in spec:
             try:
-                n = int(spec[7:])
+                n = int(spec.split(":", 1)[1])
             except ValueError:
-                raise InitError(f"init {init!r}: random:N needs an integer N") from None
+                raise InitError(f"init {init!r}: {kind}:N needs an integer N") from None
         if n < 1:
             raise InitError(f"empty initialisation: init {init!r} asks for {n} points")
+        if kind == "random" and train_cameras is not None and train_images is not None:
+            from morphgs.fit.rays import ray_points
+
+            pts, cols, desc = ray_points(train_cameras, train_images, n, cfg.seed, scene_scale, train_masks)
+            return _from_points(pts, cols, cfg, "random"), desc
         lo, hi = camera_box(train_centers, scene_scale)
         pts, cols = _core._fit_random_points(n, [float(v) for v in lo], [float(v) for v in hi], seed=cfg.seed)
         return _from_points(pts, cols, cfg, "random"), f"random {n} points in [{lo.round(3).tolist()}, {hi.round(3).tolist()}]"
@@ -103,4 +115,4 @@ def initial_scene(init: Any, data: PosedImages, train_centers: np.ndarray, cfg: 
         if len(scene) == 0:
             raise InitError(f"empty initialisation: {path} has no Gaussians")
         return scene, f"scene {path}"
-    raise InitError(f"init {init!r}: expected auto, points, random[:N], ply:PATH or scene:PATH")
+    raise InitError(f"init {init!r}: expected auto, points, random[:N], box[:N], ply:PATH or scene:PATH")

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from morphgs._core import GaussianScene, MorphgsError, MorphgsWarning
-from morphgs.camera import Cameras
+from morphgs.camera import Camera
 from morphgs.fit.config import FitConfig
 from morphgs.fit.data import PosedImages, describe, load_posed_images
 from morphgs.fit.views import ViewSelection, select_views
@@ -81,7 +81,7 @@ class FitResult:
     heldout_lpips: float | None = None
 
 
-def scene_scale_of(cameras: Cameras) -> float:
+def scene_scale_of(cameras: Sequence[Camera]) -> float:
     """INRIA's cameras_extent / gsplat's scene_scale: 1.1 x the largest distance of a camera
     centre from their mean (1.0 when the cameras coincide, e.g. one view)."""
     c = np.stack([cam.center for cam in cameras]) if len(cameras) else np.zeros((1, 3))
@@ -123,8 +123,11 @@ def _truncate_csv(path: Path, step: int, columns: list[str]) -> None:
     _write_atomic(path, ",".join(columns) + "\n" + "".join(rows))
 
 
-def _lpips_scorer(setting: str, images: list[np.ndarray], *, verbose: bool) -> Callable[[np.ndarray, int], float] | None:
+def _lpips_scorer(setting: str, images: list[np.ndarray], *, verbose: bool,
+                  masks: Sequence[np.ndarray | None] = ()) -> Callable[[np.ndarray, int], float] | None:
     """A function (render, held-out view index) -> LPIPS against that view's image, or None.
+    Masked pixels (`masks[view]` False) of the render are replaced by the image's own before
+    scoring, so they cannot count.
 
     "auto" gives AlexNet when torch and the weights are installed and None (with a note) when
     not; "alex"/"vgg" must work (the error says what to install); "off" is None. The scorer runs
@@ -159,8 +162,12 @@ def _lpips_scorer(setting: str, images: list[np.ndarray], *, verbose: bool) -> C
         # count (the scene's bytes never depend on it)
         threads = torch.get_num_threads()
         torch.set_num_threads(1)
+        rgb = np.clip(rgb, 0.0, 1.0)
+        m = masks[view] if view < len(masks) else None
+        if m is not None:
+            rgb = np.where(m[..., None], rgb, images[view].astype(np.float32) / 255.0)
         try:
-            return float(lpips(np.clip(rgb, 0.0, 1.0), images[view], net=net))
+            return float(lpips(rgb, images[view], net=net))
         finally:
             torch.set_num_threads(threads)
 
@@ -177,7 +184,7 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
-def _inria_cameras(cams: Cameras, names: list[str]) -> list[dict[str, Any]]:
+def _inria_cameras(cams: Sequence[Camera], names: list[str]) -> list[dict[str, Any]]:
     out = []
     for i, (c, n) in enumerate(zip(cams, names)):
         c2w = c.camera_to_world
@@ -192,7 +199,7 @@ def _preview(render: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate([r, truth], axis=1))
 
 
-def _stack(cams: Cameras) -> tuple[np.ndarray, np.ndarray]:
+def _stack(cams: Sequence[Camera]) -> tuple[np.ndarray, np.ndarray]:
     w2c = np.ascontiguousarray(np.stack([c.world_to_camera for c in cams]), np.float64)
     k = np.ascontiguousarray(np.stack([c.K for c in cams]), np.float64)
     return w2c, k
@@ -268,6 +275,22 @@ class _Logger:
             f.close()
 
 
+def _warn_forward_facing(init: Any, posed: PosedImages, cams: Sequence[Camera]) -> None:
+    """A MorphgsWarning when a forward-facing capture is fitted from random points."""
+    import warnings
+
+    from morphgs._core import MorphgsWarning
+    from morphgs.fit.rays import looks_forward_facing
+
+    spec = init.strip() if isinstance(init, str) else ""
+    random = spec.startswith(("random", "box")) or (spec == "auto" and posed.points is None)
+    if random and looks_forward_facing(cams):
+        warnings.warn(f"{posed.source}: the capture looks forward-facing (every camera looks within 30 degrees of "
+                      "one direction) and the fit starts from random points; random points fit several dB worse than "
+                      "SfM points (docs/fit.md, \"Initialisation\"): run COLMAP on the images and use "
+                      "--init points if you can", MorphgsWarning, stacklevel=3)
+
+
 _PREV = "checkpoint.prev.bin"
 _CUR = ".checkpoint.cur.bin"
 
@@ -336,7 +359,8 @@ def fit(
             "mcmc", "sparse") or None (the defaults).
         views: training views: "all", "every:K", "n:N" or explicit indices (see
             morphgs.fit.views); holdout: "every:8" (default), "none" or explicit indices.
-        init: "auto", "points", "random[:N]", "ply:PATH", "scene:PATH" or a GaussianScene.
+        init: "auto", "points", "random[:N]" (along the training rays), "box[:N]", "ply:PATH",
+            "scene:PATH" or a GaussianScene.
         images: image folder to use instead of the dataset's (e.g. "images_4").
         downscale: shrink images (and cameras) by this integer factor.
         steps, seed: override the config's.
@@ -369,8 +393,11 @@ def fit(
         raise MorphgsError(f"downscale must be >= 1, got {downscale}")
     posed = data if isinstance(data, PosedImages) else load_posed_images(data, images=images)
     sel: ViewSelection = select_views(len(posed), views, holdout=holdout)
-    train_imgs, train_cams = posed.load(sel.train, downscale=downscale)
-    eval_imgs, eval_cams = posed.load(sel.heldout, downscale=downscale)
+    run = Path(out)
+    run.mkdir(parents=True, exist_ok=True)
+    cache = run / "undistorted"  # undistorted photos live in the run, never beside the user's data
+    train_imgs, train_cams, train_masks = posed.read(sel.train, downscale=downscale, cache=cache)
+    eval_imgs, eval_cams, eval_masks = posed.read(sel.heldout, downscale=downscale, cache=cache)
     scale = float(cfg.scene_scale) if not isinstance(cfg.scene_scale, str) else scene_scale_of(train_cams)
     native = cfg.native(scale)
     init_key = f"scene object {hashlib.sha256(np.asarray(init.means).tobytes()).hexdigest()[:16]}" \
@@ -379,8 +406,6 @@ def fit(
              "downscale": downscale, "init": init_key, "format": 1}
     fingerprint = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
 
-    run = Path(out)
-    run.mkdir(parents=True, exist_ok=True)
     ck_path = run / "checkpoint.bin"
     id_path = run / "run.json"
     if id_path.is_file() and resume:
@@ -398,13 +423,18 @@ def fit(
     tw2c, tk = _stack(train_cams)
     ew2c, ek = _stack(eval_cams) if len(eval_cams) else (None, None)
     common: dict[str, Any] = dict(config=native, eval_images=list(eval_imgs), eval_world_to_camera=ew2c, eval_K=ek)
+    if any(m is not None for m in train_masks + eval_masks):  # masked pixels: out of the loss and the metrics
+        common["masks"] = [None if m is None else m.astype(np.uint8) for m in train_masks]
+        common["eval_masks"] = [None if m is None else m.astype(np.uint8) for m in eval_masks]
     fp = fingerprint.encode()
     if (ck_path.is_file() or (run / _PREV).is_file()) and resume:
         trainer = _restore(_core, run, train_imgs, tw2c, tk, fp, common)
         init_desc = json.loads(id_path.read_text(encoding="utf-8")).get("init", init_key) if id_path.is_file() else init_key
     else:
         centers = np.stack([c.center for c in train_cams])
-        scene0, init_desc = initial_scene(init, posed, centers, cfg, scene_scale=scale)
+        _warn_forward_facing(init, posed, train_cams)
+        scene0, init_desc = initial_scene(init, posed, centers, cfg, scene_scale=scale, train_cameras=train_cams,
+                                          train_images=train_imgs, train_masks=train_masks)
         trainer = _core.Trainer(scene0, train_imgs, tw2c, tk, **common)
         _write_atomic(run / "config.toml", cfg.to_toml())
         names = posed.names
@@ -412,7 +442,7 @@ def fit(
             "source": posed.source, "views": sel.spec, "holdout": sel.holdout, "downscale": downscale,
             "train": [{"index": i, "name": names[i]} for i in sel.train],
             "heldout": [{"index": i, "name": names[i]} for i in sel.heldout]}, indent=1) + "\n")
-        all_cams = Cameras.from_list(list(train_cams) + list(eval_cams))
+        all_cams = list(train_cams) + list(eval_cams)
         _write_atomic(run / "cameras.json", json.dumps(_inria_cameras(
             all_cams, [names[i] for i in sel.train + sel.heldout]), indent=1) + "\n")
         _write_atomic(id_path, json.dumps({"fingerprint": fingerprint, "init": init_desc, "scene_scale": scale,
@@ -425,7 +455,7 @@ def fit(
     _truncate_csv(run / "eval.csv", start, EVAL_COLUMNS)
     _truncate_csv(run / "eval_views.csv", start, EVAL_VIEW_COLUMNS)
 
-    score_lpips = _lpips_scorer(cfg.output.lpips, list(eval_imgs), verbose=progress)
+    score_lpips = _lpips_scorer(cfg.output.lpips, list(eval_imgs), verbose=progress, masks=eval_masks)
     bar = progress_bar(cfg.steps, start, progress)
     logger = _Logger(run, cfg, [posed.names[i] for i in sel.heldout], list(eval_imgs), bar, callback, progress,
                      score_lpips)

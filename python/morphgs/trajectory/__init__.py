@@ -7,12 +7,31 @@ generators make paths (`smooth_path` through keyframes, `orbit`/`ellipse`, `spir
 
 from __future__ import annotations
 
-from morphgs.trajectory.colmap import find_colmap_model, from_colmap
-from morphgs.trajectory.generators import ellipse, for_scene, orbit, robust_bounds, spiral
-from morphgs.trajectory.nerfstudio import from_camera_path, from_transforms_json
+from morphgs.trajectory._common import CaptureError, resize_camera
+from morphgs.trajectory.colmap import ColmapView, find_colmap_model, from_colmap, read_colmap_views
+from morphgs.trajectory.generators import (
+    FILE_UP,
+    ellipse,
+    for_scene,
+    orbit,
+    parse_up,
+    robust_bounds,
+    scene_up,
+    spiral,
+)
+from morphgs.trajectory.nerfstudio import (
+    TransformsFrame,
+    from_camera_path,
+    from_transforms_json,
+    read_transforms_frames,
+)
 from morphgs.trajectory.smooth import clips, smooth_path
 
 __all__ = [
+    "FILE_UP",
+    "CaptureError",
+    "ColmapView",
+    "TransformsFrame",
     "clips",
     "ellipse",
     "find_colmap_model",
@@ -21,7 +40,12 @@ __all__ = [
     "from_colmap",
     "from_transforms_json",
     "orbit",
+    "parse_up",
+    "read_colmap_views",
+    "read_transforms_frames",
+    "resize_camera",
     "robust_bounds",
+    "scene_up",
     "smooth_path",
     "spiral",
 ]

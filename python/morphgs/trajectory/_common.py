@@ -6,9 +6,33 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from morphgs._core import MorphgsError
 from morphgs.camera import Camera, Cameras
 
 DEFAULT_RESOLUTION = (832, 480)
+
+
+class CaptureError(MorphgsError):
+    """A capture (cameras file, COLMAP model, images, masks) that cannot be used as it is; the
+    message names the file, the field or image, and what to do. A ValueError, as every
+    MorphgsError."""
+
+
+def resize_camera(cam: Camera, width: int, height: int) -> Camera:
+    """`cam` rendering at `width` x `height`.
+
+    A camera of the target's orientation (both landscape, or both portrait; square counts as
+    either): fx, cx scale by W'/W and fy, cy by H'/H (`Camera.resized`, exact for the same
+    aspect ratio, a slight stretch otherwise, as before). A camera of the other orientation (a
+    portrait phone frame in a landscape path): one uniform scale s = max(W'/W, H'/H) so the new
+    frame is covered, and a centred crop (the principal point shifts by half the overhang), so
+    pixels stay square and nothing lies on its side stretched.
+    """
+    if cam.width == cam.height or width == height or (cam.width > cam.height) == (width > height):
+        return cam.resized(width, height)
+    s = max(width / cam.width, height / cam.height)
+    return Camera(cam.fx * s, cam.fy * s, cam.cx * s - (cam.width * s - width) / 2,
+                  cam.cy * s - (cam.height * s - height) / 2, width, height, cam.world_to_camera, cam.near, cam.far)
 
 
 def check_resolution(resolution: Sequence[int] | None) -> tuple[int, int] | None:
@@ -25,15 +49,19 @@ def check_resolution(resolution: Sequence[int] | None) -> tuple[int, int] | None
 
 
 def stack_resized(cams: Sequence[Camera], resolution: tuple[int, int] | None, source: str) -> Cameras:
-    """Resize every camera to `resolution` (or require one shared size) and stack them."""
+    """Resize every camera to `resolution` (`resize_camera`; or require one shared size) and stack
+    them."""
     if not cams:
-        raise ValueError(f"{source}: no cameras found")
+        raise CaptureError(f"{source}: no cameras found")
     if resolution is not None:
-        cams = [c.resized(*resolution) for c in cams]
+        cams = [resize_camera(c, *resolution) for c in cams]
     else:
         sizes = sorted({(c.width, c.height) for c in cams})
         if len(sizes) > 1:
-            raise ValueError(f"{source}: cameras have different image sizes {sizes}; pass resolution=(W, H)")
+            shown = ", ".join(f"{w}x{h}" for w, h in sizes[:6]) + (", ..." if len(sizes) > 6 else "")
+            raise CaptureError(f"{source}: cameras have {len(sizes)} different image sizes ({shown}); a Cameras "
+                               "path needs one: pass resolution=(W, H) (curate's --size), or read each image's "
+                               "own camera with trajectory.read_colmap_views / morphgs fit")
     return Cameras.from_list(cams)
 
 

@@ -11,17 +11,18 @@ import os
 import struct
 import warnings
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
 import numpy as np
 
-from morphgs._core import MorphgsError, MorphgsWarning
+from morphgs._core import MorphgsWarning
 from morphgs.camera import Camera, Cameras
-from morphgs.trajectory._common import check_resolution, stack_resized
+from morphgs.trajectory._common import CaptureError, check_resolution, stack_resized
 from morphgs.trajectory._rotations import quat_to_matrix
 
-__all__ = ["from_colmap", "find_colmap_model"]
+__all__ = ["ColmapView", "from_colmap", "find_colmap_model", "read_colmap_views"]
 
 # model id -> (name, number of params); COLMAP src/colmap/sensor/models.h
 _MODELS: dict[int, tuple[str, int]] = {
@@ -44,7 +45,19 @@ _SINGLE_F = {"SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE
 _FISHEYE = {"OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE",
             "RAD_TAN_THIN_PRISM_FISHEYE", "FOV"}
 
-_Intr = tuple[str, int, int, tuple[float, float, float, float]]
+_Intr = tuple[str, int, int, tuple[float, ...]]
+
+
+@dataclass(frozen=True)
+class ColmapView:
+    """One registered image of a COLMAP model: its name, its pinhole camera at the recorded size
+    (fx, fy, cx, cy; the distortion parameters left out), the camera model and every parameter."""
+
+    name: str
+    camera: Camera
+    model: str
+    params: tuple[float, ...]
+    camera_id: int
 
 
 def _pinhole(model: str, params: Sequence[float]) -> tuple[float, float, float, float]:
@@ -65,12 +78,12 @@ def _read_cameras_txt(path: Path) -> dict[int, _Intr]:
             cid, model, w, h = int(parts[0]), parts[1], int(parts[2]), int(parts[3])
             params = [float(v) for v in parts[4:]]
         except (IndexError, ValueError):
-            raise MorphgsError(f"{path}:{ln}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...'") from None
+            raise CaptureError(f"{path}:{ln}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...'") from None
         if model not in _BY_NAME:
-            raise MorphgsError(f"{path}:{ln}: unknown camera model {model!r}")
+            raise CaptureError(f"{path}:{ln}: unknown camera model {model!r}")
         if len(params) != _BY_NAME[model][1]:
-            raise MorphgsError(f"{path}:{ln}: model {model} takes {_BY_NAME[model][1]} params, got {len(params)}")
-        cams[cid] = (model, w, h, _pinhole(model, params))
+            raise CaptureError(f"{path}:{ln}: model {model} takes {_BY_NAME[model][1]} params, got {len(params)}")
+        cams[cid] = (model, w, h, tuple(params))
     return cams
 
 
@@ -91,10 +104,10 @@ def _read_images_txt(path: Path) -> list[tuple[str, int, np.ndarray, np.ndarray]
             cid = int(parts[8])
             name = " ".join(parts[9:])
         except (IndexError, ValueError):
-            raise MorphgsError(f"{path}: bad image line {line[:80]!r} (expected "
+            raise CaptureError(f"{path}: bad image line {line[:80]!r} (expected "
                                "'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME')") from None
         if len(q) != 4 or len(t) != 3 or not name:
-            raise MorphgsError(f"{path}: bad image line {line[:80]!r}")
+            raise CaptureError(f"{path}: bad image line {line[:80]!r}")
         out.append((name, cid, q, t))
         i += 2
     return out
@@ -104,7 +117,7 @@ def _read(f: BinaryIO, fmt: str, path: Path) -> tuple[object, ...]:
     size = struct.calcsize(fmt)
     b = f.read(size)
     if len(b) != size:
-        raise MorphgsError(f"{path}: file ends early")
+        raise CaptureError(f"{path}: file ends early")
     return struct.unpack(fmt, b)
 
 
@@ -115,10 +128,10 @@ def _read_cameras_bin(path: Path) -> dict[int, _Intr]:
         for _ in range(int(n)):  # type: ignore[call-overload]
             cid, mid, w, h = _read(f, "<iiQQ", path)
             if mid not in _MODELS:
-                raise MorphgsError(f"{path}: unknown camera model id {mid}")
+                raise CaptureError(f"{path}: unknown camera model id {mid}")
             model, npar = _MODELS[mid]  # type: ignore[index]
             params = _read(f, f"<{npar}d", path)
-            cams[int(cid)] = (model, int(w), int(h), _pinhole(model, params))  # type: ignore[arg-type, call-overload]
+            cams[int(cid)] = (model, int(w), int(h), tuple(float(v) for v in params))  # type: ignore[arg-type, call-overload]
     return cams
 
 
@@ -135,14 +148,14 @@ def _read_images_bin(path: Path) -> list[tuple[str, int, np.ndarray, np.ndarray]
             while True:
                 c = f.read(1)
                 if not c:
-                    raise MorphgsError(f"{path}: file ends inside an image name")
+                    raise CaptureError(f"{path}: file ends inside an image name")
                 if c == b"\x00":
                     break
                 name += c
             (npts,) = _read(f, "<Q", path)
             skip = 24 * int(npts)  # type: ignore[call-overload]
             if len(f.read(skip)) != skip:
-                raise MorphgsError(f"{path}: file ends inside the 2D points of {name.decode(errors='replace')}")
+                raise CaptureError(f"{path}: file ends inside the 2D points of {name.decode(errors='replace')}")
             out.append((name.decode("utf-8", errors="replace"), cid, q, t))
     return out
 
@@ -159,31 +172,19 @@ def find_colmap_model(folder: str | os.PathLike[str]) -> Path | None:
     return None
 
 
-def from_colmap(
-    folder: str | os.PathLike[str],
-    *,
-    resolution: Sequence[int] | None = None,
-    sort: bool = True,
-) -> Cameras:
-    """Cameras from a COLMAP sparse model (binary preferred when both forms exist).
-
-    Every camera model is read through its pinhole part: fx, fy, cx, cy (one f for the SIMPLE_*
-    and RADIAL* models). Distortion parameters are ignored (frames are rendered as ideal pinhole
-    images); fisheye models warn, since a pinhole is a poor stand-in for them.
+def read_colmap_views(folder: str | os.PathLike[str], *, sort: bool = True) -> list[ColmapView]:
+    """Every registered image of a COLMAP model (binary preferred when both forms exist), each
+    with its own camera at its own recorded size (the undistorted layout of `colmap
+    image_undistorter` gives every image a camera of its own size; phone captures mix portrait
+    and landscape cameras).
 
     Args:
         folder: the model folder, or a dataset folder holding `sparse/0` (see find_colmap_model).
-        resolution: (W, H) to render at (scales fx, cx by W'/W and fy, cy by H'/H); None keeps
-            the recorded size (all cameras must share one).
         sort: order the images by name (a capture's video order); file order otherwise.
 
-    Returns:
-        Cameras (OpenCV axes), one per registered image.
-
     Raises:
-        FileNotFoundError: no model found. MorphgsError: a malformed file (names it).
+        FileNotFoundError: no model found. CaptureError: a malformed file (names it and the image).
     """
-    res = check_resolution(resolution)
     model_dir = find_colmap_model(folder)
     if model_dir is None:
         raise FileNotFoundError(f"{folder}: no COLMAP model (cameras.bin/txt + images.bin/txt) found")
@@ -195,22 +196,61 @@ def from_colmap(
         images = _read_images_txt(model_dir / "images.txt")
     if sort:
         images.sort(key=lambda im: im[0])
-    fisheye = sorted({intr[c][0] for _, c, _, _ in images if c in intr and intr[c][0] in _FISHEYE})
-    if fisheye:
-        warnings.warn(f"{model_dir}: fisheye camera model(s) {fisheye} are rendered as pinholes "
-                      "(distortion ignored)", MorphgsWarning, stacklevel=2)
-    cams = []
+    out = []
     for name, cid, q, t in images:
         if cid not in intr:
-            raise MorphgsError(f"{model_dir}: image {name!r} refers to camera {cid}, which is not defined")
-        _, w, h, (fx, fy, cx, cy) = intr[cid]
+            raise CaptureError(f"{model_dir}: image {name!r} refers to camera {cid}, which is not defined")
+        model, w, h, params = intr[cid]
+        fx, fy, cx, cy = _pinhole(model, params)
         if np.linalg.norm(q) == 0 or not np.all(np.isfinite(q)) or not np.all(np.isfinite(t)):
-            raise MorphgsError(f"{model_dir}: image {name!r} has an invalid pose")
+            raise CaptureError(f"{model_dir}: image {name!r} has an invalid pose")
         w2c = np.eye(4)
         w2c[:3, :3] = quat_to_matrix(q)
         w2c[:3, 3] = t
         try:
-            cams.append(Camera(fx, fy, cx, cy, w, h, w2c))
+            cam = Camera(fx, fy, cx, cy, w, h, w2c)
         except ValueError as e:
-            raise MorphgsError(f"{model_dir}: image {name!r}: {e}") from None
-    return stack_resized(cams, res, str(model_dir))
+            raise CaptureError(f"{model_dir}: image {name!r} (camera {cid}): {e}") from None
+        out.append(ColmapView(name, cam, model, params, cid))
+    if not out:
+        raise CaptureError(f"{model_dir}: the model has no registered images")
+    return out
+
+
+def from_colmap(
+    folder: str | os.PathLike[str],
+    *,
+    resolution: Sequence[int] | None = None,
+    sort: bool = True,
+) -> Cameras:
+    """Cameras from a COLMAP sparse model (binary preferred when both forms exist).
+
+    Every camera model is read through its pinhole part: fx, fy, cx, cy (one f for the SIMPLE_*
+    and RADIAL* models). Distortion parameters are ignored (frames are rendered as ideal pinhole
+    images; `morphgs fit` undistorts the photos, see docs/fit.md); fisheye models warn, since a
+    pinhole is a poor stand-in for them.
+
+    Args:
+        folder: the model folder, or a dataset folder holding `sparse/0` (see find_colmap_model).
+        resolution: (W, H) to render at: fx, cx scale by W'/W and fy, cy by H'/H; a camera of
+            the other orientation (a portrait camera in a landscape path) is scaled uniformly to
+            cover W x H and centre-cropped instead, so its pixels stay square
+            (`trajectory.resize_camera`). None keeps the recorded size, which every camera must
+            then share (`read_colmap_views` gives each image its own).
+        sort: order the images by name (a capture's video order); file order otherwise.
+
+    Returns:
+        Cameras (OpenCV axes), one per registered image.
+
+    Raises:
+        FileNotFoundError: no model found. CaptureError (a MorphgsError): a malformed file, or
+        cameras of several sizes without a resolution (names them).
+    """
+    res = check_resolution(resolution)
+    views = read_colmap_views(folder, sort=sort)
+    model_dir = find_colmap_model(folder)
+    fisheye = sorted({v.model for v in views if v.model in _FISHEYE})
+    if fisheye:
+        warnings.warn(f"{model_dir}: fisheye camera model(s) {fisheye} are rendered as pinholes "
+                      "(distortion ignored)", MorphgsWarning, stacklevel=2)
+    return stack_resized([v.camera for v in views], res, str(model_dir))

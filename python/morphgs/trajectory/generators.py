@@ -178,13 +178,71 @@ def robust_bounds(
     return np.percentile(p, lo, axis=0), np.percentile(p, hi, axis=0)
 
 
+# Every scene file morphgs.load reads comes back in RDF axes (x right, y down, z front: PLY,
+# INRIA / COLMAP worlds, SOG, .splat, SceneSplat; glTF's LUF and spz's RUB are converted by the
+# loaders), so a loaded file's up is -y; the built-in synthetic scenes are z-up.
+FILE_UP = (0.0, -1.0, 0.0)
+BUILTIN_UP = (0.0, 0.0, 1.0)
+_NAMED = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
+          "+z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0)}
+
+
+def parse_up(text: str) -> np.ndarray:
+    """An up vector from `+x`, `-y`, ... or `X,Y,Z` (normalised); ValueError otherwise."""
+    t = text.strip().lower()
+    if t in _NAMED:
+        return np.asarray(_NAMED[t])
+    if t in ("x", "y", "z"):
+        return np.asarray(_NAMED["+" + t])
+    try:
+        v = np.asarray([float(x) for x in t.split(",")], np.float64)
+    except ValueError:
+        raise ValueError(f"up {text!r}: expected +x, -x, +y, -y, +z, -z or X,Y,Z") from None
+    if v.shape != (3,) or not np.all(np.isfinite(v)) or np.linalg.norm(v) == 0:
+        raise ValueError(f"up {text!r}: expected three finite numbers, not all zero")
+    return v / np.linalg.norm(v)
+
+
+def scene_up(scene: Any, rule: str = "file") -> tuple[np.ndarray, str]:
+    """The up vector of a scene without cameras, and the reason.
+
+    Rules:
+        "file": the loaders' convention (`FILE_UP`, -y: every format is returned in RDF axes).
+        "builtin": +z (the synthetic scenes).
+        "scene": from the Gaussians alone: the principal axis of least spread of the centres
+            (opacity >= 0.1; a ground-level scene is wider than tall), signed as gsplat's
+            COLMAP parser does, so that the median lies below the mean (more content low, the
+            ground). For tall, narrow subjects it is wrong; give the axis then.
+        "+x" ... "-z" or "X,Y,Z": that vector.
+    """
+    if rule == "file":
+        return np.asarray(FILE_UP), "file convention (RDF axes: up is -y)"
+    if rule == "builtin":
+        return np.asarray(BUILTIN_UP), "built-in synthetic scene (z-up)"
+    if rule == "scene":
+        means = np.asarray(getattr(scene, "means", scene), np.float64)
+        op = getattr(scene, "opacities", None)
+        if op is not None:
+            keep = np.asarray(op).reshape(-1) >= 0.1
+            if keep.sum() >= 10:
+                means = means[keep]
+        c = means - means.mean(axis=0)
+        _, vecs = np.linalg.eigh(c.T @ c)
+        up = vecs[:, 0]
+        h = c @ up
+        if np.median(h) > np.mean(h):
+            up = -up
+        return up, "scene: principal axis of least spread, signed towards the sparser side"
+    return parse_up(rule), f"given ({rule})"
+
+
 def for_scene(
     scene: Any,
     n_frames: int,
     *,
     resolution: Sequence[int] = DEFAULT_RESOLUTION,
     fov_y_degrees: float = 50.0,
-    up: npt.ArrayLike = (0.0, 0.0, 1.0),
+    up: npt.ArrayLike | str = (0.0, 0.0, 1.0),
     elevation_degrees: float = 25.0,
     start_degrees: float = 0.0,
     arc_degrees: float = 360.0,
@@ -204,7 +262,9 @@ def for_scene(
         n_frames: number of cameras.
         resolution: (W, H).
         fov_y_degrees: vertical field of view.
-        up: world up (the synthetic scenes are z-up).
+        up: world up: a vector (the default +z suits the synthetic scenes), or a rule of
+            `scene_up`: "file" (-y: every loaded scene file is in RDF axes), "scene" (from the
+            Gaussians), "+x" ... "-z", "X,Y,Z".
         elevation_degrees: camera elevation above the box centre.
         start_degrees, arc_degrees: the part of the circle the path covers.
         percentiles: robust bound percentiles.
@@ -215,6 +275,8 @@ def for_scene(
     """
     res = check_resolution(resolution)
     assert res is not None
+    if isinstance(up, str):
+        up = scene_up(scene, up)[0]
     means = getattr(scene, "means", scene)
     weights = getattr(scene, "opacities", None)
     lo, hi = robust_bounds(means, percentiles=percentiles, weights=weights)

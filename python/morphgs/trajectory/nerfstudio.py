@@ -11,21 +11,36 @@ import json
 import math
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
-from morphgs._core import MorphgsError
 from morphgs.camera import Camera, Cameras
 from morphgs.trajectory._common import (
+    CaptureError,
     as_4x4,
     check_resolution,
     similarity_apply,
     stack_resized,
 )
 
-__all__ = ["from_camera_path", "from_transforms_json"]
+__all__ = ["TransformsFrame", "from_camera_path", "from_transforms_json", "read_transforms_frames"]
+
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+
+
+@dataclass(frozen=True)
+class TransformsFrame:
+    """One frame of a transforms.json: its entry (the dict as written), its pinhole camera at its
+    own size, the camera model ("OPENCV" unless `camera_model` says otherwise) and its
+    distortion coefficients (k1 k2 k3 k4 p1 p2, per frame or shared; absent ones are 0)."""
+
+    entry: dict[str, Any]
+    camera: Camera
+    camera_model: str
+    distortion: dict[str, float]
 
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -36,16 +51,16 @@ def _load_json(path: str | os.PathLike[str]) -> dict[str, Any]:
         with open(p, encoding="utf-8") as f:
             data = json.load(f)
     except json.JSONDecodeError as e:
-        raise MorphgsError(f"{p}: not valid JSON ({e})") from None
+        raise CaptureError(f"{p}: not valid JSON ({e})") from None
     if not isinstance(data, dict):
-        raise MorphgsError(f"{p}: expected a JSON object at the top level")
+        raise CaptureError(f"{p}: expected a JSON object at the top level")
     return data
 
 
 def _num(d: dict[str, Any], key: str, path: Path, where: str) -> float:
     v = d[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise MorphgsError(f"{path}: {where}field {key!r} must be a finite number, got {v!r}")
+        raise CaptureError(f"{path}: {where}field {key!r} must be a finite number, got {v!r}")
     return float(v)
 
 
@@ -60,7 +75,7 @@ def _intrinsics(frame: dict[str, Any], meta: dict[str, Any], path: Path, i: int)
 
     w, h = get("w"), get("h")
     if w is None or h is None:
-        raise MorphgsError(f"{path}: frames[{i}] has no image size (fields 'w' and 'h', shared or per frame)")
+        raise CaptureError(f"{path}: frames[{i}] has no image size (fields 'w' and 'h', shared or per frame)")
     fx, fy = get("fl_x"), get("fl_y")
     if fx is None and fy is None:
         ax, ay = get("camera_angle_x"), get("camera_angle_y")
@@ -71,7 +86,7 @@ def _intrinsics(frame: dict[str, Any], meta: dict[str, Any], path: Path, i: int)
     fx = fx if fx is not None else fy
     fy = fy if fy is not None else fx
     if fx is None or fy is None:
-        raise MorphgsError(f"{path}: frames[{i}] has no focal length ('fl_x'/'fl_y' or 'camera_angle_x')")
+        raise CaptureError(f"{path}: frames[{i}] has no focal length ('fl_x'/'fl_y' or 'camera_angle_x')")
     cx, cy = get("cx"), get("cy")
     return fx, fy, (w / 2 if cx is None else cx), (h / 2 if cy is None else cy), w, h
 
@@ -89,7 +104,8 @@ def from_transforms_json(
     Intrinsics: `fl_x`, `fl_y`, `cx`, `cy`, `w`, `h` at the top level (shared) or in each frame
     (per-frame values win); `camera_angle_x`/`camera_angle_y` (Blender) when no focal length is
     given; a missing `cx`/`cy` means the image centre. Distortion coefficients (k1, k2, p1, p2,
-    ...) are ignored: frames are rendered as ideal pinhole images.
+    ...) are ignored: frames are rendered as ideal pinhole images (`morphgs fit` undistorts the
+    photos, see docs/fit.md).
 
     Poses and frames (exactly what happens): each `transform_matrix` is an OpenGL camera-to-world
     matrix in the frame of the file. ns-process-data writes `applied_transform` (3x4, A) with
@@ -107,8 +123,10 @@ def from_transforms_json(
 
     Args:
         path: the JSON file.
-        resolution: (W, H) to render at: fx, cx scale by W'/W and fy, cy by H'/H. None keeps the
-            file's size (all frames must share one).
+        resolution: (W, H) to render at: fx, cx scale by W'/W and fy, cy by H'/H (a frame of
+            the other orientation is scaled uniformly and centre-cropped, see
+            `trajectory.resize_camera`). None keeps the file's size (all frames must share one;
+            `read_transforms_frames` gives each its own).
         frame: "colmap" or "file", see above.
         dataparser_transforms: optional nerfstudio dataparser_transforms.json, see above.
         sort: order the frames by `file_path` as nerfstudio does (file order otherwise).
@@ -117,59 +135,86 @@ def from_transforms_json(
         Cameras in OpenCV axes.
 
     Raises:
-        MorphgsError: malformed file (names the field). ValueError: bad arguments.
+        CaptureError (a MorphgsError): malformed file (names the field). ValueError: bad arguments.
         FileNotFoundError: missing file.
     """
-    p = Path(path)
     res = check_resolution(resolution)
+    frames = read_transforms_frames(path, frame=frame, dataparser_transforms=dataparser_transforms, sort=sort)
+    return stack_resized([f.camera for f in frames], res, str(path))
+
+
+def read_transforms_frames(
+    path: str | os.PathLike[str],
+    *,
+    frame: Literal["colmap", "file"] = "colmap",
+    dataparser_transforms: str | os.PathLike[str] | None = None,
+    sort: bool = True,
+) -> list[TransformsFrame]:
+    """Every frame of a transforms.json with its own camera at its own size (`w`/`h` per frame
+    win over the shared ones), its camera model and distortion coefficients. Poses and `frame`
+    as in `from_transforms_json`.
+
+    Raises:
+        CaptureError (a MorphgsError): a malformed file (names the field). ValueError: bad
+        arguments. FileNotFoundError: missing file.
+    """
+    p = Path(path)
     if frame not in ("colmap", "file"):
         raise ValueError(f"frame must be 'colmap' or 'file', got {frame!r}")
     meta = _load_json(p)
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
-        raise MorphgsError(f"{p}: field 'frames' must be a non-empty list")
+        raise CaptureError(f"{p}: field 'frames' must be a non-empty list")
     if sort:
         frames = sorted(frames, key=lambda f: str(f.get("file_path", "")) if isinstance(f, dict) else "")
     world = np.eye(4)
     if dataparser_transforms is not None:
         dp = _load_json(dataparser_transforms)
         if "transform" not in dp or "scale" not in dp:
-            raise MorphgsError(f"{dataparser_transforms}: needs fields 'transform' (3x4) and 'scale'")
+            raise CaptureError(f"{dataparser_transforms}: needs fields 'transform' (3x4) and 'scale'")
         try:
             t = as_4x4(dp["transform"], "transform")
         except ValueError as e:
-            raise MorphgsError(f"{dataparser_transforms}: {e}") from None
+            raise CaptureError(f"{dataparser_transforms}: {e}") from None
         s = _num(dp, "scale", Path(dataparser_transforms), "")
         world = np.diag([s, s, s, 1.0]) @ t
     elif frame == "colmap" and "applied_transform" in meta:
         try:
             a = as_4x4(meta["applied_transform"], "applied_transform")
         except ValueError as e:
-            raise MorphgsError(f"{p}: {e}") from None
+            raise CaptureError(f"{p}: {e}") from None
         world = np.linalg.inv(a)
-    cams: list[Camera] = []
+    out: list[TransformsFrame] = []
     c2ws = []
     for i, fr in enumerate(frames):
         if not isinstance(fr, dict) or "transform_matrix" not in fr:
-            raise MorphgsError(f"{p}: frames[{i}] has no 'transform_matrix'")
+            raise CaptureError(f"{p}: frames[{i}] has no 'transform_matrix'")
         try:
             c2ws.append(as_4x4(fr["transform_matrix"], f"frames[{i}].transform_matrix"))
         except ValueError as e:
-            raise MorphgsError(f"{p}: {e}") from None
+            raise CaptureError(f"{p}: {e}") from None
     c2w = np.stack(c2ws) @ _GL_TO_CV
     try:
         c2w = similarity_apply(world, c2w)
     except ValueError as e:
-        raise MorphgsError(f"{p}: {e}") from None
+        raise CaptureError(f"{p}: {e}") from None
     for i, fr in enumerate(frames):
         fx, fy, cx, cy, w, h = _intrinsics(fr, meta, p, i)
         if w != int(w) or h != int(h) or w <= 0 or h <= 0:
-            raise MorphgsError(f"{p}: frames[{i}] image size must be positive integers, got {w}x{h}")
+            raise CaptureError(f"{p}: frames[{i}] image size must be positive integers, got {w}x{h}")
         try:
-            cams.append(Camera.from_c2w(c2w[i], fx=fx, fy=fy, cx=cx, cy=cy, width=int(w), height=int(h)))
+            cam = Camera.from_c2w(c2w[i], fx=fx, fy=fy, cx=cx, cy=cy, width=int(w), height=int(h))
         except ValueError as e:
-            raise MorphgsError(f"{p}: frames[{i}]: {e}") from None
-    return stack_resized(cams, res, str(p))
+            raise CaptureError(f"{p}: frames[{i}]: {e}") from None
+        model = fr.get("camera_model", meta.get("camera_model", "OPENCV"))
+        if not isinstance(model, str):
+            raise CaptureError(f"{p}: frames[{i}].camera_model must be a string, got {model!r}")
+        dist = {}
+        for key in _DISTORTION_KEYS:
+            src = fr if key in fr else meta
+            dist[key] = _num(src, key, p, f"frames[{i}]." if src is fr else "") if key in src else 0.0
+        out.append(TransformsFrame(fr, cam, model.upper(), dist))
+    return out
 
 
 def from_camera_path(
@@ -197,35 +242,35 @@ def from_camera_path(
     meta = _load_json(p)
     ctype = str(meta.get("camera_type", "perspective")).lower()
     if ctype != "perspective":
-        raise MorphgsError(f"{p}: camera_type {ctype!r} is not supported (only 'perspective')")
+        raise CaptureError(f"{p}: camera_type {ctype!r} is not supported (only 'perspective')")
     path_list = meta.get("camera_path")
     if not isinstance(path_list, list) or not path_list:
-        raise MorphgsError(f"{p}: field 'camera_path' must be a non-empty list")
+        raise CaptureError(f"{p}: field 'camera_path' must be a non-empty list")
     if "render_height" not in meta:
-        raise MorphgsError(f"{p}: field 'render_height' is missing")
+        raise CaptureError(f"{p}: field 'render_height' is missing")
     h = _num(meta, "render_height", p, "")
     if "render_width" in meta:
         w = _num(meta, "render_width", p, "")
     else:
         aspect = _num(path_list[0], "aspect", p, "camera_path[0].") if isinstance(path_list[0], dict) and "aspect" in path_list[0] else None
         if aspect is None:
-            raise MorphgsError(f"{p}: neither 'render_width' nor an 'aspect' is given")
+            raise CaptureError(f"{p}: neither 'render_width' nor an 'aspect' is given")
         w = round(aspect * h)
     if w != int(w) or h != int(h) or w <= 0 or h <= 0:
-        raise MorphgsError(f"{p}: render size must be positive integers, got {w}x{h}")
+        raise CaptureError(f"{p}: render size must be positive integers, got {w}x{h}")
     cams = []
     for i, kf in enumerate(path_list):
         if not isinstance(kf, dict) or "camera_to_world" not in kf or "fov" not in kf:
-            raise MorphgsError(f"{p}: camera_path[{i}] needs 'camera_to_world' and 'fov'")
+            raise CaptureError(f"{p}: camera_path[{i}] needs 'camera_to_world' and 'fov'")
         flat = np.asarray(kf["camera_to_world"], dtype=np.float64).reshape(-1)
         if flat.size != 16:
-            raise MorphgsError(f"{p}: camera_path[{i}].camera_to_world must hold 16 numbers, got {flat.size}")
+            raise CaptureError(f"{p}: camera_path[{i}].camera_to_world must hold 16 numbers, got {flat.size}")
         fov = _num(kf, "fov", p, f"camera_path[{i}].")
         if not 0 < fov < 180:
-            raise MorphgsError(f"{p}: camera_path[{i}].fov must be in (0, 180) degrees, got {fov}")
+            raise CaptureError(f"{p}: camera_path[{i}].fov must be in (0, 180) degrees, got {fov}")
         try:
             cams.append(Camera.from_fov(flat.reshape(4, 4), fov_y_degrees=fov, width=int(w), height=int(h),
                                         convention="opengl"))
         except ValueError as e:
-            raise MorphgsError(f"{p}: camera_path[{i}]: {e}") from None
+            raise CaptureError(f"{p}: camera_path[{i}]: {e}") from None
     return stack_resized(cams, res, str(p))

@@ -22,11 +22,13 @@ use super::mcmc;
 use super::params::{Params, GROUPS, OPACITY, SCALES};
 use super::rand::epoch_order;
 
-/// A posed image: the camera and its uint8 RGB pixels (H*W*3, row-major).
+/// A posed image: the camera and its uint8 RGB pixels (H*W*3, row-major), with an optional
+/// mask (H*W, row-major; 0: the pixel is left out of the loss and the held-out metrics).
 #[derive(Debug, Clone)]
 pub struct View {
     pub cam: Camera,
     pub image: Vec<u8>,
+    pub mask: Option<Vec<u8>>,
 }
 
 impl View {
@@ -42,8 +44,57 @@ impl View {
                 cam.height
             )));
         }
-        Ok(View { cam, image })
+        Ok(View {
+            cam,
+            image,
+            mask: None,
+        })
     }
+
+    /// The view with a mask of W*H values (0: ignored pixel); at least one pixel must count.
+    pub fn with_mask(mut self, mask: Vec<u8>) -> Result<Self> {
+        let want = self.cam.width as usize * self.cam.height as usize;
+        if mask.len() != want {
+            return Err(Error::InvalidArgument(format!(
+                "mask holds {} values, the camera's {}x{} needs {want}",
+                mask.len(),
+                self.cam.width,
+                self.cam.height
+            )));
+        }
+        if mask.iter().all(|&m| m == 0) {
+            return Err(Error::InvalidArgument(
+                "the mask leaves no pixel (0 means ignored)".into(),
+            ));
+        }
+        self.mask = Some(mask);
+        Ok(self)
+    }
+}
+
+/// Zero the masked pixels (mask 0) of each RGB buffer: masked pixels then add nothing to L1
+/// and give zero gradient (the loss sees render * mask against target * mask, nerfstudio's
+/// splatfacto rule).
+fn apply_mask(mask: &[u8], bufs: &mut [&mut [f32]]) {
+    for (i, &m) in mask.iter().enumerate() {
+        if m == 0 {
+            for b in bufs.iter_mut() {
+                b[i * 3..i * 3 + 3].fill(0.0);
+            }
+        }
+    }
+}
+
+/// Metrics over the kept pixels from metrics over the whole masked image (masked pixels zero
+/// in both): MSE scales by N / N_kept, so PSNR drops by 10 log10(N / N_kept); SSIM removes the
+/// masked pixels' map values, taken as 1 (exact for windows wholly inside the mask).
+fn masked_metrics(psnr_all: f64, ssim_all: f64, mask: &[u8]) -> (f64, f64) {
+    let n = mask.len() as f64;
+    let kept = mask.iter().filter(|&&m| m != 0).count() as f64;
+    (
+        psnr_all - 10.0 * (n / kept).log10(),
+        (ssim_all * n - (n - kept)) / kept,
+    )
 }
 
 /// What one step did.
@@ -303,6 +354,9 @@ impl Trainer {
         for (t, &p) in self.target.iter_mut().zip(&view.image) {
             *t = p as f32 * (1.0 / 255.0);
         }
+        if let Some(m) = &view.mask {
+            apply_mask(m, &mut [&mut self.rgb, &mut self.target]);
+        }
         let mut terms = self.loss.loss_and_grad(
             &self.rgb,
             &self.target,
@@ -311,6 +365,9 @@ impl Trainer {
             self.cfg.ssim_lambda,
             &mut self.v_rgb,
         );
+        if let Some(m) = &view.mask {
+            apply_mask(m, &mut [&mut self.v_rgb]);
+        }
         let t2 = Instant::now();
         let n = self.params.len();
         self.grads.reset(n, self.params.view().sh_rest_k(), false);
@@ -422,9 +479,16 @@ impl Trainer {
             let v = &self.eval[i];
             target.clear();
             target.extend(v.image.iter().map(|&p| p as f32 * (1.0 / 255.0)));
-            let (p, s) =
-                self.loss
-                    .metrics(&rgb, &target, v.cam.width as usize, v.cam.height as usize);
+            let (w, h) = (v.cam.width as usize, v.cam.height as usize);
+            let (p, s) = match &v.mask {
+                None => self.loss.metrics(&rgb, &target, w, h),
+                Some(m) => {
+                    let mut masked = rgb.clone();
+                    apply_mask(m, &mut [&mut masked, &mut target]);
+                    let (p, s) = self.loss.metrics(&masked, &target, w, h);
+                    masked_metrics(p, s, m)
+                }
+            };
             let e = EvalView { psnr: p, ssim: s };
             each(i, &e, &rgb);
             out.push(e);
@@ -446,5 +510,25 @@ impl Trainer {
             .map(|c| c[0].max(c[1]).max(c[2]).exp() as f64)
             .sum();
         (o / n, s / n)
+    }
+}
+
+#[cfg(test)]
+mod mask_tests {
+    use super::{apply_mask, masked_metrics};
+
+    #[test]
+    fn masked_pixels_are_zeroed_and_psnr_counts_only_kept_pixels() {
+        let mask = [1u8, 0, 1, 0];
+        let mut a = vec![0.5f32; 12];
+        let mut b = vec![0.25f32; 12];
+        apply_mask(&mask, &mut [&mut a, &mut b]);
+        assert_eq!(&a[3..6], &[0.0, 0.0, 0.0]);
+        assert_eq!(&b[9..12], &[0.0, 0.0, 0.0]);
+        assert_eq!(&a[0..3], &[0.5, 0.5, 0.5]);
+        // MSE over all 4 pixels is half the MSE over the 2 kept ones: 10 log10(2) dB less
+        let (p, s) = masked_metrics(20.0, 0.9, &mask);
+        assert!((p - (20.0 - 10.0 * 2f64.log10())).abs() < 1e-12);
+        assert!((s - 0.8).abs() < 1e-12);
     }
 }
