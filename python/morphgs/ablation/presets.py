@@ -87,16 +87,16 @@ _BASE: dict[str, Any] = {
 
 _SMOKE: dict[str, Any] = {
     "study": {"seeds": [0, 1]},
-    "scenes": {"builtin": 3, "builtin_gaussians": 2000},
+    "scenes": {"builtin": 3, "builtin_gaussians": 4000},
     "split": {"test": 1},
-    "capture": {"views": 24, "size": [32, 32]},
+    "capture": {"views": 24, "size": [48, 48]},
     "conditions": {"train": ["blur2d", "morphological"], "pairs_per_scene": 1},
     "regimes": {"every": [8]},
     "clips": {"frames": 8, "heldout": [2, 5]},
     "model": {"overrides": {"model": _SMALL_TINY}},
-    "training": {"steps": 6, "lr": 2e-3, "crop": [32, 32], "window": 4, "probe_every": 3, "probe_rows": 256},
-    "sparse": {"steps": 40, "random_points": 1500, "cap_max": 3000},
-    "refit": {"steps": 40, "random_points": 1500, "cap_max": 3000},
+    "training": {"steps": 20, "lr": 2e-3, "crop": [48, 48], "window": 4, "probe_every": 5, "probe_rows": 256},
+    "sparse": {"steps": 150, "random_points": 3000, "cap_max": 6000},
+    "refit": {"steps": 150, "random_points": 3000, "cap_max": 6000},
     "metrics": {"eflow": True},
 }
 
