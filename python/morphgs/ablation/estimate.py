@@ -16,12 +16,15 @@ from morphgs.ablation.study import Study
 __all__ = ["UNIT", "estimate"]
 
 UNIT = {
-    "render": 2.0e-9,       # s per (pixel x Gaussian) of a render, 2 cores
-    "fit": 1.5e-6,          # s per (pixel x step) of a CPU fit at small sizes
-    "train_tiny": 2.0e-6,   # s per (pixel x frame x step) of the tiny refiner, 1 thread
-    "refine": 2.0e-6,       # s per (pixel x frame) of refine + write
-    "metrics2d": 4.0e-6,    # s per (pixel x frame): PSNR, SSIM, E_flow (DIS)
-    "gpu_step": 1.0,        # s per training step of the sandbox/controlnet refiners on one GPU
+    # measured on the 2-core machine (shared, not quiet) with a cut-down toy study: 4 built-in
+    # scenes of 30k Gaussians at 128x128, 100-step fits, 30 training steps (docs/ablation.md)
+    "render": 1.2e-11,      # s per (pixel x Gaussian) of a render incl. writing (captures: 0.5 s per 96 views)
+    "fit": 6.0e-7,          # s per (pixel x step) of a sparse fit (1.0 s per 100 steps at 128x128)
+    "refit": 1.3e-6,        # s per (pixel x step) of a re-fit with its scoring (2.1 s per 100 steps at 128x128)
+    "train_tiny": 3.0e-6,   # s per (pixel x frame x step) of the default tiny refiner incl. CKA probes
+    "refine": 1.1e-6,       # s per (pixel x frame) of refine + write
+    "metrics2d": 1.2e-6,    # s per (pixel x frame): PSNR, SSIM, LPIPS, E_flow (DIS)
+    "gpu_step": 1.0,        # s per training step of the sandbox/controlnet refiners on one GPU (a guess)
 }
 
 
@@ -61,7 +64,7 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
         elif st == "metrics2d":
             s = per_scene * frames * px * UNIT["metrics2d"]
         elif st == "metrics3d":
-            s = per_scene * S["refit"]["steps"] * px * UNIT["fit"]
+            s = per_scene * S["refit"]["steps"] * px * UNIT["refit"]
         else:
             s = 1.0
         out[st] = out.get(st, 0.0) + s

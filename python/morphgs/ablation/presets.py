@@ -73,7 +73,7 @@ _BASE: dict[str, Any] = {
         "cap_max": 60000,
     },
     "refit": {
-        "steps": 600,                   # the 3D re-fit from 14 refined frames
+        "steps": 400,                   # the 3D re-fit from 14 refined frames
         "random_points": 20000,
         "cap_max": 60000,
     },

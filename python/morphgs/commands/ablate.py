@@ -27,7 +27,7 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
-def _plan_text(study: Any, out: Path) -> str:
+def _plan_text(study: Any, out: Path, workers: int) -> str:
     from morphgs.ablation import cache
     from morphgs.ablation.estimate import estimate
     from morphgs.ablation.model_check import missing_model_folders
@@ -36,7 +36,9 @@ def _plan_text(study: Any, out: Path) -> str:
 
     sc = resolve_scenes(study)
     jobs = build_plan(study, out, sc)
-    est = estimate(study, jobs)
+    # torch jobs run single-threaded (two share the 2 cores); fits and renders already use both cores
+    par = max(1, min(workers, 2))
+    est = {k: v / (par if k in ("training", "refine", "metrics2d") else 1) for k, v in estimate(study, jobs).items()}
     lines = [f"study {study.source} (preset {study.preset}) -> {out}",
              f"scenes: {len(sc.train)} train, {len(sc.test)} test ({', '.join(sc.test[:6])}"
              f"{' ...' if len(sc.test) > 6 else ''})",
@@ -51,8 +53,8 @@ def _plan_text(study: Any, out: Path) -> str:
         total += s
         gpu = " (GPU)" if st == "training" and study["model"]["name"] != "tiny" else ""
         lines.append(f"{st:<12} {len(js):>5} {todo:>7}   {_dur(s)}{gpu}")
-    lines.append(f"total estimate: {_dur(total)} (an estimate from the smoke preset's measured unit costs, "
-                 "2-core CPU; docs/ablation.md)")
+    lines.append(f"total estimate: {_dur(total)} with -j {workers} (unit costs measured on a 2-core CPU, scaled "
+                 "linearly in pixels, frames, steps and Gaussians: an estimate; docs/ablation.md)")
     for m in missing_model_folders(study):
         lines.append(f"note: a real run would stop here: {m}")
     return "\n".join(lines)
@@ -78,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     out = Path(args.out)
     if args.dry_run:
-        print(_plan_text(study, out))
+        print(_plan_text(study, out, args.workers))
         return 0
     ledger = run_study(study, out, workers=args.workers, recompute=args.recompute)
     counts = ledger.counts()
