@@ -93,6 +93,15 @@ def test_two_workers_give_the_same_bytes(smoke: Path, tmp_path: Path) -> None:
         assert (out / f).read_bytes() == (smoke / f).read_bytes(), f
 
 
+def test_the_ray_backend_gives_the_same_bytes(smoke: Path, tmp_path: Path) -> None:
+    # CI installs the ray extra, so there a missing Ray is a failure, not a skip
+    __import__("ray") if os.environ.get("CI") else pytest.importorskip("ray")
+    out = tmp_path / "ray"
+    _ablate("--preset", "smoke", "--out", str(out), "--backend", "ray", "-j", "2")
+    for f in ("results.json", "results.csv", "table.md"):
+        assert (out / f).read_bytes() == (smoke / f).read_bytes(), f
+
+
 def test_sigkill_during_training_then_rerun_gives_the_uninterrupted_results(smoke: Path, tmp_path: Path) -> None:
     out = tmp_path / "killed"
     proc = subprocess.Popen(_cmd("--preset", "smoke", "--out", str(out)), env=ENV, stdout=subprocess.DEVNULL,

@@ -212,12 +212,54 @@ def _init_worker(threads: int) -> None:
     os.environ["MORPHGS_NUM_THREADS"] = str(threads)
 
 
-def run_study(study: Study, root: Path, *, workers: int = 1, recompute: bool = False,
-              log: Callable[[str], None] | None = None) -> cache.Ledger:
-    """Run (or continue) a study in `root`; returns what was computed and reused."""
+def _ray_job(job: Job, threads: int) -> tuple[str, float]:
+    os.environ["MORPHGS_NUM_THREADS"] = str(threads)
+    return _run_job(job)
+
+
+def _run_level(todo: list[Job], workers: int, backend: str, ray_address: str | None,
+               done: Callable[[Job, str, float], None]) -> None:
+    """Run one level's jobs: in this process, in local worker processes, or as Ray tasks."""
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    if backend == "ray":
+        import ray
+
+        remote = ray.remote(num_cpus=threads, max_retries=0)(_ray_job)
+        refs = {remote.remote(j, threads): j for j in todo}
+        waiting = list(refs)
+        while waiting:
+            ready, waiting = ray.wait(waiting, num_returns=1)
+            for r in ready:
+                done(refs[r], *ray.get(r))
+    elif workers == 1 or len(todo) == 1:
+        for j in todo:
+            done(j, *_run_job(j))
+    else:
+        ctx = __import__("multiprocessing").get_context("spawn")
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
+                                 initargs=(threads,)) as pool:
+            futs = {pool.submit(_run_job, j): j for j in todo}
+            pending = set(futs)
+            while pending:
+                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in finished:
+                    done(futs[f], *f.result())
+
+
+def run_study(study: Study, root: Path, *, workers: int = 1, recompute: bool = False, backend: str = "local",
+              ray_address: str | None = None, log: Callable[[str], None] | None = None) -> cache.Ledger:
+    """Run (or continue) a study in `root`; returns what was computed and reused.
+
+    Args:
+        workers: local worker processes per level (with Ray: CPUs per task = cores // workers).
+        recompute: accept a folder made with other settings (recompute what depends on them).
+        backend: "local" or "ray" (`ray_address`: a cluster; default: start a local Ray).
+    """
     say = log or (lambda m: print(m, file=sys.stderr, flush=True))
     if workers < 1:
         raise StudyError(f"workers must be >= 1, got {workers}")
+    if backend not in ("local", "ray"):
+        raise StudyError(f"backend must be 'local' or 'ray', got {backend!r}")
     from morphgs.ablation.model_check import check_model_folders
 
     check_model_folders(study)
@@ -225,6 +267,35 @@ def run_study(study: Study, root: Path, *, workers: int = 1, recompute: bool = F
     check_study_folder(study, root, recompute=recompute)
     ledger = cache.Ledger()
     t_all = time.perf_counter()
+    busy = any(not cache.is_done(j.ref) for j in jobs)
+    stop_ray = _start_ray(ray_address) if backend == "ray" and busy else None
+    try:
+        _run_levels(jobs, workers, backend, ray_address, ledger, say)
+    finally:
+        if stop_ray is not None:
+            stop_ray()
+    _publish(jobs, root)
+    _write_run_log(root, ledger, time.perf_counter() - t_all, workers)
+    return ledger
+
+
+def _start_ray(address: str | None) -> Callable[[], None] | None:
+    """Connect to (or start) Ray once for the whole study; returns its shutdown when we started it."""
+    try:
+        import ray
+    except ImportError:
+        raise ImportError("--backend ray needs Ray: pip install 'morphgs[ray]'") from None
+    if ray.is_initialized():
+        return None
+    if address:
+        ray.init(address=address, log_to_driver=False)
+    else:
+        ray.init(num_cpus=os.cpu_count(), log_to_driver=False, include_dashboard=False)
+    return ray.shutdown  # type: ignore[no-any-return]
+
+
+def _run_levels(jobs: list[Job], workers: int, backend: str, ray_address: str | None, ledger: cache.Ledger,
+                say: Callable[[str], None]) -> None:
     for level in sorted({j.level for j in jobs}):
         todo = []
         for j in (j for j in jobs if j.level == level):
@@ -235,28 +306,12 @@ def run_study(study: Study, root: Path, *, workers: int = 1, recompute: bool = F
         if not todo:
             continue
         say(f"ablate: {len(todo)} job(s) of stage(s) {', '.join(sorted({j.ref.stage for j in todo}))}")
-        if workers == 1 or len(todo) == 1:
-            for j in todo:
-                status, secs = _run_job(j)
-                ledger.add(j.ref, status, secs)
-                say(f"  {j.ref.stage}/{j.ref.name}: {status} in {secs:.1f} s")
-        else:
-            ctx = __import__("multiprocessing").get_context("spawn")
-            threads = max(1, (os.cpu_count() or 1) // workers)
-            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
-                                     initargs=(threads,)) as pool:
-                futs = {pool.submit(_run_job, j): j for j in todo}
-                pending = set(futs)
-                while pending:
-                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    for f in done:
-                        j = futs[f]
-                        status, secs = f.result()
-                        ledger.add(j.ref, status, secs)
-                        say(f"  {j.ref.stage}/{j.ref.name}: {status} in {secs:.1f} s")
-    _publish(jobs, root)
-    _write_run_log(root, ledger, time.perf_counter() - t_all, workers)
-    return ledger
+
+        def done(j: Job, status: str, secs: float) -> None:
+            ledger.add(j.ref, status, secs)
+            say(f"  {j.ref.stage}/{j.ref.name}: {status} in {secs:.1f} s")
+
+        _run_level(todo, workers, backend, ray_address, done)
 
 
 def _publish(jobs: list[Job], root: Path) -> None:
