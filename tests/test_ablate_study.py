@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -174,3 +175,57 @@ def test_mean_ci_and_paired_permutation_test() -> None:
     # 5 pairs all improved by about 1: the exact two-sided p is 2/32
     assert paired_permutation_p([2.0, 3.1, 4.0, 5.2, 6.0], [1.0, 2.0, 3.0, 4.0, 5.0]) == pytest.approx(2 / 32)
     assert paired_permutation_p([1.0, 2.0], [1.0, 2.0]) == 1.0
+
+
+def _scene_folder(root: Path, views: int) -> Path:
+    """A scene folder as a user has it: the scene file, transforms.json and real images (here the
+    renders inverted, so that they cannot be mistaken for renders of the scene)."""
+    import numpy as np
+    from PIL import Image
+
+    import morphgs
+    from fit_helpers import make_dataset
+
+    folder, scene, _ = make_dataset(root, views=views, size=(32, 24), gaussians=1500)
+    morphgs.save(scene, folder / "scene.ply")
+    for p in sorted((folder / "images").iterdir()):
+        Image.fromarray(255 - np.asarray(Image.open(p))).save(p)
+    return folder
+
+
+def test_the_capture_stage_uses_a_scene_folders_cameras_and_real_images(tmp_path: Path) -> None:
+    import numpy as np
+    from PIL import Image
+
+    from morphgs import media
+    from morphgs.ablation.stages import captures
+    from morphgs.curation import discover
+
+    folder = _scene_folder(tmp_path / "room", views=10)
+    (src,), problems = discover([folder])
+    assert not problems
+    captures.make(tmp_path / "cap", source=src, views=96, size=(32, 24))
+    out, info = captures.load_capture(tmp_path / "cap")
+    assert info["views"] == 10 and info["images"] == "images"  # its 10 cameras, not a 96-view orbit
+    real = np.stack([np.asarray(Image.open(p)) for p in sorted((folder / "images").iterdir())])
+    np.testing.assert_array_equal(media.read_clip(out / "images"), real)
+    assert (out / "scene.ply").resolve() == (folder / "scene.ply").resolve()
+
+
+def test_a_scene_folder_with_too_few_views_for_a_regime_is_named(tmp_path: Path) -> None:
+    folder = _scene_folder(tmp_path / "room", views=10)
+    from morphgs.ablation.scenes import resolve_scenes
+
+    f = _study(tmp_path, f'preset = "smoke"\n[scenes]\ninputs = ["{folder}"]\n[split]\ntrain_ids = ["room"]\n'
+                         'test_ids = ["room"]\n')
+    with pytest.raises(StudyError, match=r"scene\(s\) \['room'\] are in both"):
+        resolve_scenes(load_study(f))
+    f = _study(tmp_path, f'preset = "smoke"\n[scenes]\ninputs = ["{folder}"]\n[regimes]\nevery = [12]\n')
+    with pytest.raises(StudyError, match=r"empty training split"):
+        resolve_scenes(load_study(f))
+    sample = tmp_path / "s2"
+    shutil.copytree(folder, sample)
+    f = _study(tmp_path, f'preset = "smoke"\n[scenes]\ninputs = ["{folder}", "{sample}"]\n[regimes]\nevery = [12]\n')
+    with pytest.raises(StudyError, match=r"scene (room|s2) has 10 capture views, too few for regime S12 "
+                                         r"\(it needs at least 13"):
+        resolve_scenes(load_study(f))
