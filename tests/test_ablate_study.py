@@ -229,3 +229,21 @@ def test_a_scene_folder_with_too_few_views_for_a_regime_is_named(tmp_path: Path)
     with pytest.raises(StudyError, match=r"scene (room|s2) has 10 capture views, too few for regime S12 "
                                          r"\(it needs at least 13"):
         resolve_scenes(load_study(f))
+
+
+def test_a_json_condition_is_read_relative_to_the_study_file_and_named_by_its_stem(tmp_path: Path) -> None:
+    import morphgs
+    from morphgs.ablation.recipe import build_plan
+
+    (tmp_path / "cfg").mkdir()
+    cfg = morphgs.PerturbConfig.preset("morphological").scaled(3.0).to_dict()
+    (tmp_path / "cfg" / "strong.json").write_text(json.dumps(cfg), encoding="utf-8")
+    f = _study(tmp_path, 'preset = "smoke"\n[conditions]\ntrain = ["cfg/strong.json"]\n')
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    r = _cli("--study", str(f), "--out", str(tmp_path / "s"), "--dry-run", cwd=elsewhere)
+    assert r.returncode == 0, r.stderr
+    jobs = build_plan(load_study(f), tmp_path / "s")
+    ts = [j for j in jobs if j.ref.stage == "trainsets"]
+    assert [j.ref.name for j in ts] == ["strong", "target-S8"]
+    assert ts[0].kwargs["spec"].params == cfg and ts[0].kwargs["spec"].label == "strong"

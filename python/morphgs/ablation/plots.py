@@ -24,7 +24,7 @@ def _plt() -> Any:
 
 
 def bars(out: Path, records: Sequence[dict[str, Any]], regimes: Sequence[str], conditions: Sequence[str]) -> None:
-    from morphgs.ablation.report import COLUMNS, CONTROLS, _units
+    from morphgs.ablation.report import COLUMNS, CONTROLS, _units, label
     from morphgs.ablation.stats import mean_ci
 
     plt = _plt()
@@ -43,7 +43,7 @@ def bars(out: Path, records: Sequence[dict[str, Any]], regimes: Sequence[str], c
             colors = ["0.6" if c in CONTROLS else "C3" if c.startswith("target-") else "C0" for c in rows]
             ax.bar(range(len(rows)), ms, yerr=cis, color=colors, capsize=2)
             ax.set_xticks(range(len(rows)))
-            ax.set_xticklabels(rows, rotation=70, fontsize=6)
+            ax.set_xticklabels([label(c) for c in rows], rotation=70, fontsize=6)
             ax.set_title(f"{rg} {name}", fontsize=8)
             ax.tick_params(axis="y", labelsize=6)
     fig.tight_layout()
@@ -57,7 +57,7 @@ def cka(out: Path, curves: Sequence[dict[str, Any]]) -> None:
     names = sorted({c["condition"] for c in curves})
     for k, name in enumerate(names):
         for n, c in enumerate(x for x in curves if x["condition"] == name):
-            ax.plot(c["steps"], c["mean"], color=f"C{k % 10}", lw=1, label=name if n == 0 else None, alpha=0.8)
+            ax.plot(c["steps"], c["mean"], color=f"C{k % 10}", lw=1, label=_label(name) if n == 0 else None, alpha=0.8)
     ax.set_xlabel("training step")
     ax.set_ylabel("linear CKA vs initial (temporal features)")
     ax.legend(fontsize=7)
@@ -87,13 +87,19 @@ def sheet(out: Path, jobs: Sequence[tuple[str, str, dict[str, Any]]], conditions
     fig, axes = plt.subplots(len(rows), 1, figsize=(min(16, w / 40 + 1), (h / 40 + 0.3) * len(rows)), squeeze=False)
     for ax, r, s in zip(axes[:, 0], rows, strips):
         ax.imshow(s)
-        ax.set_ylabel(r, rotation=0, ha="right", fontsize=7)
+        ax.set_ylabel(_label(r), rotation=0, ha="right", fontsize=7)
         ax.set_xticks([])
         ax.set_yticks([])
     fig.suptitle(f"{first['scene']} {first['regime']}, clip 00", fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "qualitative.png", dpi=90, metadata={"Software": None})
     plt.close(fig)
+
+
+def _label(c: str) -> str:
+    from morphgs.ablation.report import label
+
+    return label(c)
 
 
 def write_all(out: Path, g: dict[str, Any], *, regimes: Sequence[str], conditions: Sequence[str],

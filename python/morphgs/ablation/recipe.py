@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import sys
 import time
@@ -61,6 +62,13 @@ def _file_hash(path: str) -> str | None:
     return hashlib.sha256(p.read_bytes()).hexdigest()
 
 
+def _slug(name: str) -> str:
+    """A condition as a folder name (a JSON path's slashes and the like become '_')."""
+    from morphgs.ablation.report import label
+
+    return re.sub(r"[^A-Za-z0-9.@+_-]+", "_", label(name)).strip("._") or "condition"
+
+
 def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list[Job]:
     """Every job of the study, level by level, each keyed by what it reads (pure: no files are
     written; only the scene inputs and the model config file are read for their keys)."""
@@ -96,12 +104,12 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
         r = regimes.get(cond) if S["conditions"]["targets"] else None
         spec = TS.condition_spec(cond, blur_sigma=float(S["conditions"]["blur_sigma"]),
                                  regime=r.params if r else None, sparse=S["sparse"])
-        tsets[cond] = add("trainsets", cond, {"spec": spec.as_dict(), "captures": [cap[s].ref.key for s in sc.train],
+        tsets[cond] = add("trainsets", _slug(cond), {"spec": spec.as_dict(), "captures": [cap[s].ref.key for s in sc.train],
                                               "pairs_per_scene": S["conditions"]["pairs_per_scene"],
                                               "frames": S["clips"]["frames"], "size": list(size), "seed": PAIRS_SEED},
                           1, resumable=r is not None, scene_dirs=train_dirs, spec=spec,
                           pairs_per_scene=int(S["conditions"]["pairs_per_scene"]), frames=int(S["clips"]["frames"]),
-                          size=size, seed=PAIRS_SEED)
+                          size=size, seed=PAIRS_SEED, meta={"condition": cond})
 
     # 3. training: per (condition, seed); the CKA probe is the first training scene's capture
     probe = cap[sc.train[0]]
@@ -111,7 +119,7 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
         for seed in study.seeds:
             over = T.overrides_for(S["training"], S["model"]["overrides"], seed)
             runs[cond, seed] = add(
-                "training", f"{cond}-s{seed}",
+                "training", f"{_slug(cond)}-s{seed}",
                 {"trainset": tsets[cond].ref.key, "model": S["model"]["name"], "model_config": model_hash,
                  "overrides": over, "probe": probe.ref.key, "probe_rows": S["training"]["probe_rows"]},
                 2, resumable=True, data=str(tsets[cond].ref.path / "data"), model=S["model"]["name"],
@@ -139,7 +147,7 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
     rows += [(c, None, None) for c in CONTROLS]
     for (sid, rl), tj in tests.items():
         for cond, rseed, rj in rows:
-            row = f"{cond}-s{rseed}" if rseed is not None else cond
+            row = f"{_slug(cond)}-s{rseed}" if rseed is not None else cond
             meta = {"scene": sid, "regime": rl, "condition": cond, "seed": rseed}
             ref_in = {"testset": tj.ref.key, "run": rj.ref.key if rj else None, "row": cond,
                       "window": S["training"]["window"]}

@@ -30,6 +30,11 @@ COLUMNS = (("psnr2d", "PSNR2D", True, 3), ("ssim2d", "SSIM2D", True, 3), ("lpips
 CONTROLS = ("input", "identity", "oracle")
 
 
+def label(condition: str) -> str:
+    """A condition as the table shows it (a JSON config by its file stem, as curate labels it)."""
+    return Path(condition).stem if condition.lower().endswith(".json") else condition
+
+
 def rank_marks(means: dict[str, float], higher_better: bool) -> dict[str, str]:
     """{row: "best" | "second"} of the rows with the best and second-best finite mean (ties share
     a mark); rows without a finite mean get no mark."""
@@ -89,11 +94,11 @@ def format_table(records: Sequence[dict[str, Any]], *, regimes: Sequence[str], c
         for c in [*rows, *CONTROLS]:
             sev = severity.get(c)
             sev_s = f"{sev:.2f}" if sev is not None else "-"
-            label = c if c not in CONTROLS else f"({c})"
-            lines.append(f"| {rg} | {label} | {sev_s} | " + " | ".join(cells[c][k] for k, *_ in COLUMNS) + " |")
+            name = label(c) if c not in CONTROLS else f"({c})"
+            lines.append(f"| {rg} | {name} | {sev_s} | " + " | ".join(cells[c][k] for k, *_ in COLUMNS) + " |")
         lines.append("")
         for ref in (["naive"] if "naive" in conditions else []) + ([target] if target else []):
-            tests.append(f"### {rg}: each condition − {ref} (mean paired difference, sign-flip permutation p)")
+            tests.append(f"### {rg}: each condition − {label(ref)} (mean paired difference, sign-flip permutation p)")
             tests.append("")
             tests.append("| condition | " + " | ".join(c[1] for c in COLUMNS) + " |")
             tests.append("|" + "---|" * (1 + len(COLUMNS)))
@@ -110,7 +115,7 @@ def format_table(records: Sequence[dict[str, Any]], *, regimes: Sequence[str], c
                     d = sum(a[k] - b[k] for k in common) / len(common)
                     p = paired_permutation_p([a[k] for k in common], [b[k] for k in common])
                     out.append(f"{d:+.{digits}f} (p={p:.3f})" if math.isfinite(d) and not math.isnan(p) else "n/a")
-                tests.append(f"| {c} | " + " | ".join(out) + " |")
+                tests.append(f"| {label(c)} | " + " | ".join(out) + " |")
             tests.append("")
     if tests:
         lines += ["## Paired tests", "", *tests]
@@ -127,7 +132,7 @@ def gather(jobs: Sequence[tuple[str, str, dict[str, Any]]]) -> dict[str, Any]:
     for stage, path, meta in jobs:
         p = Path(path)
         if stage == "trainsets":
-            severity[p.name.rsplit("-", 1)[0]] = json.loads((p / "severity.json").read_text())["psnr_mean"]
+            severity[meta["condition"]] = json.loads((p / "severity.json").read_text())["psnr_mean"]
         elif stage == "training":
             cka.append({"condition": meta["condition"], "seed": meta["seed"],
                         **json.loads((p / "cka.json").read_text())})

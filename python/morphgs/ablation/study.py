@@ -206,6 +206,9 @@ def load_study(path: str | os.PathLike[str] | None, *, preset: str | None = None
         root = Path(path).resolve().parent
         settings["scenes"]["inputs"] = [str(root / x) if not Path(x).is_absolute() else x
                                         for x in settings["scenes"]["inputs"]]
+        settings["conditions"]["train"] = [
+            str(root / c) if isinstance(c, str) and c.lower().endswith(".json") and not Path(c).is_absolute()
+            and (root / c).is_file() else c for c in settings["conditions"]["train"]]
         if settings["model"]["config"] and not Path(settings["model"]["config"]).is_absolute():
             settings["model"]["config"] = str(root / settings["model"]["config"])
     _validate(settings, source)
