@@ -152,3 +152,19 @@ def test_changing_one_condition_recomputes_only_that_condition(smoke: Path, tmp_
     old = json.loads((smoke / "results.json").read_text())
     keep = [r for r in old["records"] if r["condition"] != "morphological"]
     assert [r for r in res["records"] if r["condition"] != "spatial"] == keep  # unchanged rows: the same values
+
+
+def test_the_2d_metrics_stage_alone_reads_lpips_as_na_with_its_reason(smoke: Path, tmp_path: Path) -> None:
+    from morphgs.ablation.stages import metrics2d
+
+    refined = next((smoke / "refine").glob("morphological-s0-*"))
+    testset = next((smoke / "testsets").glob("sample-2-S8-*"))
+    metrics2d.make(tmp_path, testset_dir=str(testset), refined_dir=str(refined), lpips="off", lpips_net="alex",
+                   eflow=False, threads=1)
+    out = json.loads((tmp_path / "metrics2d.json").read_text())
+    assert out["lpips_note"] == 'LPIPS turned off in the study ([metrics] lpips = "off")'
+    (row,) = out["clips"].values()
+    assert row["lpips2d"] is None and row["eflow"] is None
+    whole = next(r for r in json.loads((smoke / "results.json").read_text())["records"]
+                 if r["condition"] == "morphological" and r["seed"] == 0)
+    assert row["psnr2d"] == whole["psnr2d"] and row["ssim2d"] == whole["ssim2d"]  # the same functions, the same bits

@@ -247,3 +247,18 @@ def test_a_json_condition_is_read_relative_to_the_study_file_and_named_by_its_st
     ts = [j for j in jobs if j.ref.stage == "trainsets"]
     assert [j.ref.name for j in ts] == ["strong", "target-S8"]
     assert ts[0].kwargs["spec"].params == cfg and ts[0].kwargs["spec"].label == "strong"
+
+
+def test_a_study_folder_made_with_other_settings_is_refused_naming_the_keys(tmp_path: Path) -> None:
+    from morphgs.ablation.recipe import check_study_folder
+
+    a = load_study(_study(tmp_path, 'preset = "smoke"\n'))
+    check_study_folder(a, tmp_path / "s", recompute=False)
+    check_study_folder(a, tmp_path / "s", recompute=False)  # the same settings: fine
+    assert load_study(tmp_path / "s" / "study.toml").settings == a.settings  # the pinned settings are kept
+    b = load_study(_study(tmp_path, 'preset = "smoke"\n[training]\nsteps = 7\n[clips]\nheldout = [1, 6]\n'))
+    with pytest.raises(StudyError, match=r"other settings \(clips\.heldout: \[2, 5\] -> \[1, 6\]; "
+                                         r"training\.steps: 20 -> 7\); pass --recompute"):
+        check_study_folder(b, tmp_path / "s", recompute=False)
+    check_study_folder(b, tmp_path / "s", recompute=True)
+    check_study_folder(b, tmp_path / "s", recompute=False)  # now the folder holds b's settings

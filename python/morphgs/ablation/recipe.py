@@ -225,8 +225,7 @@ def _ray_job(job: Job, threads: int) -> tuple[str, float]:
     return _run_job(job)
 
 
-def _run_level(todo: list[Job], workers: int, backend: str, ray_address: str | None,
-               done: Callable[[Job, str, float], None]) -> None:
+def _run_level(todo: list[Job], workers: int, backend: str, done: Callable[[Job, str, float], None]) -> None:
     """Run one level's jobs: in this process, in local worker processes, or as Ray tasks."""
     threads = max(1, (os.cpu_count() or 1) // workers)
     if backend == "ray":
@@ -278,7 +277,7 @@ def run_study(study: Study, root: Path, *, workers: int = 1, recompute: bool = F
     busy = any(not cache.is_done(j.ref) for j in jobs)
     stop_ray = _start_ray(ray_address) if backend == "ray" and busy else None
     try:
-        _run_levels(jobs, workers, backend, ray_address, ledger, say)
+        _run_levels(jobs, workers, backend, ledger, say)
     finally:
         if stop_ray is not None:
             stop_ray()
@@ -302,7 +301,7 @@ def _start_ray(address: str | None) -> Callable[[], None] | None:
     return ray.shutdown  # type: ignore[no-any-return]
 
 
-def _run_levels(jobs: list[Job], workers: int, backend: str, ray_address: str | None, ledger: cache.Ledger,
+def _run_levels(jobs: list[Job], workers: int, backend: str, ledger: cache.Ledger,
                 say: Callable[[str], None]) -> None:
     for level in sorted({j.level for j in jobs}):
         todo = []
@@ -319,7 +318,7 @@ def _run_levels(jobs: list[Job], workers: int, backend: str, ray_address: str | 
             ledger.add(j.ref, status, secs)
             say(f"  {j.ref.stage}/{j.ref.name}: {status} in {secs:.1f} s")
 
-        _run_level(todo, workers, backend, ray_address, done)
+        _run_level(todo, workers, backend, done)
 
 
 def _publish(jobs: list[Job], root: Path) -> None:
