@@ -29,6 +29,7 @@ _COMMAND_MODULES = (
     "morphgs.commands.sample",
     "morphgs.commands.perturb",
     "morphgs.commands.eval",
+    "morphgs.commands.ablate",
 )
 
 

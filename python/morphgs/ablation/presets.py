@@ -1,0 +1,141 @@
+"""The three study presets (docs/ablation.md). Each is a complete settings tree: a study file
+only holds what it changes, and `morphgs ablate --print-config` shows every key pinned.
+
+- `smoke`: built-in scenes, tiny sizes, every stage for real in a few minutes on 2 cores (the test
+  suite runs it through the CLI).
+- `toy`: the issue's toy scale (6 training and 3 test scenes, 128 px, 16 frames, all five
+  conditions and the three targets, three regimes): for a quiet 2-core machine.
+- `paper`: the paper's scale (200/50 scenes, the sandbox model, 16-frame clips); needs GPUs and
+  the model folders; `--dry-run` shows its plan and cost.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+__all__ = ["PRESETS", "preset"]
+
+# The small tiny-refiner of the training tests (~15k parameters; sizes multiples of 4).
+_SMALL_TINY = {"channels": [8, 16], "blocks": [1, 1], "unshuffle": 2, "attention_heads": 2, "groups": 4}
+
+_BASE: dict[str, Any] = {
+    "study": {
+        "seeds": [0, 1],                # one refiner per (condition, seed)
+    },
+    "scenes": {
+        "inputs": [],                   # scene files or folders as curate takes them ([] = built-in)
+        "builtin": 9,                   # built-in synthetic scenes when inputs is empty
+        "builtin_gaussians": 30000,
+    },
+    "split": {
+        "seed": 0,                      # the seeded split: scenes ordered by sha256(seed, id) ...
+        "test": 3,                      # ... and the first `test` of them are the test scenes
+        "train_ids": [],                # or explicit lists of scene ids (both given)
+        "test_ids": [],
+    },
+    "capture": {
+        "views": 96,                    # capture views of scenes without recorded cameras (an orbit)
+        "size": [128, 128],             # W, H of captures, pairs, clips and fits
+    },
+    "conditions": {
+        "train": ["blur2d", "naive", "spatial", "radiometric", "morphological"],  # any curate config
+        "targets": True,                # add one target condition per regime (sparse fits of the training scenes)
+        "pairs_per_scene": 2,
+        "blur_sigma": 2.0,
+    },
+    "regimes": {
+        "every": [20, 40, 80],          # S_K: every K-th capture view
+        "n": [],                        # n:N: N views spread evenly
+    },
+    "clips": {
+        "frames": 16,                   # frames per training pair and per test clip
+        "per_scene": 1,                 # test clips per test scene
+        "heldout": [5, 11],             # clip frames held out of the 3D re-fit (never trained on)
+    },
+    "model": {
+        "name": "tiny",                 # tiny | sandbox | controlnet
+        "config": "",                   # a run config TOML for the model (sandbox/controlnet weights folders)
+        "overrides": {},                # {section: {key: value}} over the model's config
+    },
+    "training": {
+        "steps": 300,                   # one budget, identical for every condition
+        "lr": 3e-4,
+        "crop": [128, 128],             # H, W of training crops
+        "window": 8,                    # frames per training window (and refine window)
+        "probe_every": 50,              # CKA probe interval (steps)
+        "probe_rows": 1024,             # rows (tokens) of the CKA probe
+        "threads": 1,                   # torch threads per job (fixed: bits do not depend on -j)
+    },
+    "sparse": {
+        "steps": 600,                   # sparse fits (targets and test sets)
+        "random_points": 20000,
+        "cap_max": 60000,
+    },
+    "refit": {
+        "steps": 200,                   # the 3D re-fit from 14 refined frames
+        "random_points": 20000,
+        "cap_max": 60000,
+    },
+    "metrics": {
+        "lpips": "auto",                # auto (n/a when the weights are absent) | off
+        "lpips_net": "alex",
+        "fscore": [0.005, 0.01, 0.02],  # F-score thresholds, shares of the clean bbox diagonal
+        "eflow": True,
+    },
+}
+
+_SMOKE: dict[str, Any] = {
+    "study": {"seeds": [0, 1]},
+    "scenes": {"builtin": 3, "builtin_gaussians": 4000},
+    "split": {"test": 1},
+    "capture": {"views": 24, "size": [48, 48]},
+    "conditions": {"train": ["blur2d", "morphological"], "pairs_per_scene": 1},
+    "regimes": {"every": [8]},
+    "clips": {"frames": 8, "heldout": [2, 5]},
+    "model": {"overrides": {"model": _SMALL_TINY}},
+    "training": {"steps": 20, "lr": 2e-3, "crop": [48, 48], "window": 4, "probe_every": 5, "probe_rows": 256},
+    "sparse": {"steps": 150, "random_points": 3000, "cap_max": 6000},
+    "refit": {"steps": 150, "random_points": 3000, "cap_max": 6000},
+    "metrics": {"eflow": True},
+}
+
+_TOY: dict[str, Any] = {}  # the base is the toy scale
+
+_PAPER: dict[str, Any] = {
+    "study": {"seeds": [0, 1, 2]},
+    "scenes": {"builtin": 250, "builtin_gaussians": 1_000_000},
+    "split": {"test": 50},
+    "capture": {"size": [512, 320]},
+    "conditions": {"pairs_per_scene": 8},
+    "clips": {"per_scene": 4},
+    "model": {"name": "sandbox", "overrides": {}},
+    "training": {"steps": 10000, "lr": 2e-4, "crop": [320, 512], "window": 16, "probe_every": 500,
+                 "probe_rows": 4096, "threads": 0},
+    "sparse": {"steps": 30000, "random_points": 100000, "cap_max": 1_000_000},
+    "refit": {"steps": 7000, "random_points": 100000, "cap_max": 1_000_000},
+}
+
+PRESETS = {"smoke": _SMOKE, "toy": _TOY, "paper": _PAPER}
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict) and k != "overrides":
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def preset(name: str) -> dict[str, Any]:
+    """The full settings tree of a preset (a fresh copy)."""
+    if name not in PRESETS:
+        raise KeyError(name)
+    return _merge(_BASE, PRESETS[name])
+
+
+def merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """`over` laid over `base`, section by section (model.overrides is replaced whole)."""
+    return _merge(base, over)

@@ -1,0 +1,178 @@
+"""The report stage: results.json / results.csv (every per-clip value), table.md in the paper's
+Table 1 layout, and plots/ (bars with CIs, CKA against step, a qualitative sheet).
+
+The table: rows are the conditions grouped by regime (the training sets, then the regime's
+target), then the control rows (input, identity, oracle; they do not compete for best); columns
+are Table 1's nine metrics. Cells are the mean +- 95 % CI over (test scene, seed) units (the
+clips of a unit averaged first); best in bold, second best in italics. Each row prints its
+severity (the PSNR of its own training pairs); below, paired tests against `naive` and against
+the regime's target.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from morphgs.ablation.stats import mean_ci, paired_permutation_p
+
+__all__ = ["COLUMNS", "format_table", "gather", "make", "rank_marks"]
+
+# (key in the records, header, higher is better, digits)
+COLUMNS = (("psnr2d", "PSNR2D", True, 3), ("ssim2d", "SSIM2D", True, 3), ("lpips2d", "LPIPS2D", False, 3),
+           ("eflow", "Eflow", False, 3), ("psnr3d", "PSNR3D", True, 3), ("ssim3d", "SSIM3D", True, 3),
+           ("lpips3d", "LPIPS3D", False, 3), ("chamfer", "CD", False, 4), ("f@1%", "F@1%", True, 3))
+CONTROLS = ("input", "identity", "oracle")
+
+
+def label(condition: str) -> str:
+    """A condition as the table shows it (a JSON config by its file stem, as curate labels it)."""
+    return Path(condition).stem if condition.lower().endswith(".json") else condition
+
+
+def rank_marks(means: dict[str, float], higher_better: bool) -> dict[str, str]:
+    """{row: "best" | "second"} of the rows with the best and second-best finite mean (ties share
+    a mark); rows without a finite mean get no mark."""
+    vals = sorted({v for v in means.values() if v is not None and math.isfinite(v)}, reverse=higher_better)
+    out = {}
+    for row, v in means.items():
+        if v is None or not math.isfinite(v):
+            continue
+        if v == vals[0]:
+            out[row] = "best"
+        elif len(vals) > 1 and v == vals[1]:
+            out[row] = "second"
+    return out
+
+
+def _units(records: Sequence[dict[str, Any]], key: str) -> dict[tuple[str, Any], float]:
+    """{(scene, seed): mean over that unit's clips} of one metric (None values skipped)."""
+    acc: dict[tuple[str, Any], list[float]] = {}
+    for r in records:
+        v = r.get(key)
+        if v is not None:
+            acc.setdefault((r["scene"], r["seed"]), []).append(float(v))
+    return {k: sum(v) / len(v) for k, v in sorted(acc.items(), key=lambda kv: (kv[0][0], str(kv[0][1])))}
+
+
+def _fmt(m: float, ci: float, digits: int) -> str:
+    if math.isnan(m):
+        return "n/a"
+    if math.isinf(m):
+        return "inf"
+    return f"{m:.{digits}f} ± {ci:.{digits}f}" if not math.isnan(ci) else f"{m:.{digits}f}"
+
+
+def format_table(records: Sequence[dict[str, Any]], *, regimes: Sequence[str], conditions: Sequence[str],
+                 severity: dict[str, float], notes: Sequence[str] = ()) -> str:
+    """table.md from per-clip records ({regime, condition, seed, scene, clip, metric: value})."""
+    lines = ["# Ablation (the paper's Table 1 layout)", "",
+             "Cells: mean ± 95 % CI over test scenes × seeds (clips of a scene averaged first). "
+             "**Best**, *second best* among the trained conditions of a regime. Severity: PSNR (dB) of the "
+             "condition's own training pairs, corrupted vs clean. Control rows do not compete.", ""]
+    head = "| regime | training set | severity | " + " | ".join(c[1] for c in COLUMNS) + " |"
+    sep = "|" + "---|" * (3 + len(COLUMNS))
+    tests: list[str] = []
+    for rg in regimes:
+        rows = [c for c in conditions if not c.startswith("target-") or c == f"target-{rg}"]
+        target = f"target-{rg}" if f"target-{rg}" in conditions else None
+        by_row = {c: [r for r in records if r["regime"] == rg and r["condition"] == c] for c in [*rows, *CONTROLS]}
+        cells: dict[str, dict[str, str]] = {c: {} for c in by_row}
+        for key, _, higher, digits in COLUMNS:
+            stats = {c: mean_ci(list(_units(by_row[c], key).values())) for c in by_row}
+            marks = rank_marks({c: stats[c][0] for c in rows}, higher)
+            for c, (m, ci, _) in stats.items():
+                s = _fmt(m, ci, digits)
+                mk = marks.get(c)
+                cells[c][key] = f"**{s}**" if mk == "best" else f"*{s}*" if mk == "second" else s
+        lines += [f"## {rg}", "", head, sep]
+        for c in [*rows, *CONTROLS]:
+            sev = severity.get(c)
+            sev_s = f"{sev:.2f}" if sev is not None else "-"
+            name = label(c) if c not in CONTROLS else f"({c})"
+            lines.append(f"| {rg} | {name} | {sev_s} | " + " | ".join(cells[c][k] for k, *_ in COLUMNS) + " |")
+        lines.append("")
+        for ref in (["naive"] if "naive" in conditions else []) + ([target] if target else []):
+            tests.append(f"### {rg}: each condition − {label(ref)} (mean paired difference, sign-flip permutation p)")
+            tests.append("")
+            tests.append("| condition | " + " | ".join(c[1] for c in COLUMNS) + " |")
+            tests.append("|" + "---|" * (1 + len(COLUMNS)))
+            for c in rows:
+                if c == ref:
+                    continue
+                out = []
+                for key, _, _, digits in COLUMNS:
+                    a, b = _units(by_row[c], key), _units(by_row[ref], key)
+                    common = [k for k in a if k in b]
+                    if len(common) < 2:
+                        out.append("n/a")
+                        continue
+                    d = sum(a[k] - b[k] for k in common) / len(common)
+                    p = paired_permutation_p([a[k] for k in common], [b[k] for k in common])
+                    out.append(f"{d:+.{digits}f} (p={p:.3f})" if math.isfinite(d) and not math.isnan(p) else "n/a")
+                tests.append(f"| {label(c)} | " + " | ".join(out) + " |")
+            tests.append("")
+    if tests:
+        lines += ["## Paired tests", "", *tests]
+    if notes:
+        lines += ["## Notes", "", *[f"- {n}" for n in notes], ""]
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def gather(jobs: Sequence[tuple[str, str, dict[str, Any]]]) -> dict[str, Any]:
+    """Per-clip records, severities and CKA curves from the finished stage outputs."""
+    recs: dict[tuple[Any, ...], dict[str, Any]] = {}
+    severity: dict[str, float] = {}
+    cka: list[dict[str, Any]] = []
+    for stage, path, meta in jobs:
+        p = Path(path)
+        if stage == "trainsets":
+            severity[meta["condition"]] = json.loads((p / "severity.json").read_text())["psnr_mean"]
+        elif stage == "training":
+            cka.append({"condition": meta["condition"], "seed": meta["seed"],
+                        **json.loads((p / "cka.json").read_text())})
+        elif stage in ("metrics2d", "metrics3d"):
+            data = json.loads((p / f"{stage}.json").read_text())
+            for clip, vals in data["clips"].items():
+                k = (meta["regime"], meta["condition"], meta["seed"], meta["scene"], clip)
+                rec = recs.setdefault(k, {"regime": k[0], "condition": k[1], "seed": k[2], "scene": k[3], "clip": k[4]})
+                rec.update(vals)
+    records = sorted(recs.values(), key=lambda r: (r["regime"], r["condition"], str(r["seed"]), r["scene"], r["clip"]))
+    return {"records": records, "severity": dict(sorted(severity.items())),
+            "cka": sorted(cka, key=lambda c: (c["condition"], c["seed"]))}
+
+
+def _csv(records: Sequence[dict[str, Any]]) -> str:
+    keys = ["regime", "condition", "seed", "scene", "clip"]
+    extra = sorted({k for r in records for k in r} - set(keys))
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(keys + extra)
+    for r in records:
+        w.writerow(["" if r.get(k) is None else r.get(k) for k in keys + extra])
+    return buf.getvalue()
+
+
+def make(work: Path, *, study: Any, root: str, jobs: Sequence[tuple[str, str, dict[str, Any]]],
+         lpips_note: str | None) -> None:
+    from morphgs.ablation import plots
+
+    g = gather(jobs)
+    regimes = [r.label for r in study.regimes]
+    notes = []
+    if lpips_note:
+        notes.append(f"LPIPS columns read n/a: {lpips_note}.")
+    notes.append("Geometry ground truth: depth of the clean dense 3DGS at the clip cameras, unprojected where "
+                 "alpha >= 0.5, in units of the clean scene's bbox diagonal (docs/ablation.md).")
+    (work / "table.md").write_text(format_table(g["records"], regimes=regimes, conditions=study.conditions,
+                                                severity=g["severity"], notes=notes), encoding="utf-8")
+    (work / "results.json").write_text(json.dumps({"records": g["records"], "severity": g["severity"],
+                                                   "cka": g["cka"], "lpips_note": lpips_note},
+                                                  indent=1, sort_keys=True) + "\n", encoding="utf-8")
+    (work / "results.csv").write_text(_csv(g["records"]), encoding="utf-8")
+    plots.write_all(work / "plots", g, regimes=regimes, conditions=study.conditions, jobs=jobs)

@@ -1,0 +1,110 @@
+"""Which scenes a study uses and how they split: pure functions of the settings and the inputs.
+
+The seeded split orders the scene ids by sha256("morphgs/ablate-split/v1", seed, id) and puts the
+first `split.test` in the test split: exact counts, independent of the input order and of how
+many workers run. Explicit `train_ids`/`test_ids` lists override it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from typing import Any
+
+from morphgs.ablation.study import Regime, Study, StudyError
+
+__all__ = ["SceneSet", "resolve_scenes", "scene_fingerprint"]
+
+
+@dataclass(frozen=True)
+class SceneSet:
+    """The study's scenes: {id: SceneSource}, the two splits, and each scene's capture views."""
+
+    sources: dict[str, Any]
+    train: list[str]
+    test: list[str]
+    views: dict[str, int]
+
+
+def _order(seed: int, sid: str) -> str:
+    return hashlib.sha256(f"morphgs/ablate-split/v1\0{seed}\0{sid}".encode()).hexdigest()
+
+
+def scene_fingerprint(source: Any) -> dict[str, Any]:
+    """What a capture reads of a scene: the built-in parameters, or the scene file's and the
+    cameras file's contents (sha256)."""
+    if source.builtin is not None:
+        return {"builtin": source.builtin}
+    out: dict[str, Any] = {"id": source.id}
+    for name, p in (("scene", source.path), ("cameras", source.cameras)):
+        if p is None:
+            continue
+        h = hashlib.sha256()
+        with open(p, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        out[name] = h.hexdigest()
+    return out
+
+
+def resolve_scenes(study: Study, *, check_views: bool = True) -> SceneSet:
+    """The scenes, their split and capture view counts.
+
+    Raises:
+        StudyError: a scene input that cannot be read, an unknown id in an explicit split, an
+            empty split, or a test scene with too few capture views for a regime (naming it).
+    """
+    from morphgs.curation.sources import builtin_sources, discover
+
+    sc, sp = study["scenes"], study["split"]
+    size = tuple(study["capture"]["size"])
+    if sc["inputs"]:
+        found, problems = discover(sc["inputs"])
+        if problems:
+            inp, msg = problems[0]
+            raise StudyError(f"{study.source}: scenes.inputs: {inp}: {msg}")
+    else:
+        found = builtin_sources(int(sc["builtin"]), n_gaussians=int(sc["builtin_gaussians"]))
+    sources = {s.id: s for s in found}
+    if sp["train_ids"] or sp["test_ids"]:
+        for key in ("train_ids", "test_ids"):
+            unknown = [i for i in sp[key] if i not in sources]
+            if unknown:
+                raise StudyError(f"{study.source}: split.{key}: unknown scene id(s) {unknown} "
+                                 f"(the scenes are {sorted(sources)})")
+        train, test = list(sp["train_ids"]), list(sp["test_ids"])
+        both = set(train) & set(test)
+        if both:
+            raise StudyError(f"{study.source}: split: scene(s) {sorted(both)} are in both train_ids and test_ids")
+    else:
+        order = sorted(sources, key=lambda s: _order(int(sp["seed"]), s))
+        test, train = sorted(order[: int(sp["test"])]), sorted(order[int(sp["test"]):])
+    if not train:
+        raise StudyError(f"{study.source}: split: empty training split ({len(sources)} scene(s), "
+                         f"{len(test)} of them in the test split)")
+    if not test:
+        raise StudyError(f"{study.source}: split: empty test split")
+    views = {}
+    for sid in train + test:
+        src = sources[sid]
+        rec = src.load_cameras(size) if check_views and src.builtin is None else None
+        views[sid] = len(rec) if rec is not None else int(study["capture"]["views"])
+    for sid in test:
+        for r in study.regimes:
+            _check_regime(study, sid, views[sid], r)
+    if study["conditions"]["targets"]:
+        for sid in train:
+            for r in study.regimes:
+                _check_regime(study, sid, views[sid], r)
+    return SceneSet(sources, train, test, views)
+
+
+def _check_regime(study: Study, sid: str, views: int, r: Regime) -> None:
+    if views < r.min_views():
+        raise StudyError(f"{study.source}: scene {sid} has {views} capture views, too few for regime {r.label} "
+                         f"(it needs at least {r.min_views()} so that 2 views remain to fit from)")
+
+
+def capture_size(study: Study) -> tuple[int, int]:
+    w, h = study["capture"]["size"]
+    return int(w), int(h)

@@ -1,0 +1,77 @@
+"""Stage 1, captures: per scene, the capture cameras and images, as a scene folder
+(`<scene id>/` with the scene file, `transforms.json`, `images/`, `cameras.json`) that curate,
+fit and the later stages read like any posed scene folder.
+
+- Cameras: the scene's recorded ones (transforms.json / COLMAP / INRIA cameras.json) at the
+  study's size; otherwise a 360-degree orbit of `views` views (the built-in rooms their own
+  orbit, as `sparse:K` makes it).
+- Images: the scene folder's real images when every recorded camera has one, else renders of the
+  clean scene (as `sparse:K` does today).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["load_capture", "make"]
+
+
+def _orbit(source: Any, scene: Any, views: int, size: tuple[int, int]) -> Any:
+    from morphgs import synthetic, trajectory
+
+    arc = 360.0 * (views - 1) / views
+    if source.builtin is not None:
+        o = synthetic.suggested_orbit()
+        return trajectory.orbit(o.center, o.radius, o.height - o.center[2], views, start_degrees=0.0,
+                                arc_degrees=arc, fov_y_degrees=50.0, resolution=size)
+    return trajectory.for_scene(scene, views, resolution=size, arc_degrees=arc)
+
+
+def make(work: Path, *, source: Any, views: int, size: tuple[int, int]) -> None:
+    """Write the capture folder of one scene into `work/<scene id>/`."""
+    import morphgs
+    from morphgs.curation.sparse import _views_images, _write_data
+
+    folder = work / source.id
+    folder.mkdir(parents=True, exist_ok=True)
+    scene = source.load()
+    recorded = source.load_cameras(size)
+    cams = recorded if recorded is not None else _orbit(source, scene, views, size)
+    images, kind = _views_images(source, scene, cams, list(range(len(cams))))
+    _write_data(folder, cams, images)
+    if source.builtin is not None:
+        morphgs.save(scene, folder / "scene.ply")
+    else:
+        target = Path(source.path).resolve()
+        os.symlink(target, folder / f"scene{''.join(target.suffixes[-2:]) or '.ply'}")
+    (folder / "cameras.json").write_text(json.dumps(cams.to_dict()) + "\n", encoding="utf-8")
+    lo, hi = (np.asarray(b, np.float64) for b in scene.bounds())
+    info = {"scene": source.id, "source": source.describe(), "views": len(cams), "images": kind,
+            "bbox_diagonal": float(np.linalg.norm(hi - lo)), "size": list(size)}
+    (work / "capture.json").write_text(json.dumps(info, indent=1) + "\n", encoding="utf-8")
+
+
+def load_capture(path: Path) -> tuple[Path, dict[str, Any]]:
+    """(the scene folder, capture.json) of a finished capture stage output."""
+    info = json.loads((path / "capture.json").read_text(encoding="utf-8"))
+    return path / info["scene"], info
+
+
+def load_cameras(path: Path) -> Any:
+    from morphgs.camera import Cameras
+
+    folder, _ = load_capture(path)
+    return Cameras.from_dict(json.loads((folder / "cameras.json").read_text(encoding="utf-8")))
+
+
+def load_scene(path: Path) -> Any:
+    import morphgs
+
+    folder, _ = load_capture(path)
+    files = [p for p in folder.iterdir() if p.name.startswith("scene")]
+    return morphgs.load(files[0])

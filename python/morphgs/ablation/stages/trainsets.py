@@ -1,0 +1,58 @@
+"""Stage 2, training sets: `curate` of one condition on the training scenes' capture folders
+(every scene in the train split), plus the condition's severity: the PSNR of its own pairs
+(corrupted vs clean), printed in the table's rows so a severity mismatch shows.
+
+A target condition is `{"kind": "sparse", "every": K}` (or "n"): pairs whose corrupted side is a
+sparse fit of the training scene, with the study's sparse-fit settings.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["condition_spec", "make", "severity"]
+
+
+def condition_spec(name: str, *, blur_sigma: float, regime: dict[str, int] | None, sparse: dict[str, Any]) -> Any:
+    """The curate ConfigSpec of a condition (a target: a sparse config with the study's fit)."""
+    from morphgs.curation.plan import ConfigSpec, parse_config
+
+    if regime is None:
+        return parse_config(name, blur_sigma=blur_sigma)
+    fit = {"init": {"random_points": int(sparse["random_points"])}, "mcmc": {"cap_max": int(sparse["cap_max"])}}
+    return ConfigSpec(name, "sparse", {**regime, "steps": int(sparse["steps"]), "fit": fit})
+
+
+def severity(data: Path) -> dict[str, float]:
+    """Mean and spread of the PSNR (dB) of a curated folder's pairs, corrupted vs clean."""
+    from morphgs import media
+    from morphgs.curation import manifest
+    from morphgs.metrics import psnr
+
+    vals = []
+    for rec in sorted(manifest.load(data).values(), key=lambda r: r["pair_id"]):
+        clean = media.read_clip(data / rec["paths"]["clean"])
+        bad = media.read_clip(data / rec["paths"]["corrupted"])
+        vals.append(float(psnr(bad, clean)))
+    a = np.asarray(vals)
+    return {"psnr_mean": float(a.mean()), "psnr_min": float(a.min()), "psnr_max": float(a.max()), "pairs": len(vals)}
+
+
+def make(work: Path, *, scene_dirs: list[str], spec: Any, pairs_per_scene: int, frames: int,
+         size: tuple[int, int], seed: int) -> None:
+    """Curate the condition into `work/data` and write `work/severity.json`."""
+    from morphgs.ablation.study import StudyError
+    from morphgs.curation import curate
+
+    data = work / "data"
+    summary = curate(scene_dirs, data, configs=[spec], pairs_per_scene=pairs_per_scene, frames=frames,
+                     resolution=size, seed=seed, test_fraction=0.0, trajectory="cameras", progress=False,
+                     log=lambda m: None)
+    if not summary.ok:
+        raise StudyError(f"training set {spec.label}: curate failed: {summary.failed}")
+    (work / "severity.json").write_text(json.dumps(severity(data), indent=1, sort_keys=True) + "\n",
+                                        encoding="utf-8")

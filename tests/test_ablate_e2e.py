@@ -1,0 +1,170 @@
+"""`morphgs ablate --preset smoke` end to end through the CLI, for real: every stage, the report,
+and the cache's promises -- a second run recomputes nothing, two worker processes give the same
+bytes, a SIGKILL during training loses no finished stage and the rerun's results equal an
+uninterrupted run's, and changing one condition recomputes only what depends on it."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("torch")
+pytest.importorskip("accelerate")
+pytest.importorskip("matplotlib")
+
+ENV = {**os.environ, "MORPHGS_NUM_THREADS": "2"}
+
+
+def _cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "morphgs", "ablate", *args]
+
+
+def _ablate(*args: str) -> subprocess.CompletedProcess[str]:
+    r = subprocess.run(_cmd(*args), env=ENV, capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-4000:]
+    return r
+
+
+def _last_run(study: Path) -> dict:
+    return json.loads((study / "runs.jsonl").read_text().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("ablate") / "smoke"
+    _ablate("--preset", "smoke", "--out", str(out))
+    return out
+
+
+def test_smoke_runs_every_stage_and_writes_the_report(smoke: Path) -> None:
+    counts = _last_run(smoke)["counts"]
+    # 3 scenes; 3 conditions (blur2d, morphological, target-S8) x 2 seeds; 1 test scene x 1 regime;
+    # 6 trained rows + 3 control rows, each refined and scored in 2D and 3D
+    assert counts == {"captures": {"computed": 3, "reused": 0}, "trainsets": {"computed": 3, "reused": 0},
+                      "training": {"computed": 6, "reused": 0}, "testsets": {"computed": 1, "reused": 0},
+                      "refine": {"computed": 9, "reused": 0}, "metrics2d": {"computed": 9, "reused": 0},
+                      "metrics3d": {"computed": 9, "reused": 0}, "report": {"computed": 1, "reused": 0}}
+    res = json.loads((smoke / "results.json").read_text())
+    rows = {(r["condition"], r["seed"]) for r in res["records"]}
+    assert rows == {(c, s) for c in ("blur2d", "morphological", "target-S8") for s in (0, 1)} | {
+        ("input", None), ("identity", None), ("oracle", None)}
+    for r in res["records"]:
+        assert set(r) >= {"psnr2d", "ssim2d", "lpips2d", "eflow", "psnr3d", "ssim3d", "lpips3d", "chamfer",
+                          "f@0.5%", "f@1%", "f@2%"}
+        assert 0.0 <= r["f@1%"] <= 1.0 and r["f@0.5%"] <= r["f@1%"] <= r["f@2%"]
+    oracle = next(r for r in res["records"] if r["condition"] == "oracle")
+    inp = next(r for r in res["records"] if r["condition"] == "input")
+    assert oracle["ssim2d"] == 1.0 and oracle["eflow"] == 0.0 and inp["ssim2d"] < 1.0
+    assert oracle["psnr3d"] > inp["psnr3d"]  # a re-fit from the clean frames beats one from the sparse render
+    # severity: the sparse target's training pairs are far more corrupted than the perturbations'
+    sev = res["severity"]
+    assert set(sev) == {"blur2d", "morphological", "target-S8"} and sev["target-S8"] < sev["morphological"]
+    for c in res["cka"]:  # CKA against the initial model: 1 at step 0, probed every 5 of 20 steps
+        assert c["steps"] == [0, 5, 10, 15, 20] and c["mean"][0] == pytest.approx(1.0) and c["mean"][-1] < 1.0
+    table = (smoke / "table.md").read_text()
+    assert "| S8 | target-S8 |" in table and "| S8 | (oracle) |" in table and "**" in table
+    assert "each condition − target-S8" in table
+    csv_lines = (smoke / "results.csv").read_text().splitlines()
+    assert len(csv_lines) == 1 + len(res["records"]) and csv_lines[0].startswith("regime,condition,seed,scene,clip")
+    for png in ("bars.png", "cka.png", "qualitative.png"):
+        assert (smoke / "plots" / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_second_run_recomputes_nothing(smoke: Path) -> None:
+    before = (smoke / "results.json").read_bytes()
+    r = _ablate("--preset", "smoke", "--out", str(smoke))
+    assert "0 stage output(s) computed, 41 reused" in r.stderr
+    assert all(c["computed"] == 0 for c in _last_run(smoke)["counts"].values())
+    assert (smoke / "results.json").read_bytes() == before
+
+
+def test_two_workers_give_the_same_bytes(smoke: Path, tmp_path: Path) -> None:
+    out = tmp_path / "j2"
+    _ablate("--preset", "smoke", "--out", str(out), "-j", "2")
+    for f in ("results.json", "results.csv", "table.md"):
+        assert (out / f).read_bytes() == (smoke / f).read_bytes(), f
+
+
+def test_the_ray_backend_gives_the_same_bytes(smoke: Path, tmp_path: Path) -> None:
+    # CI installs the ray extra, so there a missing Ray is a failure, not a skip
+    __import__("ray") if os.environ.get("CI") else pytest.importorskip("ray")
+    out = tmp_path / "ray"
+    _ablate("--preset", "smoke", "--out", str(out), "--backend", "ray", "-j", "2")
+    for f in ("results.json", "results.csv", "table.md"):
+        assert (out / f).read_bytes() == (smoke / f).read_bytes(), f
+
+
+def test_sigkill_during_training_then_rerun_gives_the_uninterrupted_results(smoke: Path, tmp_path: Path) -> None:
+    out = tmp_path / "killed"
+    proc = subprocess.Popen(_cmd("--preset", "smoke", "--out", str(out)), env=ENV, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 600
+        while proc.poll() is None and time.monotonic() < deadline:
+            if any((out / "training").glob(".*.work/run/checkpoints/step-*")):
+                break
+            time.sleep(0.005)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(timeout=60)
+    assert proc.returncode == -signal.SIGKILL  # killed mid-study, not finished
+    assert not (out / "table.md").exists()
+    partial = list((out / "training").glob(".*.work"))
+    assert partial  # a training run was in progress
+    finished_before = {p.name for st in ("captures", "trainsets", "training") for p in (out / st).iterdir()
+                       if (p / "stage.json").is_file()}
+    assert any(n.startswith("blur2d-") for n in finished_before)  # the training sets were done
+    _ablate("--preset", "smoke", "--out", str(out))
+    reused = {e["name"] for e in _last_run(out)["jobs"] if e["status"] == "reused"}
+    assert {n.rsplit("-", 1)[0] for n in finished_before} <= reused  # no finished stage was lost
+    resumed = [json.loads(p.read_text()) for p in (out / "training").glob("*/train.json")]
+    assert any(t["resumed"] for t in resumed)  # the killed run continued from its checkpoint
+    for f in ("results.json", "results.csv", "table.md"):
+        assert (out / f).read_bytes() == (smoke / f).read_bytes(), f
+
+
+def test_changing_one_condition_recomputes_only_that_condition(smoke: Path, tmp_path: Path) -> None:
+    out = tmp_path / "changed"
+    shutil.copytree(smoke, out, symlinks=True)
+    study = tmp_path / "study.toml"
+    study.write_text('preset = "smoke"\n[conditions]\ntrain = ["blur2d", "spatial"]\n', encoding="utf-8")
+    r = subprocess.run(_cmd("--study", str(study), "--out", str(out)), env=ENV, capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 1
+    assert r.stderr.count("\n") == 1 and "other settings (conditions.train: " in r.stderr and "--recompute" in r.stderr
+    _ablate("--study", str(study), "--out", str(out), "--recompute")
+    computed = sorted((e["stage"], e["name"]) for e in _last_run(out)["jobs"] if e["status"] == "computed")
+    rows = [f"spatial-s{s}-sample-2-S8" for s in (0, 1)]
+    assert computed == sorted([("trainsets", "spatial"), ("training", "spatial-s0"), ("training", "spatial-s1"),
+                               *[(st, r) for st in ("refine", "metrics2d", "metrics3d") for r in rows],
+                               ("report", "report")])
+    res = json.loads((out / "results.json").read_text())
+    assert {r["condition"] for r in res["records"]} == {"blur2d", "spatial", "target-S8", "input", "identity",
+                                                        "oracle"}
+    old = json.loads((smoke / "results.json").read_text())
+    keep = [r for r in old["records"] if r["condition"] != "morphological"]
+    assert [r for r in res["records"] if r["condition"] != "spatial"] == keep  # unchanged rows: the same values
+
+
+def test_the_2d_metrics_stage_alone_reads_lpips_as_na_with_its_reason(smoke: Path, tmp_path: Path) -> None:
+    from morphgs.ablation.stages import metrics2d
+
+    refined = next((smoke / "refine").glob("morphological-s0-*"))
+    testset = next((smoke / "testsets").glob("sample-2-S8-*"))
+    metrics2d.make(tmp_path, testset_dir=str(testset), refined_dir=str(refined), lpips="off", lpips_net="alex",
+                   eflow=False, threads=1)
+    out = json.loads((tmp_path / "metrics2d.json").read_text())
+    assert out["lpips_note"] == 'LPIPS turned off in the study ([metrics] lpips = "off")'
+    (row,) = out["clips"].values()
+    assert row["lpips2d"] is None and row["eflow"] is None
+    whole = next(r for r in json.loads((smoke / "results.json").read_text())["records"]
+                 if r["condition"] == "morphological" and r["seed"] == 0)
+    assert row["psnr2d"] == whole["psnr2d"] and row["ssim2d"] == whole["ssim2d"]  # the same functions, the same bits

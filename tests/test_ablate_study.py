@@ -1,0 +1,264 @@
+"""`morphgs ablate` without running a study: the study file over its presets, --print-config,
+--dry-run (plan, job counts, cost), the bad-input errors (one CLI line naming the file and the
+problem), the stage cache's keys, and the table generator's best/second marks."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from morphgs.ablation import StudyError, load_study
+from morphgs.ablation import cache
+from morphgs.ablation.report import format_table, rank_marks
+from morphgs.ablation.stats import mean_ci, paired_permutation_p
+
+ENV = {**os.environ, "MORPHGS_NUM_THREADS": "1"}
+
+
+def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "morphgs", "ablate", *args], env=ENV, capture_output=True,
+                          text=True, timeout=300, cwd=cwd)
+
+
+def _study(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "study.toml"
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+def test_print_config_pins_every_setting_and_reads_back_to_the_same_study(tmp_path: Path) -> None:
+    f = _study(tmp_path, 'preset = "smoke"\n[conditions]\ntrain = ["naive@0.5", "blur2d@3"]\n')
+    r = _cli("--study", str(f), "--print-config")
+    assert r.returncode == 0, r.stderr
+    assert 'preset = "smoke"' in r.stdout and 'train = ["naive@0.5", "blur2d@3"]' in r.stdout
+    for section in ("study", "scenes", "split", "capture", "conditions", "regimes", "clips", "model", "training",
+                    "sparse", "refit", "metrics"):
+        assert f"[{section}]" in r.stdout
+    pinned = tmp_path / "pinned.toml"
+    pinned.write_text(r.stdout, encoding="utf-8")
+    assert load_study(pinned).settings == load_study(f).settings
+
+
+@pytest.mark.parametrize("preset", ["smoke", "toy", "paper"])
+def test_dry_run_shows_the_plan_job_counts_and_a_cost_estimate(preset: str, tmp_path: Path) -> None:
+    r = _cli("--preset", preset, "--out", str(tmp_path / "s"), "--dry-run")
+    assert r.returncode == 0, r.stderr
+    assert "total estimate:" in r.stdout and "stage        jobs" in r.stdout
+    s = load_study(None, preset=preset)
+    n_cond, n_seed, n_reg = len(s.conditions), len(s.seeds), len(s.regimes)
+    line = next(x for x in r.stdout.splitlines() if x.startswith("training "))
+    assert int(line.split()[1]) == n_cond * n_seed
+    test = int(s["split"]["test"])
+    rows = n_cond * n_seed + 3
+    line = next(x for x in r.stdout.splitlines() if x.startswith("refine "))
+    assert int(line.split()[1]) == test * n_reg * rows
+    assert not (tmp_path / "s").exists()  # a dry run writes nothing
+    if preset == "paper":
+        assert "200 train, 50 test" in r.stdout and "model: sandbox" in r.stdout
+        assert "a real run would stop here: model.sd15" in r.stdout
+    if preset == "toy":
+        assert "6 train, 3 test" in r.stdout and "S20, S40, S80" in r.stdout
+        assert "blur2d, naive, spatial, radiometric, morphological, target-S20, target-S40, target-S80" in r.stdout
+
+
+@pytest.mark.parametrize(("text", "match"), [
+    ('[conditions]\ntrain = ["morphologic"]\n', r"conditions\.train: unknown condition 'morphologic'"),
+    ('[split]\ntrain_ids = ["sample-0"]\n', r"split\.test_ids: empty split"),
+    ('[split]\ntest = 3\n', r"empty training split"),
+    ('[regimes]\nevery = [30]\n', r"scene sample-\d has 24 capture views, too few for regime S30"),
+    ('[model]\nname = "sandbox"\n[model.overrides.model]\nsd15 = "/nonexistent/sd15"\nmotion_adapter = "/x"\n',
+     r"model's folders are missing: model\.sd15: /nonexistent/sd15: no such folder"),
+    ('[training]\nstepz = 3\n', r"training\.stepz: unknown key"),
+])
+def test_bad_study_files_get_one_line_naming_the_file_and_the_problem(tmp_path: Path, text: str, match: str) -> None:
+    f = _study(tmp_path, 'preset = "smoke"\n' + text)
+    r = _cli("--study", str(f), "--out", str(tmp_path / "s"))
+    assert r.returncode == 1, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("morphgs ablate: error: "), r.stderr
+    import re
+
+    assert re.search(match, lines[0]), lines[0]
+    assert str(f) in lines[0] or "sandbox" in text
+    with pytest.raises(StudyError):
+        if "sandbox" in text:
+            from morphgs.ablation.model_check import check_model_folders
+
+            check_model_folders(load_study(f))
+        else:
+            from morphgs.ablation.scenes import resolve_scenes
+
+            resolve_scenes(load_study(f))
+
+
+def test_a_missing_study_file_is_one_line(tmp_path: Path) -> None:
+    r = _cli("--study", str(tmp_path / "nope.toml"), "--out", str(tmp_path / "s"))
+    assert r.returncode == 1 and r.stderr.strip() == f"morphgs ablate: error: {tmp_path / 'nope.toml'}: no such study file"
+
+
+def test_stage_keys_hash_every_input_and_a_finished_stage_is_never_remade(tmp_path: Path) -> None:
+    a = cache.ref_for(tmp_path, "captures", "s0", {"views": 24, "size": [32, 32]})
+    assert a == cache.ref_for(tmp_path, "captures", "s0", {"size": [32, 32], "views": 24})  # order-free
+    assert a.key != cache.ref_for(tmp_path, "captures", "s0", {"views": 25, "size": [32, 32]}).key
+    calls = []
+
+    def make(w: Path) -> None:
+        calls.append(w)
+        (w / "out.txt").write_text("x")
+
+    _, status, _ = cache.run_stage(a, {"views": 24}, make)
+    assert status == "computed" and (a.path / "out.txt").read_text() == "x"
+    assert json.loads((a.path / "stage.json").read_text())["key"] == a.key
+    _, status, _ = cache.run_stage(a, {"views": 24}, make)
+    assert status == "reused" and len(calls) == 1
+
+    b = cache.ref_for(tmp_path, "captures", "s1", {"views": 1})
+
+    def crash(w: Path) -> None:
+        (w / "half.txt").write_text("half")
+        raise RuntimeError("killed")
+
+    with pytest.raises(RuntimeError):
+        cache.run_stage(b, {}, crash)
+    assert not b.path.exists()  # a crashed stage is never visible as done
+    _, status, _ = cache.run_stage(b, {}, make)
+    assert status == "computed" and not (b.path / "half.txt").exists()  # non-resumable: a fresh work folder
+
+
+def test_rank_marks_best_and_second_by_direction_with_ties_and_missing_values() -> None:
+    assert rank_marks({"a": 17.0, "b": 18.5, "c": 16.0, "d": 18.0}, True) == {"b": "best", "d": "second"}
+    assert rank_marks({"a": 0.4, "b": 0.3, "c": 0.5}, False) == {"b": "best", "a": "second"}
+    assert rank_marks({"a": 1.0, "b": 1.0, "c": 0.5, "d": math.nan}, True) == {"a": "best", "b": "best",
+                                                                                  "c": "second"}
+
+
+def _rec(cond: str, seed: object, scene: str, **vals: float) -> dict[str, object]:
+    return {"regime": "S20", "condition": cond, "seed": seed, "scene": scene, "clip": "00", **vals}
+
+
+def test_table_marks_best_bold_and_second_italic_on_a_hand_made_result_set() -> None:
+    means = {"naive": (15.0, 0.55), "morphological": (17.5, 0.40), "radiometric": (17.9, 0.37),
+             "target-S20": (17.0, 0.41)}
+    recs = []
+    for cond, (p, lp) in means.items():
+        for seed in (0, 1):
+            for k, scene in enumerate(("a", "b")):
+                off = 0.1 * (seed + k) - 0.1
+                recs.append(_rec(cond, seed, scene, psnr2d=p + off, lpips2d=lp + off / 10))
+    for ctl, p in (("input", 14.0), ("oracle", math.inf)):
+        recs += [_rec(ctl, None, s, psnr2d=p, lpips2d=0.7) for s in ("a", "b")]
+    text = format_table(recs, regimes=["S20"], conditions=list(means), severity={"naive": 30.1, "target-S20": 16.2})
+    rows = {line.split("|")[2].strip(): line for line in text.splitlines() if line.startswith("| S20 |")}
+    cells = {k: [c.strip() for c in v.split("|")[1:-1]] for k, v in rows.items()}
+    # columns: regime, set, severity, PSNR2D, SSIM2D, LPIPS2D, ...
+    assert cells["radiometric"][3].startswith("**17.900 ± ") and cells["radiometric"][3].endswith("**")
+    assert cells["morphological"][3].startswith("*17.500 ± ") and not cells["morphological"][3].startswith("**")
+    assert "*" not in cells["naive"][3] + cells["target-S20"][3]
+    assert cells["radiometric"][5].startswith("**0.370") and cells["morphological"][5].startswith("*0.400")
+    assert cells["(oracle)"][3] == "inf" and "*" not in cells["(input)"][3]  # controls do not compete
+    assert cells["naive"][2] == "30.10" and cells["target-S20"][2] == "16.20" and cells["morphological"][2] == "-"
+    assert cells["naive"][4] == "n/a"  # no SSIM values given
+    assert "### S20: each condition − naive" in text and "### S20: each condition − target-S20" in text
+
+
+def test_mean_ci_and_paired_permutation_test() -> None:
+    m, ci, n = mean_ci([1.0, 2.0, 3.0])
+    assert (m, n) == (2.0, 3) and ci == pytest.approx(4.303 * 1.0 / math.sqrt(3))
+    assert math.isnan(mean_ci([5.0])[1]) and mean_ci([])[2] == 0
+    # 5 pairs all improved by about 1: the exact two-sided p is 2/32
+    assert paired_permutation_p([2.0, 3.1, 4.0, 5.2, 6.0], [1.0, 2.0, 3.0, 4.0, 5.0]) == pytest.approx(2 / 32)
+    assert paired_permutation_p([1.0, 2.0], [1.0, 2.0]) == 1.0
+
+
+def _scene_folder(root: Path, views: int) -> Path:
+    """A scene folder as a user has it: the scene file, transforms.json and real images (here the
+    renders inverted, so that they cannot be mistaken for renders of the scene)."""
+    import numpy as np
+    from PIL import Image
+
+    import morphgs
+    from fit_helpers import make_dataset
+
+    folder, scene, _ = make_dataset(root, views=views, size=(32, 24), gaussians=1500)
+    morphgs.save(scene, folder / "scene.ply")
+    for p in sorted((folder / "images").iterdir()):
+        Image.fromarray(255 - np.asarray(Image.open(p))).save(p)
+    return folder
+
+
+def test_the_capture_stage_uses_a_scene_folders_cameras_and_real_images(tmp_path: Path) -> None:
+    import numpy as np
+    from PIL import Image
+
+    from morphgs import media
+    from morphgs.ablation.stages import captures
+    from morphgs.curation import discover
+
+    folder = _scene_folder(tmp_path / "room", views=10)
+    (src,), problems = discover([folder])
+    assert not problems
+    captures.make(tmp_path / "cap", source=src, views=96, size=(32, 24))
+    out, info = captures.load_capture(tmp_path / "cap")
+    assert info["views"] == 10 and info["images"] == "images"  # its 10 cameras, not a 96-view orbit
+    real = np.stack([np.asarray(Image.open(p)) for p in sorted((folder / "images").iterdir())])
+    np.testing.assert_array_equal(media.read_clip(out / "images"), real)
+    assert (out / "scene.ply").resolve() == (folder / "scene.ply").resolve()
+
+
+def test_a_scene_folder_with_too_few_views_for_a_regime_is_named(tmp_path: Path) -> None:
+    folder = _scene_folder(tmp_path / "room", views=10)
+    from morphgs.ablation.scenes import resolve_scenes
+
+    f = _study(tmp_path, f'preset = "smoke"\n[scenes]\ninputs = ["{folder}"]\n[split]\ntrain_ids = ["room"]\n'
+                         'test_ids = ["room"]\n')
+    with pytest.raises(StudyError, match=r"scene\(s\) \['room'\] are in both"):
+        resolve_scenes(load_study(f))
+    f = _study(tmp_path, f'preset = "smoke"\n[scenes]\ninputs = ["{folder}"]\n[regimes]\nevery = [12]\n')
+    with pytest.raises(StudyError, match=r"empty training split"):
+        resolve_scenes(load_study(f))
+    sample = tmp_path / "s2"
+    shutil.copytree(folder, sample)
+    f = _study(tmp_path, f'preset = "smoke"\n[scenes]\ninputs = ["{folder}", "{sample}"]\n[regimes]\nevery = [12]\n')
+    with pytest.raises(StudyError, match=r"scene (room|s2) has 10 capture views, too few for regime S12 "
+                                         r"\(it needs at least 13"):
+        resolve_scenes(load_study(f))
+
+
+def test_a_json_condition_is_read_relative_to_the_study_file_and_named_by_its_stem(tmp_path: Path) -> None:
+    import morphgs
+    from morphgs.ablation.recipe import build_plan
+
+    (tmp_path / "cfg").mkdir()
+    cfg = morphgs.PerturbConfig.preset("morphological").scaled(3.0).to_dict()
+    (tmp_path / "cfg" / "strong.json").write_text(json.dumps(cfg), encoding="utf-8")
+    f = _study(tmp_path, 'preset = "smoke"\n[conditions]\ntrain = ["cfg/strong.json"]\n')
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    r = _cli("--study", str(f), "--out", str(tmp_path / "s"), "--dry-run", cwd=elsewhere)
+    assert r.returncode == 0, r.stderr
+    jobs = build_plan(load_study(f), tmp_path / "s")
+    ts = [j for j in jobs if j.ref.stage == "trainsets"]
+    assert [j.ref.name for j in ts] == ["strong", "target-S8"]
+    assert ts[0].kwargs["spec"].params == cfg and ts[0].kwargs["spec"].label == "strong"
+
+
+def test_a_study_folder_made_with_other_settings_is_refused_naming_the_keys(tmp_path: Path) -> None:
+    from morphgs.ablation.recipe import check_study_folder
+
+    a = load_study(_study(tmp_path, 'preset = "smoke"\n'))
+    check_study_folder(a, tmp_path / "s", recompute=False)
+    check_study_folder(a, tmp_path / "s", recompute=False)  # the same settings: fine
+    assert load_study(tmp_path / "s" / "study.toml").settings == a.settings  # the pinned settings are kept
+    b = load_study(_study(tmp_path, 'preset = "smoke"\n[training]\nsteps = 7\n[clips]\nheldout = [1, 6]\n'))
+    with pytest.raises(StudyError, match=r"other settings \(clips\.heldout: \[2, 5\] -> \[1, 6\]; "
+                                         r"training\.steps: 20 -> 7\); pass --recompute"):
+        check_study_folder(b, tmp_path / "s", recompute=False)
+    check_study_folder(b, tmp_path / "s", recompute=True)
+    check_study_folder(b, tmp_path / "s", recompute=False)  # now the folder holds b's settings
