@@ -168,3 +168,31 @@ def test_the_2d_metrics_stage_alone_reads_lpips_as_na_with_its_reason(smoke: Pat
     whole = next(r for r in json.loads((smoke / "results.json").read_text())["records"]
                  if r["condition"] == "morphological" and r["seed"] == 0)
     assert row["psnr2d"] == whole["psnr2d"] and row["ssim2d"] == whole["ssim2d"]  # the same functions, the same bits
+
+
+def test_a_damaged_stage_output_is_named_and_made_again(smoke: Path, tmp_path: Path) -> None:
+    out = tmp_path / "damaged"
+    shutil.copytree(smoke, out, symlinks=True)
+    metrics = next((out / "metrics2d").glob("morphological-s0-*"))
+    victim = metrics / "metrics2d.json"
+    victim.write_bytes(victim.read_bytes()[:10])  # truncated, as by a full disk or a bad sync
+    r = _ablate("--preset", "smoke", "--out", str(out))
+    assert f"morphgs ablate: warning: {metrics}: damaged stage output" in r.stderr
+    computed = sorted((e["stage"], e["name"]) for e in _last_run(out)["jobs"] if e["status"] == "computed")
+    assert computed == [("metrics2d", metrics.name.rsplit("-", 1)[0])]  # only the damaged output is remade
+    assert (metrics.parent / f"{metrics.name}.damaged").is_dir()
+    for f in ("results.json", "results.csv", "table.md"):
+        assert (out / f).read_bytes() == (smoke / f).read_bytes(), f
+
+
+def test_a_second_ablate_into_a_study_being_written_is_refused(smoke: Path, tmp_path: Path) -> None:
+    from morphgs.reliability import folder_lock
+
+    out = tmp_path / "busy"
+    shutil.copytree(smoke, out, symlinks=True)
+    with folder_lock(out, command="ablate"):  # this test process is the other writer
+        r = subprocess.run(_cmd("--preset", "smoke", "--out", str(out)), env=ENV, capture_output=True, text=True,
+                           timeout=600)
+    assert r.returncode == 1 and r.stderr.count("\n") == 1
+    assert r.stderr.startswith("morphgs ablate: error: ") and f"pid {os.getpid()}" in r.stderr
+    assert "--wait" in r.stderr

@@ -51,6 +51,7 @@ _RESUME = {
     "curate": "the finished pairs are kept; rerun the same command to resume",
     "fit": "rerun the same command to resume from the last checkpoint",
     "train": "rerun with --resume to continue from the last checkpoint",
+    "ablate": "finished stages are kept; rerun the same command to continue",
     "export": "nothing was left at OUT (the partial export is removed); rerun to export",
 }
 

@@ -7,6 +7,9 @@ huggingface/datasets fingerprints a transform or dvc decides what to rerun.
   stage and never sees half of one.
 - A resumable stage (training, fits) keeps its work folder across kills and continues in it; the
   others start their work folder afresh.
+- A finished output also holds `checksums.json` (size and sha256 of each file, written last); an
+  output that no longer matches it (a truncated or damaged file) is reported with a
+  MorphgsWarning, moved aside as `<name>-<key>.damaged` and made again.
 - The `Ledger` records what each run computed and reused (STUDY/runs.jsonl), which is how a
   rerun shows that it did no work.
 """
@@ -19,10 +22,14 @@ import os
 import shutil
 import threading
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from morphgs._core import MorphgsWarning
+from morphgs.reliability import verify_checksums, write_checksums
 
 __all__ = ["Ledger", "StageRef", "key_of", "run_stage", "write_json_atomic"]
 
@@ -88,11 +95,30 @@ def is_done(ref: StageRef) -> bool:
     return (ref.path / STAGE_FILE).is_file()
 
 
+def usable(ref: StageRef) -> bool:
+    """Whether `ref` is finished and still matches its checksums. A damaged output is moved aside
+    (`<name>-<key>.damaged`, replacing an older one) with a warning, so it is made again."""
+    return is_done(ref) and _verified(ref)
+
+
+def _verified(ref: StageRef) -> bool:
+    problem = verify_checksums(ref.path)
+    if problem is None:
+        return True
+    aside = ref.path.with_name(ref.path.name + ".damaged")
+    if aside.exists():
+        shutil.rmtree(aside)
+    os.rename(ref.path, aside)
+    warnings.warn(f"{ref.path}: damaged stage output ({problem}); moved to {aside.name} and made again",
+                  MorphgsWarning, stacklevel=3)
+    return False
+
+
 def run_stage(ref: StageRef, inputs: dict[str, Any], make: Callable[[Path], None], *,
               resumable: bool = False) -> tuple[StageRef, str, float]:
     """Make `ref` unless it is done: `make(work)` fills a work folder that is then renamed into
     place. Returns (ref, "computed" | "reused", seconds)."""
-    if is_done(ref):
+    if usable(ref):
         return ref, "reused", 0.0
     t0 = time.perf_counter()
     work = ref.path.parent / f".{ref.path.name}.work"
@@ -101,6 +127,7 @@ def run_stage(ref: StageRef, inputs: dict[str, Any], make: Callable[[Path], None
     work.mkdir(parents=True, exist_ok=True)
     make(work)
     write_json_atomic(work / STAGE_FILE, {"stage": ref.stage, "name": ref.name, "key": ref.key, "inputs": inputs})
+    write_checksums(work)
     if ref.path.exists():  # a folder without stage.json: left by a crash between two renames
         shutil.rmtree(ref.path)
     os.rename(work, ref.path)

@@ -31,6 +31,7 @@ from typing import Any
 from morphgs.ablation import cache
 from morphgs.ablation.scenes import SceneSet, capture_size, resolve_scenes, scene_fingerprint
 from morphgs.ablation.study import Study, StudyError, flatten, target_name, to_toml
+from morphgs.reliability.checksums import CHECKSUMS
 
 __all__ = ["Job", "build_plan", "check_study_folder", "run_study"]
 
@@ -306,7 +307,7 @@ def _run_levels(jobs: list[Job], workers: int, backend: str, ledger: cache.Ledge
     for level in sorted({j.level for j in jobs}):
         todo = []
         for j in (j for j in jobs if j.level == level):
-            if cache.is_done(j.ref):
+            if cache.usable(j.ref):
                 ledger.add(j.ref, "reused", 0.0)
             else:
                 todo.append(j)
@@ -325,7 +326,7 @@ def _publish(jobs: list[Job], root: Path) -> None:
     """Copy the report stage's files to the top of the study folder (table.md, results.*, plots/)."""
     rep = next(j for j in jobs if j.ref.stage == "report").ref.path
     for p in sorted(rep.iterdir()):
-        if p.name == cache.STAGE_FILE:
+        if p.name in (cache.STAGE_FILE, CHECKSUMS):
             continue
         dst = root / p.name
         if p.is_dir():

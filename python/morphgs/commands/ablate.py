@@ -8,6 +8,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from morphgs.reliability import add_wait_argument, folder_lock
+
 
 def register(sub: Any) -> None:
     p = sub.add_parser(
@@ -24,6 +26,7 @@ def register(sub: Any) -> None:
     p.add_argument("--workers", "-j", type=int, default=1, help="local worker processes per stage level (1)")
     p.add_argument("--backend", choices=("local", "ray"), default="local", help="local processes or Ray (as curate)")
     p.add_argument("--ray-address", default=None, help="Ray cluster address (default: start a local Ray)")
+    add_wait_argument(p)
     p.add_argument("--recompute", action="store_true",
                    help="accept a study folder made with other settings: recompute what depends on the changes")
     p.set_defaults(func=run)
@@ -84,8 +87,9 @@ def run(args: argparse.Namespace) -> int:
     if args.dry_run:
         print(_plan_text(study, out, args.workers))
         return 0
-    ledger = run_study(study, out, workers=args.workers, recompute=args.recompute, backend=args.backend,
-                       ray_address=args.ray_address)
+    with folder_lock(out, command="ablate", wait=args.wait):
+        ledger = run_study(study, out, workers=args.workers, recompute=args.recompute, backend=args.backend,
+                           ray_address=args.ray_address)
     counts = ledger.counts()
     done = sum(c["computed"] for c in counts.values())
     reused = sum(c["reused"] for c in counts.values())

@@ -42,8 +42,10 @@ def make(work: Path, *, source: Any, views: int, size: tuple[int, int]) -> None:
     scene = source.load()
     recorded = source.load_cameras(size)
     cams = recorded if recorded is not None else _orbit(source, scene, views, size)
-    images, kind = _views_images(source, scene, cams, list(range(len(cams))))
-    _write_data(folder, cams, images)
+    # real photos come with their own cameras (each photo's size and orientation, undistorted);
+    # transforms.json pairs every image with its camera, cameras.json keeps the study-size cameras
+    images, view_cams, kind = _views_images(source, scene, cams, list(range(len(cams))))
+    _write_data(folder, view_cams, images)
     if source.builtin is not None:
         morphgs.save(scene, folder / "scene.ply")
     else:
