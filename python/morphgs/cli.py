@@ -49,6 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
 # what a command that was stopped (Ctrl-C, SIGTERM) tells its user to do next
 _RESUME = {
     "curate": "the finished pairs are kept; rerun the same command to resume",
+    "calibrate": "the real pairs and sparse fits made so far are kept; rerun the same command to resume",
     "fit": "rerun the same command to resume from the last checkpoint",
     "train": "rerun with --resume to continue from the last checkpoint",
     "ablate": "finished stages are kept; rerun the same command to continue",

@@ -161,6 +161,7 @@ def calibrate(
     workers: int = 1,
     plots: bool = True,
     log: Callable[[str], None] | None = None,
+    wait: bool = False,
 ) -> dict[str, Any]:
     """Calibrate each family's strength distribution to each regime's real pairs (docs/calibration.md).
 
@@ -177,6 +178,8 @@ def calibrate(
         builtin_gaussians: Gaussians per built-in scene. grid: the strength scan's log grid.
         lpips: also compute LPIPS (where the weights are installed). workers: curate's workers
             for the regimes' pairs. plots: write the PNG plots. log: message sink (stderr).
+        wait: when another process writes `out`, wait for it instead of raising FolderBusyError
+            (`out` is locked while calibrate runs; the curate of its real pairs locks out/real).
 
     Returns:
         The calibration.json content.
@@ -184,7 +187,36 @@ def calibrate(
     Raises:
         CalibrationError: an unknown family, a bad or too sparse regime, no real pairs, pairs of
             mismatched sizes, a real pair's scene not among the scenes.
+        morphgs.reliability.FolderBusyError: another process writes `out` (names its pid, host
+            and start time).
     """
+    from morphgs.reliability import folder_lock
+
+    with folder_lock(out, command="calibrate", wait=wait, say=log):
+        return _calibrate(scenes, out, regimes=regimes, families=families, real=real, pairs_per_scene=pairs_per_scene,
+                          frames=frames, resolution=resolution, seed=seed, builtin_gaussians=builtin_gaussians,
+                          grid=grid, lpips=lpips, workers=workers, plots=plots, log=log)
+
+
+def _calibrate(
+    scenes: Iterable[str | os.PathLike[str]] = (),
+    out: str | os.PathLike[str] = "out/calib",
+    *,
+    regimes: Sequence[str] = (),
+    families: Sequence[str] = ("morphological",),
+    real: str | os.PathLike[str] | None = None,
+    pairs_per_scene: int = 2,
+    frames: int = 16,
+    resolution: tuple[int, int] = (128, 96),
+    seed: int = 0,
+    builtin_gaussians: int = 100_000,
+    grid: Sequence[float] = DEFAULT_GRID,
+    lpips: bool = False,
+    workers: int = 1,
+    plots: bool = True,
+    log: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """`calibrate` with `out` locked (see there)."""
     from morphgs.curation import curate
     from morphgs.curation.sources import builtin_sources, discover
 

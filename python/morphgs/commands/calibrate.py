@@ -8,6 +8,7 @@ import sys
 from typing import Any
 
 from morphgs.commands.curate import _size
+from morphgs.reliability import add_wait_argument
 
 
 def _grid(text: str) -> list[float]:
@@ -51,6 +52,7 @@ def register(sub: Any) -> None:
     p.add_argument("--lpips", action="store_true", help="also compare LPIPS (needs the installed weights)")
     p.add_argument("--workers", "-j", type=int, default=1, help="curate workers for the regimes' pairs (1)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    add_wait_argument(p)
     p.set_defaults(func=run)
 
 
@@ -62,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
         doc = calibrate(args.scenes, args.out, regimes=args.regimes, families=args.families or ["morphological"],
                         real=args.real, pairs_per_scene=args.pairs_per_scene, frames=args.frames,
                         resolution=args.size, seed=args.seed, builtin_gaussians=args.sample_gaussians,
-                        lpips=args.lpips, **({"grid": args.grid} if args.grid else {}), workers=args.workers, plots=not args.no_plots)
+                        lpips=args.lpips, **({"grid": args.grid} if args.grid else {}), workers=args.workers,
+                        plots=not args.no_plots, wait=args.wait)
     except (CalibrationError, ValueError) as e:
         print(f"morphgs calibrate: error: {e}", file=sys.stderr)
         return 2

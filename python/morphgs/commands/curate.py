@@ -78,6 +78,10 @@ def register(sub: Any) -> None:
     p.add_argument("--stride", type=int, default=None, help="clip stride along recorded cameras (= frames)")
     p.add_argument("--orbit-arc", type=float, default=60.0, help="degrees an orbit pair sweeps (60)")
     p.add_argument("--fov", type=float, default=50.0, help="vertical field of view of orbits, degrees (50)")
+    p.add_argument("--up", default="file", metavar="UP",
+                   help="world up of orbits around scene files without cameras: file (the loaders' "
+                        "convention, -y), scene (from the Gaussians), +x..-z or X,Y,Z (file); the "
+                        "built-in sample scenes keep +z")
     p.add_argument("--chunk", type=int, default=8, help="frames per render pass (8)")
     p.add_argument("--workers", "-j", type=int, default=1, help="local worker processes (1)")
     p.add_argument("--backend", choices=("local", "ray"), default="local", help="local processes or Ray")
@@ -102,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
             test_fraction=args.test_fraction, split_seed=args.split_seed, blur_sigma=args.blur_sigma,
             depth=args.depth, video=args.video, fps=args.fps, background=args.background,
             trajectory=args.trajectory, stride=args.stride, orbit_arc_degrees=args.orbit_arc,
-            fov_y_degrees=args.fov, chunk=args.chunk, workers=args.workers, backend=args.backend,
+            fov_y_degrees=args.fov, up=args.up, chunk=args.chunk, workers=args.workers, backend=args.backend,
             ray_address=args.ray_address, shard_index=args.shard_index, num_shards=args.num_shards,
             builtin_gaussians=args.sample_gaussians, dry_run=args.dry_run, progress=not args.no_progress,
             wait=args.wait)

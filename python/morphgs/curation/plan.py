@@ -25,8 +25,8 @@ from typing import Any
 from morphgs.camera import Cameras
 from morphgs.curation.sources import SceneSource
 
-__all__ = ["ConfigSpec", "PairJob", "TrajectoryOptions", "job_cameras", "make_plan", "pair_seed",
-           "parse_config", "scene_split"]
+__all__ = ["ConfigSpec", "PairJob", "TrajectoryOptions", "check_up", "job_cameras", "job_up", "make_plan",
+           "pair_seed", "parse_config", "scene_split"]
 
 PRESETS = ("spatial", "radiometric", "morphological", "naive")
 
@@ -190,12 +190,50 @@ def _strength_params(d: dict[str, Any], spec: str) -> dict[str, Any]:
 @dataclass(frozen=True)
 class TrajectoryOptions:
     """How pair cameras are made. `kind`: "auto" (recorded cameras when the scene has them, else
-    an orbit), "cameras" or "orbit"."""
+    an orbit), "cameras" or "orbit". `up`: the world up of orbits around scene files, a rule of
+    `trajectory.scene_up` ("file": -y, the loaders' RDF convention; "scene": from the Gaussians;
+    "+x" ... "-z" or "X,Y,Z"); the built-in synthetic scenes always orbit around +z."""
 
     kind: str = "auto"
     stride: int | None = None
     orbit_arc_degrees: float = 60.0
     fov_y_degrees: float = 50.0
+    up: str = "file"
+
+
+def check_up(rule: str) -> str:
+    """`rule` when it is a valid up rule of `trajectory.scene_up` (ValueError naming --up otherwise)."""
+    from morphgs import trajectory
+
+    if rule in ("file", "scene", "builtin"):
+        return rule
+    try:
+        trajectory.parse_up(rule)
+    except ValueError as e:
+        raise ValueError(f"--up: {e}, file or scene") from None
+    return rule
+
+
+def uses_orbit(has_cameras: bool, opts: TrajectoryOptions) -> bool:
+    """Whether a pair's path is an orbit (not the recorded cameras)."""
+    return opts.kind == "orbit" or not has_cameras
+
+
+def job_up(job: PairJob, scene: Any, has_cameras: bool, opts: TrajectoryOptions) -> list[float] | None:
+    """The world up of the pair's orbit (None when it follows recorded cameras): +z for the
+    built-in synthetic scenes, else `trajectory.scene_up(scene, opts.up)`."""
+    return orbit_up(job, scene, opts) if uses_orbit(has_cameras, opts) else None
+
+
+def orbit_up(job: PairJob, scene: Any, opts: TrajectoryOptions) -> list[float]:
+    """The world up of an orbit pair: +z for the built-in synthetic scenes, else
+    `trajectory.scene_up(scene, opts.up)`."""
+    from morphgs import trajectory
+    from morphgs.trajectory.generators import BUILTIN_UP
+
+    if job.source.builtin is not None:
+        return [float(v) for v in BUILTIN_UP]
+    return [float(v) for v in trajectory.scene_up(scene, opts.up)[0]]
 
 
 @dataclass(frozen=True)
@@ -271,9 +309,9 @@ def job_cameras(job: PairJob, scene: Any, recorded: Cameras | None, opts: Trajec
       path through the recorded cameras in capture order with as many frames as recorded (at
       least `frames`), cut into clips of `frames` every `stride` frames (default: `frames`);
       pair k takes clip k mod (number of clips).
-    - Otherwise an orbit framing the scene's robust bounds (`trajectory.for_scene`): pair k
-      starts at 360 k / K degrees and sweeps `orbit_arc_degrees`; its elevation, in [10, 40]
-      degrees, comes from the pair seed.
+    - Otherwise an orbit framing the scene's robust bounds (`trajectory.for_scene`) around the
+      up of `opts.up` (`job_up`): pair k starts at 360 k / K degrees and sweeps
+      `orbit_arc_degrees`; its elevation, in [10, 40] degrees, comes from the pair seed.
     - The built-in synthetic scenes use their own orbit (`synthetic.suggested_orbit`, inside the
       room): pair k's arc starts at 90 + (180 - arc) k / (K - 1) degrees, facing the walls.
     """
@@ -300,6 +338,6 @@ def job_cameras(job: PairJob, scene: Any, recorded: Cameras | None, opts: Trajec
     elevation = 10.0 + 30.0 * ((job.seed % 1_000_003) / 1_000_003)
     return trajectory.for_scene(
         scene, job.frames, resolution=(job.width, job.height), fov_y_degrees=opts.fov_y_degrees,
-        elevation_degrees=elevation, start_degrees=360.0 * job.index / job.pairs_per_scene,
-        arc_degrees=opts.orbit_arc_degrees)
+        up=orbit_up(job, scene, opts), elevation_degrees=elevation,
+        start_degrees=360.0 * job.index / job.pairs_per_scene, arc_degrees=opts.orbit_arc_degrees)
 

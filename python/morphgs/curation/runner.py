@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from morphgs.curation import manifest
-from morphgs.curation.plan import ConfigSpec, PairJob, TrajectoryOptions, make_plan, parse_config
+from morphgs.curation.plan import ConfigSpec, PairJob, TrajectoryOptions, check_up, make_plan, parse_config, uses_orbit
 from morphgs.curation.sources import BUILTIN_GAUSSIANS, SceneSource, builtin_sources, discover
 from morphgs.curation.worker import OutputOptions, make_pair, tmp_root
 from morphgs.reliability import folder_lock
@@ -59,7 +59,7 @@ _CACHE: dict[str, Any] = {}
 
 
 def _scene_for(source: SceneSource, resolution: tuple[int, int]) -> tuple[Any, Any, float]:
-    key = f"{source.id}@{resolution}"
+    key = repr((source, resolution))  # the whole source: two runs in one process may share scene ids
     hit = _CACHE.get(key)
     if hit is None:
         _CACHE.clear()
@@ -117,7 +117,27 @@ def _matches(rec: dict[str, Any], job: PairJob, opts: OutputOptions) -> bool:
     want = {"seed": job.seed, "frames": job.frames, "resolution": [job.width, job.height],
             "config": job.config.as_dict(), "depth": opts.depth, "video": opts.video,
             "background": list(opts.background)}
-    return all(rec.get(k) == want[k] for k in _IDENTITY)
+    return all(rec.get(k) == want[k] for k in _IDENTITY) and _same_up(rec, job, opts.trajectory)
+
+
+def _same_up(rec: dict[str, Any], job: PairJob, traj: TrajectoryOptions) -> bool:
+    """Whether a finished pair turned around the up this run would use (records written before
+    the up was recorded had +z orbits). The "scene" rule is compared as a rule: its vector needs
+    the scene, and it is the same for the same scene file."""
+    import numpy as np
+
+    from morphgs.trajectory import scene_up
+
+    if not uses_orbit(job.source.cameras is not None, traj):
+        return rec.get("up") is None
+    got = rec.get("up", [0.0, 0.0, 1.0])
+    if got is None:
+        return False
+    if job.source.builtin is not None:
+        return bool(np.allclose(got, [0.0, 0.0, 1.0]))
+    if traj.up == "scene":
+        return rec.get("up_rule") == "scene"
+    return bool(np.allclose(got, scene_up(None, traj.up)[0]))
 
 
 class _PlainProgress:
@@ -172,6 +192,7 @@ def curate(
     stride: int | None = None,
     orbit_arc_degrees: float = 60.0,
     fov_y_degrees: float = 50.0,
+    up: str = "file",
     chunk: int = 8,
     workers: int = 1,
     backend: str = "local",
@@ -200,6 +221,9 @@ def curate(
         depth: also write depth EXRs. video: MP4s instead of PNG frames. fps: video rate.
         background: RGB background. trajectory: "auto", "cameras" or "orbit". stride: clip
             stride along recorded cameras. orbit_arc_degrees, fov_y_degrees: orbit paths.
+        up: the world up of orbits around scene files (`trajectory.scene_up` rules: "file", the
+            loaders' RDF convention, -y; "scene"; "+x" ... "-z"; "X,Y,Z"). Built-in sample
+            scenes orbit around +z whatever it says. Recorded in each record's "up".
         chunk: frames rendered per pass (the writer encodes one chunk while the next renders).
         workers: local worker processes (spawned); backend: "local" or "ray".
         shard_index, num_shards: this process's share of the jobs (cluster job arrays).
@@ -228,7 +252,7 @@ def _curate(*, scenes: Iterable[str | os.PathLike[str]], out: str | os.PathLike[
             configs: Sequence[str | ConfigSpec], pairs_per_scene: int, frames: int, resolution: tuple[int, int],
             seed: int, test_fraction: float, split_seed: int, blur_sigma: float, depth: bool, video: bool, fps: int,
             background: tuple[float, float, float], trajectory: str, stride: int | None, orbit_arc_degrees: float,
-            fov_y_degrees: float, chunk: int, workers: int, backend: str, ray_address: str | None,
+            fov_y_degrees: float, up: str, chunk: int, workers: int, backend: str, ray_address: str | None,
             shard_index: int, num_shards: int, builtin_scenes: int, builtin_gaussians: int, dry_run: bool,
             progress: bool, log: Callable[[str], None] | None) -> CurateSummary:
     """`curate`, with the folder locked (see there)."""
@@ -251,7 +275,7 @@ def _curate(*, scenes: Iterable[str | os.PathLike[str]], out: str | os.PathLike[
         raise ValueError(f"chunk must be >= 1, got {chunk}")
     opts = OutputOptions(depth=depth, video=video, fps=fps, background=tuple(background),  # type: ignore[arg-type]
                          chunk=chunk, trajectory=TrajectoryOptions(trajectory, stride, orbit_arc_degrees,
-                                                                   fov_y_degrees))
+                                                                   fov_y_degrees, check_up(up)))
     jobs = make_plan(sources, specs, pairs_per_scene=pairs_per_scene, run_seed=seed, frames=frames,
                      resolution=tuple(resolution), test_fraction=test_fraction,  # type: ignore[arg-type]
                      split_seed=split_seed, shard_index=shard_index, num_shards=num_shards)
@@ -267,7 +291,7 @@ def _curate(*, scenes: Iterable[str | os.PathLike[str]], out: str | os.PathLike[
         if rec is not None and manifest.is_complete(out_dir, rec):
             if not _matches(rec, job, opts):
                 raise ValueError(f"{out_dir} already holds pair {job.pair_id} made with other settings "
-                                 f"(seed/frames/resolution/config/depth/video/background); use another --out")
+                                 f"(seed/frames/resolution/config/depth/video/background/up); use another --out")
             summary.skipped += 1
         else:
             todo.append(job)

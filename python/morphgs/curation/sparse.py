@@ -51,8 +51,10 @@ _GL = np.diag([1.0, -1.0, -1.0, 1.0])
 _CACHE: dict[str, tuple[Any, dict[str, Any]]] = {}
 
 
-def capture_cameras(source: Any, scene: Any, recorded: Cameras | None, resolution: tuple[int, int]) -> Cameras:
-    """The cameras a sparse fit picks its views from (see the module docs)."""
+def capture_cameras(source: Any, scene: Any, recorded: Cameras | None, resolution: tuple[int, int],
+                    up: Any = "file") -> Cameras:
+    """The cameras a sparse fit picks its views from (see the module docs); `up`: the world up
+    of the orbit around a scene file without cameras (a `trajectory.scene_up` rule or a vector)."""
     from morphgs import trajectory
 
     if recorded is not None:
@@ -64,7 +66,7 @@ def capture_cameras(source: Any, scene: Any, recorded: Cameras | None, resolutio
         return trajectory.orbit(o.center, o.radius, o.height - o.center[2], CAPTURE_VIEWS, start_degrees=0.0,
                                 arc_degrees=360.0 * (CAPTURE_VIEWS - 1) / CAPTURE_VIEWS, fov_y_degrees=50.0,
                                 resolution=resolution)
-    return trajectory.for_scene(scene, CAPTURE_VIEWS, resolution=resolution,
+    return trajectory.for_scene(scene, CAPTURE_VIEWS, resolution=resolution, up=up,
                                 arc_degrees=360.0 * (CAPTURE_VIEWS - 1) / CAPTURE_VIEWS)
 
 
@@ -115,9 +117,14 @@ def fit_view(img: np.ndarray, cam: Any, width: int, height: int) -> tuple[np.nda
     return out, cam.resized(w, h)
 
 
-def _fit_dir(out_dir: Path, job: Any, fit_cfg: dict[str, Any]) -> Path:
-    ident = json.dumps({"config": job.config.as_dict(), "fit": fit_cfg, "size": [job.width, job.height],
-                        "seed": job.run_seed, "scene": job.source.describe()}, sort_keys=True)
+def _fit_dir(out_dir: Path, job: Any, fit_cfg: dict[str, Any], up: list[float] | None) -> Path:
+    """The cache folder of a sparse fit; `up` (the capture orbit's up, None when the views are
+    recorded cameras or the built-in room orbit) is part of its key, so another --up fits again."""
+    key: dict[str, Any] = {"config": job.config.as_dict(), "fit": fit_cfg, "size": [job.width, job.height],
+                           "seed": job.run_seed, "scene": job.source.describe()}
+    if up is not None:
+        key["up"] = [round(v, 9) for v in up]
+    ident = json.dumps(key, sort_keys=True)
     h = hashlib.sha256(ident.encode()).hexdigest()[:10]
     return out_dir / "fits" / job.source.id / f"{job.config.label}-{job.width}x{job.height}-seed{job.run_seed}-{h}"
 
@@ -175,9 +182,12 @@ def _cached_result(run: Path) -> tuple[dict[str, Any], Any] | None:
         return None
 
 
-def sparse_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path) -> tuple[Any, dict[str, Any]]:
+def sparse_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path,
+                 up: str = "file") -> tuple[Any, dict[str, Any]]:
     """The cached sparse reconstruction of a `sparse` job (fitting it first when needed):
-    (GaussianScene, info for the manifest)."""
+    (GaussianScene, info for the manifest). `up`: the up rule of the capture orbit of a scene
+    file without cameras (`trajectory.scene_up`)."""
+    from morphgs import trajectory
     from morphgs.fit import FitConfig, FitRunError, fit
 
     params = dict(job.config.params)
@@ -188,7 +198,10 @@ def sparse_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path) 
     if overrides:
         cfg = FitConfig.from_dict({**cfg.to_dict(), **overrides}, source=f"config {job.config.label}")
     cfg.seed = int(job.run_seed)
-    folder = _fit_dir(out_dir, job, cfg.to_dict())
+    orbit_up = None
+    if recorded is None and job.source.builtin is None:
+        orbit_up = [float(v) for v in trajectory.scene_up(scene, up)[0]]
+    folder = _fit_dir(out_dir, job, cfg.to_dict(), orbit_up)
     key = str(folder)
     if key in _CACHE:
         return _CACHE[key]
@@ -199,7 +212,8 @@ def sparse_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path) 
         done = run / "fit.json"
         loaded = _cached_result(run) if done.is_file() else None
         if loaded is None:
-            cams = capture_cameras(job.source, scene, recorded, (job.width, job.height))
+            cams = capture_cameras(job.source, scene, recorded, (job.width, job.height),
+                                   up=orbit_up if orbit_up is not None else "file")
             train, held = split_views(len(cams), params)
             data = folder / "data"
             if not (data / "transforms.json").is_file():
@@ -211,12 +225,12 @@ def sparse_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path) 
             nt = len(train)
             print(f"curate: fitting {job.source.id} from {nt} of {len(cams)} views ({job.config.label}, "
                   f"{cfg.steps} steps) -> {run}", file=sys.stderr)
-            args = dict(config=cfg, views=list(range(nt)), holdout=list(range(nt, nt + len(held))), init="random",
-                        progress=False)
+            views, holdout = list(range(nt)), list(range(nt, nt + len(held)))
             try:
-                fit(data, run, **args)
+                fit(data, run, config=cfg, views=views, holdout=holdout, init="random", progress=False)
             except FitRunError:  # no checkpoint of it verifies: fit it from the start
-                fit(data, run, resume=False, **args)
+                fit(data, run, config=cfg, views=views, holdout=holdout, init="random", progress=False,
+                    resume=False)
             loaded = _cached_result(run)
             if loaded is None:
                 raise MorphgsError(f"sparse fit {run}: its result cannot be read back after fitting")

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from morphgs.camera import Cameras
-from morphgs.curation.plan import PairJob, TrajectoryOptions, job_cameras
+from morphgs.curation.plan import PairJob, TrajectoryOptions, job_cameras, job_up
 from morphgs.pair import Corruption, iter_pair_chunks
 
 __all__ = ["OutputOptions", "PairWriter", "make_pair", "tmp_root"]
@@ -116,7 +116,7 @@ def make_pair(
     if corruption.kind == "sparse":
         from morphgs.curation.sparse import sparse_scene
 
-        corrupted_scene, fit_info = sparse_scene(job, scene, recorded, out_dir)
+        corrupted_scene, fit_info = sparse_scene(job, scene, recorded, out_dir, up=opts.trajectory.up)
     else:
         corrupted_scene = corruption.corrupt_scene(scene, job.seed)
     t_perturb = time.perf_counter() - t0
@@ -166,6 +166,9 @@ def make_pair(
         paths.update({"clean_depth": f"{rel}/clean", "corrupted_depth": f"{rel}/corrupted"})
     total = time.perf_counter() - t_start + load_seconds
     extra: dict[str, Any] = {"fit": fit_info} if fit_info is not None else {}
+    up = job_up(job, scene, recorded is not None, opts.trajectory)
+    if up is not None:  # an orbit: the world up it turned around, and the rule that gave it
+        extra["up_rule"] = "builtin" if job.source.builtin is not None else opts.trajectory.up
     drawn = corruption.strength(job.seed)
     if drawn is not None:  # the strength this pair drew (from a strength distribution or fixed)
         extra["strength"] = drawn
@@ -184,6 +187,7 @@ def make_pair(
         "depth": opts.depth,
         "video": video,
         "background": list(opts.background),
+        "up": up,
         "paths": paths,
         "timings": {"load": round(load_seconds, 4), "perturb": round(t_perturb, 4),
                     "render": round(t_render, 4), "write_wait": round(t_wait, 4), "total": round(total, 4)},

@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from morphgs.reliability import folder_lock
+
 __all__ = ["ManyResult", "expand_inputs", "fit_many"]
 
 
@@ -102,17 +104,27 @@ def _write(root: Path, records: list[dict[str, Any]]) -> None:
 
 
 def fit_many(inputs: Sequence[str], root: str | os.PathLike[str], *, workers: int = 1,
-             log: Callable[[str], None] | None = None, **kwargs: Any) -> ManyResult:
+             log: Callable[[str], None] | None = None, wait: bool = False, **kwargs: Any) -> ManyResult:
     """Fit every capture of `inputs` (folders or transforms.json files; globs and @FILE lists
     expanded) into `root/<scene>/`; `kwargs` go to `morphgs.fit.fit` (config, views, holdout,
     init, images, downscale, resume). Returns every capture's record; raises only for bad
-    arguments (no input, workers < 1)."""
+    arguments (no input, workers < 1) and `FolderBusyError`.
+
+    One process writes `root` at a time (its lock, `root/.morphgs.lock`; `wait`: wait for the
+    holder instead of raising), and each scene's run folder keeps its own lock, taken by the
+    worker that fits it (waiting too with `wait`)."""
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     paths = expand_inputs(inputs)
     if not paths:
         raise ValueError(f"no capture matches {list(inputs)}")
-    out = Path(root)
+    with folder_lock(root, command="fit", wait=wait):
+        return _fit_many(paths, Path(root), workers=workers, log=log, kwargs={**kwargs, "wait": wait})
+
+
+def _fit_many(paths: list[str], out: Path, *, workers: int, log: Callable[[str], None] | None,
+              kwargs: dict[str, Any]) -> ManyResult:
+    """`fit_many` with the root locked."""
     out.mkdir(parents=True, exist_ok=True)
     names = _names(paths)
     records: list[dict[str, Any]] = [{"scene": n, "input": p, "run": str(out / n), "status": "pending"}

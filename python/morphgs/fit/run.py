@@ -40,7 +40,7 @@ from morphgs.camera import Camera
 from morphgs.fit.config import FitConfig
 from morphgs.fit.data import PosedImages, describe, load_posed_images
 from morphgs.fit.views import ViewSelection, select_views
-from morphgs.reliability import locks_folder
+from morphgs.reliability import folder_lock
 
 __all__ = ["FitResult", "FitRunError", "fit", "scene_scale_of"]
 
@@ -332,7 +332,6 @@ def _restore(core: Any, run: Path, train_imgs: Any, tw2c: Any, tk: Any, fp: byte
                       "(resume=False) to start over")
 
 
-@locks_folder("fit")
 def fit(
     data: str | os.PathLike[str] | PosedImages,
     out: str | os.PathLike[str],
@@ -348,6 +347,7 @@ def fit(
     resume: bool = True,
     progress: bool = True,
     callback: Callable[[str, Any], Any] | None = None,
+    wait: bool = False,
 ) -> FitResult:
     """Fit a 3DGS scene to posed images on the CPU (docs/fit.md).
 
@@ -380,6 +380,29 @@ def fit(
         field. FitRunError: `out` holds another run. KeyboardInterrupt: Ctrl-C, after a
         checkpoint was written (rerun to resume).
     """
+    with folder_lock(out, command="fit", wait=wait):
+        return _fit(data, out, config=config, views=views, holdout=holdout, init=init, images=images,
+                    downscale=downscale, steps=steps, seed=seed, resume=resume, progress=progress,
+                    callback=callback)
+
+
+def _fit(
+    data: str | os.PathLike[str] | PosedImages,
+    out: str | os.PathLike[str],
+    *,
+    config: FitConfig | str | os.PathLike[str] | dict[str, Any] | None = None,
+    views: str | Sequence[int] = "all",
+    holdout: str | Sequence[int] = "every:8",
+    init: Any = "auto",
+    images: str | None = None,
+    downscale: int = 1,
+    steps: int | None = None,
+    seed: int | None = None,
+    resume: bool = True,
+    progress: bool = True,
+    callback: Callable[[str, Any], Any] | None = None,
+) -> FitResult:
+    """`fit` with `out` locked (see there)."""
     from morphgs import _core
     from morphgs.fit.init import initial_scene
     from morphgs.fit.progress import progress_bar

@@ -136,10 +136,11 @@ def _run(accelerator: Any, resolved: ResolvedConfig, run_dir: Path, data_dir: Pa
 
     # ---- data, then the run folder (every process checks, then the main one writes) ----
     _check_run_dir(run_dir, resume)
-    train_ds, val_ds = _datasets(cfg, data_dir, scenes, say)
+    train_ds, val_pairs = _datasets(cfg, data_dir, scenes, say)
+    val_ds: PairDataset | SkipBadPairs | None = val_pairs
     if cfg.data.skip_bad and isinstance(train_ds, PairDataset):
         train_ds = SkipBadPairs(train_ds)
-        val_ds = SkipBadPairs(val_ds) if val_ds is not None else None
+        val_ds = SkipBadPairs(val_pairs) if val_pairs is not None else None
     accelerator.wait_for_everyone()
     if main and not resume:
         _start_run_dir(run_dir, resolved, data_dir, scenes, accelerator)
@@ -544,7 +545,7 @@ def _progress(enabled: bool, total: int, initial: int) -> Any:
     return tqdm(total=total, initial=initial, desc="train", unit="step", dynamic_ncols=True)
 
 
-def _validate(accelerator: Any, refiner: Refiner, val_ds: PairDataset, cfg: TrainConfig, run_dir: Path, step: int,
+def _validate(accelerator: Any, refiner: Refiner, val_ds: PairDataset | SkipBadPairs, cfg: TrainConfig, run_dir: Path, step: int,
               logs: Logs) -> dict[str, float]:
     """PSNR/SSIM of input vs target and output vs target on the first test clips (centre
     windows), a CSV row and a preview strip; main process only, the others wait."""
