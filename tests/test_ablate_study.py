@@ -262,3 +262,37 @@ def test_a_study_folder_made_with_other_settings_is_refused_naming_the_keys(tmp_
         check_study_folder(b, tmp_path / "s", recompute=False)
     check_study_folder(b, tmp_path / "s", recompute=True)
     check_study_folder(b, tmp_path / "s", recompute=False)  # now the folder holds b's settings
+
+
+def test_the_capture_orbit_of_a_scene_file_is_upright_and_up_is_checked(tmp_path: Path) -> None:
+    import numpy as np
+
+    import morphgs
+    from morphgs import synthetic
+    from morphgs.ablation.stages import captures
+    from morphgs.camera import Cameras
+    from morphgs.curation import discover
+
+    # a z-up scene saved as the loaders give every file: y down ((x, y, z) -> (x, -z, y))
+    R = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    base = synthetic.scene(2000, sh_degree=0, seed=3)
+    ydown = morphgs.GaussianScene.from_arrays(
+        means=np.ascontiguousarray(np.asarray(base.means) @ R.T.astype(np.float32)), quats=base.quats,
+        log_scales=base.log_scales, opacity_logits=base.opacity_logits, sh0=base.sh0)
+    orbits = {}
+    for name, scene, up in (("ydown", ydown, "file"), ("zup", base, "+z")):
+        folder = tmp_path / name
+        folder.mkdir()
+        morphgs.save(scene, folder / "scene.ply")
+        (src,), problems = discover([folder])
+        assert not problems
+        captures.make(tmp_path / f"cap-{name}", source=src, views=8, size=(32, 24), up=up)
+        out, _ = captures.load_capture(tmp_path / f"cap-{name}")
+        orbits[name] = Cameras.from_dict(json.loads((out / "cameras.json").read_text())).camera_to_world
+    got, want = orbits["ydown"], orbits["zup"]
+    np.testing.assert_allclose(got[:, :3, 3] @ R, want[:, :3, 3], atol=1e-3)  # the same path around the scene
+    np.testing.assert_allclose(R.T @ got[:, :3, :3], want[:, :3, :3], atol=1e-4)  # and upright in it
+    f = _study(tmp_path, 'preset = "smoke"\n[capture]\nup = "sideways"\n')
+    with pytest.raises(StudyError, match=r"capture\.up.*sideways"):
+        load_study(f)
+    assert load_study(f, up="-y")["capture"]["up"] == "-y"  # --up overrides the file

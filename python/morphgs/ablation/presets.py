@@ -37,6 +37,7 @@ _BASE: dict[str, Any] = {
     "capture": {
         "views": 96,                    # capture views of scenes without recorded cameras (an orbit)
         "size": [128, 128],             # W, H of captures, pairs, clips and fits
+        "up": "file",                   # world up of those orbits: file (-y), scene, +x..-z or "X,Y,Z"
     },
     "conditions": {
         "train": ["blur2d", "naive", "spatial", "radiometric", "morphological"],  # any curate config

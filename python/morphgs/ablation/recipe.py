@@ -93,9 +93,12 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
     # 1. captures: per scene
     cap: dict[str, Job] = {}
     for sid in sc.train + sc.test:
-        cap[sid] = add("captures", sid, {"scene": scene_fingerprint(sc.sources[sid]), "views": S["capture"]["views"],
-                                         "size": list(size)}, 0,
-                       source=sc.sources[sid], views=int(S["capture"]["views"]), size=size)
+        src = sc.sources[sid]
+        inputs = {"scene": scene_fingerprint(src), "views": S["capture"]["views"], "size": list(size)}
+        if src.builtin is None:  # the built-in rooms keep their own z-up orbit (and their keys)
+            inputs["up"] = S["capture"]["up"]
+        cap[sid] = add("captures", sid, inputs, 0, source=src, views=int(S["capture"]["views"]), size=size,
+                       up=S["capture"]["up"])
 
     # 2. training sets: per condition, on the train scenes' captures
     train_dirs = [str(cap[s].ref.path / s) for s in sc.train]

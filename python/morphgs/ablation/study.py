@@ -119,6 +119,14 @@ def _validate(s: dict[str, Any], source: str) -> None:
     seeds = _ints(s["study"]["seeds"], "study.seeds", source, 0)
     if not seeds or len(set(seeds)) != len(seeds):
         raise StudyError(f"{_where(source, 'study.seeds')} must be distinct integers, at least one")
+    up = s["capture"]["up"]
+    if up not in ("file", "scene"):
+        from morphgs.trajectory import parse_up
+
+        try:
+            parse_up(up)
+        except ValueError as e:
+            raise StudyError(f"{_where(source, 'capture.up')}: {e} (or file, scene)") from None
     names = s["conditions"]["train"]
     if not names and not s["conditions"]["targets"]:
         raise StudyError(f"{_where(source, 'conditions.train')}: no conditions (and targets = false)")
@@ -174,7 +182,7 @@ def _validate(s: dict[str, Any], source: str) -> None:
         raise StudyError(f"{_where(source, 'split.test')}: empty split (the test split needs >= 1 scene)")
 
 
-def load_study(path: str | os.PathLike[str] | None, *, preset: str | None = None) -> Study:
+def load_study(path: str | os.PathLike[str] | None, *, preset: str | None = None, up: str | None = None) -> Study:
     """The study of a TOML file over a preset (default: the file's `preset = "..."`, else toy).
 
     Raises:
@@ -201,6 +209,8 @@ def load_study(path: str | os.PathLike[str] | None, *, preset: str | None = None
     base = presets.preset(name)
     _check_types(base, data, "", source)
     settings = presets.merge(base, data)
+    if up is not None:  # --up on the command line
+        settings["capture"]["up"] = up
     # a relative scene path or model config is relative to the study file
     if path is not None:
         root = Path(path).resolve().parent

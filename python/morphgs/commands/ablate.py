@@ -26,6 +26,10 @@ def register(sub: Any) -> None:
     p.add_argument("--workers", "-j", type=int, default=1, help="local worker processes per stage level (1)")
     p.add_argument("--backend", choices=("local", "ray"), default="local", help="local processes or Ray (as curate)")
     p.add_argument("--ray-address", default=None, help="Ray cluster address (default: start a local Ray)")
+    p.add_argument("--up", default=None,
+                   help="world up of the capture orbits of scene files without cameras: file (the loaders' "
+                        "-y, default), scene (from the Gaussians), +x..-z or X,Y,Z (write --up=-y); overrides "
+                        "the study's capture.up")
     add_wait_argument(p)
     p.add_argument("--recompute", action="store_true",
                    help="accept a study folder made with other settings: recompute what depends on the changes")
@@ -76,7 +80,7 @@ def _dur(s: float) -> str:
 def run(args: argparse.Namespace) -> int:
     from morphgs.ablation import load_study, run_study, to_toml
 
-    study = load_study(args.study, preset=args.preset)
+    study = load_study(args.study, preset=args.preset, up=args.up)
     if args.print_config:
         sys.stdout.write(to_toml(study))
         return 0

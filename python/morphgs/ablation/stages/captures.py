@@ -21,7 +21,7 @@ import numpy as np
 __all__ = ["load_capture", "make"]
 
 
-def _orbit(source: Any, scene: Any, views: int, size: tuple[int, int]) -> Any:
+def _orbit(source: Any, scene: Any, views: int, size: tuple[int, int], up: str) -> Any:
     from morphgs import synthetic, trajectory
 
     arc = 360.0 * (views - 1) / views
@@ -29,10 +29,10 @@ def _orbit(source: Any, scene: Any, views: int, size: tuple[int, int]) -> Any:
         o = synthetic.suggested_orbit()
         return trajectory.orbit(o.center, o.radius, o.height - o.center[2], views, start_degrees=0.0,
                                 arc_degrees=arc, fov_y_degrees=50.0, resolution=size)
-    return trajectory.for_scene(scene, views, resolution=size, arc_degrees=arc)
+    return trajectory.for_scene(scene, views, resolution=size, arc_degrees=arc, up=up)
 
 
-def make(work: Path, *, source: Any, views: int, size: tuple[int, int]) -> None:
+def make(work: Path, *, source: Any, views: int, size: tuple[int, int], up: str = "file") -> None:
     """Write the capture folder of one scene into `work/<scene id>/`."""
     import morphgs
     from morphgs.curation.sparse import _views_images, _write_data
@@ -41,7 +41,7 @@ def make(work: Path, *, source: Any, views: int, size: tuple[int, int]) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     scene = source.load()
     recorded = source.load_cameras(size)
-    cams = recorded if recorded is not None else _orbit(source, scene, views, size)
+    cams = recorded if recorded is not None else _orbit(source, scene, views, size, up)
     # real photos come with their own cameras (each photo's size and orientation, undistorted);
     # transforms.json pairs every image with its camera, cameras.json keeps the study-size cameras
     images, view_cams, kind = _views_images(source, scene, cams, list(range(len(cams))))
