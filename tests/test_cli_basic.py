@@ -86,3 +86,20 @@ def test_module_entry_point_runs_in_a_fresh_process(tmp_path: Path) -> None:
     info = subprocess.run([sys.executable, "-m", "morphgs.cli", "info", str(out)],
                           capture_output=True, text=True, check=True)
     assert "1,000" in info.stdout
+
+
+def test_info_reads_a_fit_run_folder_like_curate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # a `morphgs fit` run folder: the highest iteration wins, as in `morphgs curate RUN`
+    run = tmp_path / "run"
+    for it, n in ((7000, 1000), (30000, 2500)):
+        (run / "point_cloud" / f"iteration_{it}").mkdir(parents=True)
+        morphgs.save_ply(synthetic.scene(n, sh_degree=1, seed=it),
+                         run / "point_cloud" / f"iteration_{it}" / "point_cloud.ply")
+    assert cli.main(["info", "--json", str(run)]) == 0
+    assert json.loads(capsys.readouterr().out)["gaussians"] == 2500
+    assert cli.main(["info", str(run)]) == 0
+    assert "iteration_30000" in capsys.readouterr().out
+    (tmp_path / "empty").mkdir()
+    assert cli.main(["info", str(tmp_path / "empty")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "morphgs info: error" in err and "no scene file" in err

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -13,7 +14,7 @@ import morphgs
 
 def register(sub: Any) -> None:
     p = sub.add_parser("info", help="summarise a scene file (count, SH degree, bounds, statistics)")
-    p.add_argument("file", help="a scene file")
+    p.add_argument("file", help="a scene file, or a folder curate reads (a fit/INRIA run folder: its last iteration)")
     p.add_argument("--json", action="store_true", help="print machine-readable JSON")
     p.set_defaults(func=run)
 
@@ -40,12 +41,17 @@ def summary(scene: morphgs.GaussianScene) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    scene = morphgs.load(args.file)
+    path = Path(args.file)
+    if path.is_dir():
+        from morphgs.curation.sources import scene_file_in
+
+        path = scene_file_in(path)
+    scene = morphgs.load(path)
     s = summary(scene)
     if args.json:
         print(json.dumps(s, indent=2))
         return 0
-    print(f"{args.file}")
+    print(f"{path}")
     print(f"  gaussians : {s['gaussians']:,}")
     print(f"  sh degree : {s['sh_degree']}")
     print("  bounds    : min [{}]  max [{}]".format(

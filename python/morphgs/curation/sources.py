@@ -106,7 +106,13 @@ def _slug(name: str) -> str:
     return s or "scene"
 
 
-def _scene_file_in(folder: Path) -> Path:
+def scene_file_in(folder: Path) -> Path:
+    """The scene file a folder stands for, as `morphgs curate` reads it.
+
+    A SceneSplat .npy folder or an unbundled SOG is itself the scene; a `morphgs fit` or INRIA run
+    folder gives its highest `point_cloud/iteration_N/point_cloud.ply`; otherwise its only scene file,
+    or a preferred name among several. Raises MorphgsError naming the folder when none fits.
+    """
     # folders that are themselves scenes: SceneSplat .npy attributes, an unbundled SOG
     if (folder / "coord.npy").is_file() or (folder / "meta.json").is_file():
         return folder
@@ -159,7 +165,7 @@ def discover(inputs: Sequence[str | os.PathLike[str]]) -> tuple[list[SceneSource
         p = Path(raw)
         try:
             if p.is_dir():
-                scene_file = _scene_file_in(p)
+                scene_file = scene_file_in(p)
                 cams, kind = _cameras_in(p)
                 name = p.resolve().name
             elif p.is_file():
