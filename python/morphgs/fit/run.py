@@ -287,8 +287,9 @@ def _warn_forward_facing(init: Any, posed: PosedImages, cams: Sequence[Camera]) 
     if random and looks_forward_facing(cams):
         warnings.warn(f"{posed.source}: the capture looks forward-facing (every camera looks within 30 degrees of "
                       "one direction) and the fit starts from random points; random points fit several dB worse than "
-                      "SfM points (docs/fit.md, \"Initialisation\"): run COLMAP on the images and use "
-                      "--init points if you can", MorphgsWarning, stacklevel=3)
+                      "SfM points (docs/fit.md, \"Initialisation\"): if you can, run COLMAP on the images and fit "
+                      "from its points (morphgs fit --init points; curate's sparse:K fits start from random "
+                      "points on purpose, since SfM points come from every view)", MorphgsWarning, stacklevel=3)
 
 
 _PREV = "checkpoint.prev.bin"
