@@ -25,7 +25,7 @@ from typing import Any
 from morphgs.camera import Cameras
 from morphgs.curation.sources import SceneSource
 
-__all__ = ["ConfigSpec", "PairJob", "TrajectoryOptions", "check_up", "job_cameras", "job_up", "make_plan",
+__all__ = ["ConfigSpec", "PairJob", "TrajectoryOptions", "check_up", "job_cameras", "job_up", "up_rule", "make_plan",
            "pair_seed", "parse_config", "scene_split"]
 
 PRESETS = ("spatial", "radiometric", "morphological", "naive")
@@ -219,20 +219,31 @@ def uses_orbit(has_cameras: bool, opts: TrajectoryOptions) -> bool:
     return opts.kind == "orbit" or not has_cameras
 
 
-def job_up(job: PairJob, scene: Any, has_cameras: bool, opts: TrajectoryOptions) -> list[float] | None:
+def job_up(job: PairJob, scene: Any, recorded: Cameras | None, opts: TrajectoryOptions) -> list[float] | None:
     """The world up of the pair's orbit (None when it follows recorded cameras): +z for the
-    built-in synthetic scenes, else `trajectory.scene_up(scene, opts.up)`."""
-    return orbit_up(job, scene, opts) if uses_orbit(has_cameras, opts) else None
+    built-in synthetic scenes, the recorded cameras' mean up for an orbit of a scene with
+    cameras, else `trajectory.scene_up(scene, opts.up)`."""
+    return orbit_up(job, scene, opts, recorded) if uses_orbit(recorded is not None, opts) else None
 
 
-def orbit_up(job: PairJob, scene: Any, opts: TrajectoryOptions) -> list[float]:
-    """The world up of an orbit pair: +z for the built-in synthetic scenes, else
+def up_rule(job: PairJob, has_cameras: bool, opts: TrajectoryOptions) -> str:
+    """The rule that gives an orbit pair's up (recorded in the manifest as "up_rule")."""
+    if job.source.builtin is not None:
+        return "builtin"
+    return "cameras" if has_cameras else opts.up
+
+
+def orbit_up(job: PairJob, scene: Any, opts: TrajectoryOptions, recorded: Cameras | None = None) -> list[float]:
+    """The world up of an orbit pair: +z for the built-in synthetic scenes, the mean up of the
+    recorded cameras when the scene has them (`trajectory.camera_focus`), else
     `trajectory.scene_up(scene, opts.up)`."""
     from morphgs import trajectory
     from morphgs.trajectory.generators import BUILTIN_UP
 
     if job.source.builtin is not None:
         return [float(v) for v in BUILTIN_UP]
+    if recorded is not None:
+        return [float(v) for v in trajectory.camera_focus(recorded)[1]]
     return [float(v) for v in trajectory.scene_up(scene, opts.up)[0]]
 
 
@@ -309,6 +320,12 @@ def job_cameras(job: PairJob, scene: Any, recorded: Cameras | None, opts: Trajec
       path through the recorded cameras in capture order with as many frames as recorded (at
       least `frames`), cut into clips of `frames` every `stride` frames (default: `frames`);
       pair k takes clip k mod (number of clips).
+    - An orbit (kind "orbit") of a scene with recorded cameras circles the point the cameras
+      look at, around their mean up, at their median distance, elevation and field of view
+      (`trajectory.around_cameras`): pair k starts at 360 k / K degrees from the first recorded
+      camera's side and sweeps `orbit_arc_degrees`. A real capture's Gaussians spread far
+      beyond its subject, so their box would frame mostly background. Forward-facing cameras
+      (nearly parallel axes, no common focus) fall back to the box below, around their mean up.
     - Otherwise an orbit framing the scene's robust bounds (`trajectory.for_scene`) around the
       up of `opts.up` (`job_up`): pair k starts at 360 k / K degrees and sweeps
       `orbit_arc_degrees`; its elevation, in [10, 40] degrees, comes from the pair seed.
@@ -335,9 +352,13 @@ def job_cameras(job: PairJob, scene: Any, recorded: Cameras | None, opts: Trajec
         return trajectory.orbit(o.center, o.radius, o.height - o.center[2], job.frames, start_degrees=start,
                                 arc_degrees=opts.orbit_arc_degrees, fov_y_degrees=opts.fov_y_degrees,
                                 resolution=(job.width, job.height))
+    start = 360.0 * job.index / job.pairs_per_scene
+    if recorded is not None and trajectory.camera_focus(recorded)[2]:
+        return trajectory.around_cameras(recorded, job.frames, resolution=(job.width, job.height),
+                                         start_degrees=start, arc_degrees=opts.orbit_arc_degrees)
     elevation = 10.0 + 30.0 * ((job.seed % 1_000_003) / 1_000_003)
     return trajectory.for_scene(
         scene, job.frames, resolution=(job.width, job.height), fov_y_degrees=opts.fov_y_degrees,
-        up=orbit_up(job, scene, opts), elevation_degrees=elevation,
+        up=orbit_up(job, scene, opts, recorded), elevation_degrees=elevation,
         start_degrees=360.0 * job.index / job.pairs_per_scene, arc_degrees=opts.orbit_arc_degrees)
 

@@ -135,6 +135,8 @@ def _same_up(rec: dict[str, Any], job: PairJob, traj: TrajectoryOptions) -> bool
         return False
     if job.source.builtin is not None:
         return bool(np.allclose(got, [0.0, 0.0, 1.0]))
+    if job.source.cameras is not None:  # an orbit around where the recorded cameras look
+        return rec.get("up_rule") == "cameras"
     if traj.up == "scene":
         return rec.get("up_rule") == "scene"
     return bool(np.allclose(got, scene_up(None, traj.up)[0]))

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from morphgs.camera import Cameras
-from morphgs.curation.plan import PairJob, TrajectoryOptions, job_cameras, job_up
+from morphgs.curation.plan import PairJob, TrajectoryOptions, job_cameras, job_up, up_rule
 from morphgs.pair import Corruption, iter_pair_chunks
 
 __all__ = ["OutputOptions", "PairWriter", "make_pair", "tmp_root"]
@@ -166,9 +166,9 @@ def make_pair(
         paths.update({"clean_depth": f"{rel}/clean", "corrupted_depth": f"{rel}/corrupted"})
     total = time.perf_counter() - t_start + load_seconds
     extra: dict[str, Any] = {"fit": fit_info} if fit_info is not None else {}
-    up = job_up(job, scene, recorded is not None, opts.trajectory)
+    up = job_up(job, scene, recorded, opts.trajectory)
     if up is not None:  # an orbit: the world up it turned around, and the rule that gave it
-        extra["up_rule"] = "builtin" if job.source.builtin is not None else opts.trajectory.up
+        extra["up_rule"] = up_rule(job, recorded is not None, opts.trajectory)
     drawn = corruption.strength(job.seed)
     if drawn is not None:  # the strength this pair drew (from a strength distribution or fixed)
         extra["strength"] = drawn

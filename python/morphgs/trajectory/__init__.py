@@ -2,7 +2,7 @@
 
 Readers bring recorded cameras in (`from_transforms_json`, `from_colmap`, `from_camera_path`);
 generators make paths (`smooth_path` through keyframes, `orbit`/`ellipse`, `spiral`, and
-`for_scene` for scenes with no cameras); `clips` splits a path into fixed-length clips.
+`for_scene` for scenes with no cameras, `around_cameras` for an orbit where recorded cameras look); `clips` splits a path into fixed-length clips.
 """
 
 from __future__ import annotations
@@ -11,6 +11,8 @@ from morphgs.trajectory._common import CaptureError, resize_camera
 from morphgs.trajectory.colmap import ColmapView, find_colmap_model, from_colmap, read_colmap_views
 from morphgs.trajectory.generators import (
     FILE_UP,
+    around_cameras,
+    camera_focus,
     ellipse,
     for_scene,
     orbit,
@@ -32,6 +34,8 @@ __all__ = [
     "CaptureError",
     "ColmapView",
     "TransformsFrame",
+    "around_cameras",
+    "camera_focus",
     "clips",
     "ellipse",
     "find_colmap_model",

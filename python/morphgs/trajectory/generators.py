@@ -13,7 +13,7 @@ import numpy.typing as npt
 from morphgs.camera import Camera, Cameras, look_at_c2w
 from morphgs.trajectory._common import DEFAULT_RESOLUTION, check_resolution
 
-__all__ = ["ellipse", "for_scene", "orbit", "robust_bounds", "spiral"]
+__all__ = ["around_cameras", "camera_focus", "ellipse", "for_scene", "orbit", "robust_bounds", "spiral"]
 
 
 def _focal(fov_y_degrees: float, height: int) -> float:
@@ -289,4 +289,101 @@ def for_scene(
     el = math.radians(elevation_degrees)
     return ellipse(centre, dist * math.cos(el), dist * math.sin(el), n_frames, target=centre, up=up,
                    start_degrees=start_degrees, arc_degrees=arc_degrees, fov_y_degrees=fov_y_degrees,
+                   resolution=res)
+
+
+def camera_focus(cameras: Cameras) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Where recorded cameras look, and their up: (focus point, unit up, converged).
+
+    The focus is the least-squares point nearest to every camera's optical axis (the
+    point-of-interest of nerfstudio's and instant-ngp's orbit viewers): the solution of
+    sum_i (I - d_i d_i^T)(p - c_i) = 0 over camera centres c_i and viewing directions d_i. The
+    up is the mean of the cameras' up vectors (-y of each camera, OpenCV axes), normalised.
+    `converged` is False when the axes are nearly parallel (a forward-facing capture) or the
+    point lies behind most cameras; the focus is then the mean camera centre moved along the mean
+    viewing direction by twice the cameras' spread (never a point at infinity).
+    """
+    c2w = np.linalg.inv(np.asarray(cameras.world_to_camera, np.float64))
+    centres = c2w[:, :3, 3]
+    dirs = c2w[:, :3, 2]
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    ups = -c2w[:, :3, 1]
+    up = ups.mean(axis=0)
+    n = float(np.linalg.norm(up))
+    up = up / n if n > 1e-9 else -c2w[0, :3, 1]
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c, d in zip(centres, dirs):
+        m = np.eye(3) - np.outer(d, d)
+        a += m
+        b += m @ c
+    eig = np.linalg.eigvalsh(a)
+    converged = bool(eig[0] > 1e-3 * max(eig[-1], 1e-12))
+    focus = np.linalg.solve(a, b) if converged else None
+    if focus is not None:
+        ahead = np.einsum("ij,ij->i", focus[None, :] - centres, dirs)
+        converged = bool(np.median(ahead) > 0)
+    if focus is None or not converged:
+        mean_dir = dirs.mean(axis=0)
+        mean_dir /= max(float(np.linalg.norm(mean_dir)), 1e-12)
+        spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
+        focus = centres.mean(axis=0) + mean_dir * max(spread, 1e-3) * 2.0
+        converged = False
+    return focus, up, converged
+
+
+def around_cameras(
+    cameras: Cameras,
+    n_frames: int,
+    *,
+    resolution: Sequence[int] | None = None,
+    start_degrees: float = 0.0,
+    arc_degrees: float = 360.0,
+    elevation_degrees: float | None = None,
+) -> Cameras:
+    """An orbit through the part of a scene that recorded cameras looked at.
+
+    Circles `camera_focus(cameras)` around the cameras' mean up, at their median distance to
+    the focus, at their median elevation above it (or `elevation_degrees`), with the median
+    vertical field of view of the recorded cameras. A real capture's Gaussians spread far
+    beyond its subject (background, sky, floaters), so a box around the centres (`for_scene`)
+    frames mostly emptiness; the cameras say where the subject is.
+
+    Args:
+        cameras: the recorded cameras (at least one).
+        n_frames: number of cameras of the orbit.
+        resolution: (W, H); default the first recorded camera's size.
+        start_degrees, arc_degrees: the part of the circle the path covers (0 degrees: the
+            direction of the first recorded camera).
+        elevation_degrees: elevation above the focus; default the recorded cameras' median.
+
+    Returns:
+        Cameras.
+    """
+    if len(cameras) < 1:
+        raise ValueError("around_cameras: no cameras")
+    res = check_resolution(resolution) or (int(cameras.width), int(cameras.height))
+    focus, up, _ = camera_focus(cameras)
+    c2w = np.linalg.inv(np.asarray(cameras.world_to_camera, np.float64))
+    rel = c2w[:, :3, 3] - focus
+    height = rel @ up
+    flat = rel - height[:, None] * up
+    dist = float(np.median(np.linalg.norm(rel, axis=1)))
+    if not np.isfinite(dist) or dist <= 0:
+        raise ValueError("around_cameras: the cameras sit at their own focus point")
+    if elevation_degrees is None:
+        el = float(np.median(np.arctan2(height, np.linalg.norm(flat, axis=1))))
+    else:
+        el = math.radians(elevation_degrees)
+    el = float(np.clip(el, math.radians(-80.0), math.radians(80.0)))
+    k = np.asarray(cameras.K, np.float64)
+    fov_y = float(np.median(2.0 * np.degrees(np.arctan(0.5 * cameras.height / k[:, 1, 1]))))
+    e1, e2 = _basis(up)
+    f0 = flat[0]
+    if float(np.linalg.norm(f0)) > 1e-9:
+        # start at the first recorded camera's side: rotate (e1, e2) so e1 points at it
+        a0 = math.atan2(float(f0 @ e2), float(f0 @ e1))
+        start_degrees = start_degrees + math.degrees(a0)
+    return ellipse(focus, dist * math.cos(el), dist * math.sin(el), n_frames, target=focus, up=up,
+                   start_degrees=start_degrees, arc_degrees=arc_degrees, fov_y_degrees=fov_y,
                    resolution=res)
