@@ -225,7 +225,8 @@ def test_a_scene_folder_with_too_few_views_for_a_regime_is_named(tmp_path: Path)
         resolve_scenes(load_study(f))
     sample = tmp_path / "s2"
     shutil.copytree(folder, sample)
-    f = _study(tmp_path, f'preset = "smoke"\n[scenes]\ninputs = ["{folder}", "{sample}"]\n[regimes]\nevery = [12]\n')
+    f = _study(tmp_path, f'preset = "smoke"\n[scenes]\ninputs = ["{folder}", "{sample}"]\n[regimes]\nevery = [12]\n'
+                         '[capture]\nsize = [64, 48]\n')
     with pytest.raises(StudyError, match=r"scene (room|s2) has 10 capture views, too few for regime S12 "
                                          r"\(it needs at least 13"):
         resolve_scenes(load_study(f))

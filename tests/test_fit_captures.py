@@ -15,6 +15,7 @@ import pytest
 
 from capture_helpers import Shot, orbit_poses, pinhole, room, write_capture, write_colmap, write_transforms
 from fit_helpers import small_config
+import morphgs
 from morphgs import trajectory
 from morphgs.camera import Camera
 from morphgs.fit import FitDataError, fit, load_posed_images
@@ -112,7 +113,8 @@ def test_mixed_portrait_and_landscape_cameras(scene, tmp_path: Path) -> None:  #
     assert res.steps == 20 and res.heldout_psnr is not None
     # a render path at one size: portrait cameras are scaled uniformly and centre-cropped, not
     # stretched (square pixels, the centre of the photo stays the centre of the frame)
-    cams = trajectory.from_colmap(root, resolution=(96, 54))
+    with pytest.warns(morphgs.MorphgsWarning, match=r"64x48 .* stretch pixels 1\.33x.* --size 72x54"):
+        cams = trajectory.from_colmap(root, resolution=(96, 54))  # the landscape 4:3 ones are stretched, and said
     views = trajectory.read_colmap_views(root)
     for c, v in zip(cams, views):
         assert (c.width, c.height) == (96, 54)

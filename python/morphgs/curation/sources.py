@@ -79,6 +79,7 @@ def read_inria_cameras(path: str | os.PathLike[str], *, resolution: tuple[int, i
     resolution, cameras of several sizes (a `morphgs fit` run of a real capture) are brought to
     it by `trajectory.resize_camera`."""
     from morphgs.trajectory import resize_camera
+    from morphgs.trajectory._common import warn_stretch
 
     p = Path(path)
     try:
@@ -87,7 +88,7 @@ def read_inria_cameras(path: str | os.PathLike[str], *, resolution: tuple[int, i
         raise MorphgsError(f"{p}: not valid JSON ({e})") from None
     if not isinstance(data, list) or not data:
         raise MorphgsError(f"{p}: expected a non-empty list of cameras")
-    cams = []
+    cams: list[Camera] = []
     for i, c in enumerate(sorted(data, key=lambda c: str(c.get("img_name", "")) if isinstance(c, dict) else "")):
         try:
             c2w = np.eye(4)
@@ -97,7 +98,10 @@ def read_inria_cameras(path: str | os.PathLike[str], *, resolution: tuple[int, i
                                   width=int(c["width"]), height=int(c["height"]))
         except (KeyError, TypeError, ValueError) as e:
             raise MorphgsError(f"{p}: camera {i}: {e!r}") from None
-        cams.append(resize_camera(cam, *resolution) if resolution else cam)
+        cams.append(cam)
+    if resolution:
+        warn_stretch(cams, *resolution, str(p))
+        cams = [resize_camera(c, *resolution) for c in cams]
     return Cameras.from_list(cams)
 
 

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
 
-from morphgs._core import MorphgsError
+from morphgs._core import MorphgsError, MorphgsWarning
 from morphgs.camera import Camera, Cameras
 
 DEFAULT_RESOLUTION = (832, 480)
@@ -35,6 +36,28 @@ def resize_camera(cam: Camera, width: int, height: int) -> Camera:
                   cam.cy * s - (cam.height * s - height) / 2, width, height, cam.world_to_camera, cam.near, cam.far)
 
 
+STRETCH_WARN = 1.05
+
+
+def warn_stretch(cams: Sequence[Camera], width: int, height: int, source: str) -> None:
+    """Warn (MorphgsWarning, naming `source`) when `resize_camera` stretches pixels of `cams` at
+    `width` x `height` by more than 5 % (a capture whose aspect ratio is not the pair size's, in
+    the same orientation), with a size of the capture's aspect to pass instead."""
+    worst, cam = 1.0, None
+    for c in cams:
+        if c.width == c.height or width == height or (c.width > c.height) == (width > height):
+            r = (c.width / c.height) / (width / height)
+            r = max(r, 1.0 / r)
+            if r > worst:
+                worst, cam = r, c
+    if cam is None or worst <= STRETCH_WARN:
+        return
+    w2 = max(2, int(round(height * cam.width / cam.height / 2.0)) * 2)
+    warnings.warn(f"{source}: cameras of {cam.width}x{cam.height} (aspect {cam.width / cam.height:.3g}) rendered at "
+                  f"{width}x{height} (aspect {width / height:.3g}) stretch pixels {worst:.2f}x; pass a size of the "
+                  f"capture's aspect, e.g. --size {w2}x{height}", MorphgsWarning, stacklevel=3)
+
+
 def check_resolution(resolution: Sequence[int] | None) -> tuple[int, int] | None:
     """Validate a (width, height) pair of positive integers (or None)."""
     if resolution is None:
@@ -54,6 +77,7 @@ def stack_resized(cams: Sequence[Camera], resolution: tuple[int, int] | None, so
     if not cams:
         raise CaptureError(f"{source}: no cameras found")
     if resolution is not None:
+        warn_stretch(cams, *resolution, source)
         cams = [resize_camera(c, *resolution) for c in cams]
     else:
         sizes = sorted({(c.width, c.height) for c in cams})
