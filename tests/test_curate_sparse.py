@@ -85,3 +85,34 @@ def test_scene_folder_with_images_fits_the_real_images(tmp_path: Path) -> None:
     fitted = out / info["dir"] / "data" / "images" / "view_00000.png"
     np.testing.assert_array_equal(np.asarray(Image.open(fitted)),
                                   np.asarray(Image.open(root / "images" / "frame_00000.png")))
+
+
+def test_a_fit_run_folder_fits_the_photos_of_its_capture(tmp_path: Path) -> None:
+    """`morphgs curate RUN --config sparse:K` on a `morphgs fit` run: the sparse fit trains on the
+    photos the run was fitted from (found through views.json), not on renders of the dense fit;
+    renders again when the capture has moved."""
+    import shutil
+
+    from fit_helpers import small_config
+    from morphgs.fit import fit
+
+    root, _, _ = make_dataset(tmp_path / "room", views=16, size=(64, 48), gaussians=3000)
+    for p in sorted((root / "images").iterdir()):  # photos that no render of the scene gives
+        Image.fromarray(255 - np.asarray(Image.open(p))).save(p)
+    res = fit(root, tmp_path / "run", config=small_config(20), progress=False)
+    out = tmp_path / "data"
+    kw = dict(configs=["sparse-n:4@40"], pairs_per_scene=1, frames=4, resolution=(64, 48), progress=False,
+              log=lambda m: None)
+    s = curate([res.run_dir], out, **kw)  # type: ignore[arg-type]
+    assert s.ok, s.failed
+    (rec,) = load_manifest(out).values()
+    info = rec["fit"]
+    assert info["images"] == "images" and info["capture_views"] == 16 and info["train_views"] == [0, 5, 10, 15]
+    for k, view in enumerate(info["train_views"]):
+        fitted = np.asarray(Image.open(out / info["dir"] / "data" / "images" / f"view_{k:05d}.png"))
+        np.testing.assert_array_equal(fitted, np.asarray(Image.open(root / "images" / f"frame_{view:05d}.png")))
+    shutil.move(root, tmp_path / "moved")
+    s2 = curate([res.run_dir], tmp_path / "data2", **kw)  # type: ignore[arg-type]
+    assert s2.ok, s2.failed
+    (rec2,) = load_manifest(tmp_path / "data2").values()
+    assert rec2["fit"]["images"] == "renders"

@@ -86,20 +86,49 @@ def split_views(n: int, params: dict[str, Any]) -> tuple[list[int], list[int]]:
     return train, held
 
 
-def _real_images(source: Any, count: int) -> Any:
-    """The scene folder's posed photos (a `PosedImages`) in capture order, when it has one per
-    recorded camera."""
-    if source.cameras_kind not in ("transforms", "colmap") or source.cameras is None:
-        return None
+def _real_images(source: Any, count: int) -> tuple[Any, list[int]] | None:
+    """The scene folder's posed photos (a `PosedImages`) and, for each recorded camera in capture
+    order, its index among them, when there is one photo per recorded camera.
+
+    A scene folder with transforms.json or a COLMAP model: its photos, in the same order. A
+    `morphgs fit` run folder (INRIA cameras.json): the photos of the capture it was fitted from
+    (`views.json`'s `source`), matched to cameras.json by image name; None when that capture
+    has moved or lacks a photo (the sparse fit then trains on renders of the scene)."""
     from morphgs.fit import load_posed_images
 
+    if source.cameras is None:
+        return None
+    if source.cameras_kind == "inria":
+        return _fit_run_images(Path(source.cameras), count)
+    if source.cameras_kind not in ("transforms", "colmap"):
+        return None
     try:
         posed = load_posed_images(source.cameras if source.cameras_kind == "transforms" else Path(source.cameras))
     except (OSError, ValueError):
         return None
     if len(posed) != count or not all(p.is_file() for p in posed.paths):
         return None
-    return posed
+    return posed, list(range(count))
+
+
+def _fit_run_images(cameras_json: Path, count: int) -> tuple[Any, list[int]] | None:
+    """(photos, order) of the capture a `morphgs fit` run was made from (see `_real_images`)."""
+    from morphgs.fit import load_posed_images
+
+    try:
+        views = json.loads((cameras_json.parent / "views.json").read_text(encoding="utf-8"))
+        names = sorted(str(c["img_name"]) for c in json.loads(cameras_json.read_text(encoding="utf-8")))
+        posed = load_posed_images(Path(str(views["source"])))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    by_stem: dict[str, int] = {}
+    for i, path in enumerate(posed.paths):
+        by_stem.setdefault(Path(path).stem, i)
+        by_stem.setdefault(Path(path).name, i)
+    order = [by_stem.get(n, -1) for n in names]
+    if len(order) != count or -1 in order or not all(posed.paths[i].is_file() for i in order):
+        return None
+    return posed, order
 
 
 def fit_view(img: np.ndarray, cam: Any, width: int, height: int) -> tuple[np.ndarray, Any]:
@@ -156,9 +185,10 @@ def _views_images(source: Any, scene: Any, cams: Cameras, idx: list[int]) -> tup
     when it has distortion; renders use the capture cameras."""
     import morphgs
 
-    posed = _real_images(source, len(cams))
-    if posed is not None:
-        imgs, pcams, _ = posed.read(idx, masks=False)
+    found = _real_images(source, len(cams))
+    if found is not None:
+        posed, order = found
+        imgs, pcams, _ = posed.read([order[i] for i in idx], masks=False)
         w, h = cams[0].width, cams[0].height
         pairs = [fit_view(im, c, w, h) for im, c in zip(imgs, pcams)]
         return [p[0] for p in pairs], [p[1] for p in pairs], "images"
