@@ -247,6 +247,68 @@ fn run_chunk_impl(
             }
         }
     }
+    if let Some((key, sigma)) = ops.log_scale {
+        draw_normals(key, 3, &s.idx, &mut s.base, &mut s.z);
+        interleave3(&s.z, &mut s.flat);
+        for (v, &z) in out.log_scales.iter_mut().zip(&s.flat) {
+            *v += sigma * z;
+        }
+    }
+    if let Some((key, sigma)) = ops.rotation_angle {
+        draw_normals(key, 3, &s.idx, &mut s.base, &mut s.z);
+        let [z0, z1, z2, _] = &s.z;
+        for (((q, &a), &b), &c) in out.quats.chunks_exact_mut(4).zip(z0).zip(z1).zip(z2) {
+            let r = rotate([q[0], q[1], q[2], q[3]], [sigma * a, sigma * b, sigma * c]);
+            q.copy_from_slice(&r);
+        }
+    }
+}
+
+/// exp(omega) * unit(q): q (w, x, y, z) turned by the rotation vector omega (radians), with
+/// exactly rounded operations only (so the same bits on every CPU).
+#[inline(always)]
+pub(crate) fn rotate(q: [f32; 4], omega: [f32; 3]) -> [f32; 4] {
+    let u = unit(q);
+    let theta = (omega[0] * omega[0] + omega[1] * omega[1] + omega[2] * omega[2]).sqrt();
+    let (sh, dw) = sin_cos(0.5 * theta);
+    // sin(theta / 2) / theta, 1/2 at theta = 0
+    let k = if theta > 0.0 { sh / theta } else { 0.5 };
+    let d = [omega[0] * k, omega[1] * k, omega[2] * k];
+    let v = [u[1], u[2], u[3]];
+    [
+        dw * u[0] - (d[0] * v[0] + d[1] * v[1] + d[2] * v[2]),
+        dw * v[0] + u[0] * d[0] + (d[1] * v[2] - d[2] * v[1]),
+        dw * v[1] + u[0] * d[1] + (d[2] * v[0] - d[0] * v[2]),
+        dw * v[2] + u[0] * d[2] + (d[0] * v[1] - d[1] * v[0]),
+    ]
+}
+
+/// (sin x, cos x) for finite x >= 0: reduced to [-pi/4, pi/4] by quarter turns in float64
+/// (exactly rounded operations), then [`fastmath::sin_cos_quarter`]; a non-finite x gives NaN.
+#[inline(always)]
+pub(crate) fn sin_cos(x: f32) -> (f32, f32) {
+    let h = f64::from(x);
+    let n = (h * core::f64::consts::FRAC_2_PI + 0.5).floor();
+    let r = (h - n * core::f64::consts::FRAC_PI_2) as f32;
+    let (s, c) = fastmath::sin_cos_quarter(r.abs());
+    let s = if r < 0.0 { -s } else { s };
+    // n quarter turns: 0: (s, c), 1: (c, -s), 2: (-s, -c), 3: (-c, s)
+    let quadrant = if n.is_finite() {
+        (n as i64 & 3) as u32
+    } else {
+        0
+    };
+    let (s, c) = match quadrant {
+        0 => (s, c),
+        1 => (c, -s),
+        2 => (-s, -c),
+        _ => (-c, s),
+    };
+    if x.is_finite() {
+        (s, c)
+    } else {
+        (f32::NAN, f32::NAN)
+    }
 }
 
 /// Normal draws 0..dims of every row's stream, draw j into `z[j]` (the bits of
