@@ -475,3 +475,135 @@ fn fix_log_scale(mut v: f32) -> f32 {
     }
     v
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::{
+        op_key, OP_COLOR, OP_LOG_SCALE, OP_OPACITY, OP_POSITION, OP_ROTATION, OP_ROTATION_ANGLE,
+        OP_SCALE,
+    };
+    use crate::scene::Scene;
+
+    /// A scene of closed-form values, with a few huge and tiny ones to reach the clamps.
+    fn scene(n: usize) -> Scene {
+        let f = |i: usize, j: usize| ((i * 7 + j * 13) % 97) as f32 / 97.0;
+        let mut s = Scene {
+            means: (0..n * 3).map(|t| f(t / 3, t % 3) * 10.0).collect(),
+            quats: (0..n * 4).map(|t| f(t / 4, t % 4 + 1) - 0.5).collect(),
+            log_scales: (0..n * 3)
+                .map(|t| f(t / 3, t % 3 + 5) * 8.0 - 12.0)
+                .collect(),
+            opacity_logits: (0..n).map(|i| f(i, 9) * 16.0 - 8.0).collect(),
+            sh0: (0..n * 3)
+                .map(|t| f(t / 3, t % 3 + 11) * 4.0 - 2.0)
+                .collect(),
+            sh_rest: vec![0.0; n * 9],
+            sh_degree: 1,
+            extras: Vec::new(),
+        };
+        s.opacity_logits[0] = 30.0;
+        s.log_scales[0] = -18.0;
+        s
+    }
+
+    /// Every op (the paper's six and the strength ops 7 and 8) through one build of the kernel
+    /// (0 portable, 1 AVX2, 2 AVX-512) over the rows not divisible by 3 (a pruned-like gather);
+    /// None when the CPU lacks the build's features.
+    fn run_build(build: u8, s: &Scene, ops: &Ops) -> Option<Scene> {
+        #[cfg(target_arch = "x86_64")]
+        let has = |f: &str| match f {
+            "avx2" => std::is_x86_feature_detected!("avx2"),
+            _ => {
+                std::is_x86_feature_detected!("avx512f")
+                    && std::is_x86_feature_detected!("avx512dq")
+                    && std::is_x86_feature_detected!("avx512vl")
+                    && std::is_x86_feature_detected!("avx2")
+            }
+        };
+        let mut scratch = Scratch::default();
+        scratch
+            .idx
+            .extend((0..s.len() as u64).filter(|i| i % 3 != 0));
+        let m = scratch.idx.len();
+        let mut out = Scene {
+            means: vec![0.0; m * 3],
+            quats: vec![0.0; m * 4],
+            log_scales: vec![0.0; m * 3],
+            opacity_logits: vec![0.0; m],
+            sh0: vec![0.0; m * 3],
+            sh_rest: vec![0.0; m * 9],
+            sh_degree: 1,
+            extras: Vec::new(),
+        };
+        let rows = Rows {
+            means: &mut out.means,
+            quats: &mut out.quats,
+            log_scales: &mut out.log_scales,
+            opacity_logits: &mut out.opacity_logits,
+            sh0: &mut out.sh0,
+            sh_rest: &mut out.sh_rest,
+            extras: Vec::new(),
+        };
+        let view = s.view();
+        match build {
+            0 => run_chunk_impl(&view, &[], 9, ops, rows, &mut scratch),
+            #[cfg(target_arch = "x86_64")]
+            1 if has("avx2") => {
+                // SAFETY: the CPU has the features (checked).
+                unsafe { run_chunk_avx2(&view, &[], 9, ops, rows, &mut scratch) }
+            }
+            #[cfg(target_arch = "x86_64")]
+            2 if has("avx512") => {
+                // SAFETY: as above.
+                unsafe { run_chunk_avx512(&view, &[], 9, ops, rows, &mut scratch) }
+            }
+            _ => return None,
+        }
+        Some(out)
+    }
+
+    #[test]
+    fn every_simd_build_gives_the_portable_bits() {
+        let s = scene(3000);
+        let seed = 77;
+        let ops = Ops {
+            position: Some((op_key(seed, OP_POSITION), 0.05)),
+            color: Some((op_key(seed, OP_COLOR), 0.3)),
+            opacity: Some((op_key(seed, OP_OPACITY), 0.3)),
+            scale: Some((op_key(seed, OP_SCALE), 0.2)),
+            rotation: Some((op_key(seed, OP_ROTATION), 0.4)),
+            log_scale: Some((op_key(seed, OP_LOG_SCALE), 0.9)),
+            // an RMS angle of about 17 rad: many quarter-turn reductions
+            rotation_angle: Some((op_key(seed, OP_ROTATION_ANGLE), 10.0)),
+        };
+        let portable = run_build(0, &s, &ops).expect("portable");
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let mut compared = 0;
+        for build in [1, 2] {
+            let Some(out) = run_build(build, &s, &ops) else {
+                continue;
+            };
+            compared += 1;
+            assert_eq!(bits(&out.means), bits(&portable.means), "build {build}");
+            assert_eq!(bits(&out.quats), bits(&portable.quats), "build {build}");
+            assert_eq!(
+                bits(&out.log_scales),
+                bits(&portable.log_scales),
+                "build {build}"
+            );
+            assert_eq!(
+                bits(&out.opacity_logits),
+                bits(&portable.opacity_logits),
+                "build {build}"
+            );
+            assert_eq!(bits(&out.sh0), bits(&portable.sh0), "build {build}");
+        }
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            assert!(compared >= 1);
+        }
+        let _ = compared;
+        assert!(portable.quats.iter().all(|v| v.is_finite()));
+    }
+}
