@@ -143,16 +143,24 @@ def test_cli_end_to_end_config_used_by_curate(hidden_strength: Path, tmp_path: P
 
 
 def test_sparse_regime_cached_and_deterministic(tmp_path: Path) -> None:
-    args = ["calibrate", "--regime", "sparse:24@30", "--sample-gaussians", "3000", "--size", "48x32", "--frames", "4",
-            "-k", "1", "--no-plots", "--grid", "0.125,16"]
+    """The built-in default: four scenes (two calibrate, two held out), the fit length of
+    --sample-fit-steps for a regime without @STEPS; resumable and the same bytes for 1 and 2 workers."""
+    args = ["calibrate", "--regime", "sparse:24", "--sample-fit-steps", "30", "--sample-gaussians", "3000", "--size",
+            "48x32", "--frames", "4", "-k", "1", "--no-plots", "--grid", "0.125,16"]
     assert main([*args, "--out", str(tmp_path / "a")]) == 0
     fits = sorted((tmp_path / "a" / "real" / "fits").rglob("fit.json"))
-    assert len(fits) == 2
+    assert len(fits) == 4
+    assert all(json.loads(f.read_text())["steps"] == 30 for f in fits)
+    doc = json.loads((tmp_path / "a" / "calibration.json").read_text())
+    (r,) = doc["results"]
+    assert doc["fit_steps"] == {"sparse:24": 30}
+    assert r["calibration_scenes"] == ["sample-0", "sample-2"]
+    assert r["goodness"]["held_out"] and r["goodness"]["scenes"] == ["sample-1", "sample-3"]
     stamp = [f.stat().st_mtime_ns for f in fits]
     assert main([*args, "--out", str(tmp_path / "a")]) == 0  # resumed: the fits are reused
     assert [f.stat().st_mtime_ns for f in fits] == stamp
     assert main([*args, "--out", str(tmp_path / "b"), "--workers", "2"]) == 0
-    for name in ("calibration.json", "report.md", "configs/morphological-sparse-24-30.json"):
+    for name in ("calibration.json", "report.md", "configs/morphological-sparse-24.json"):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
 
 
@@ -165,7 +173,7 @@ def _err(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
 
 def test_bad_input(hidden_strength: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = str(tmp_path / "c")
-    assert "--family blurry: unknown family; valid families: spatial" in _err(
+    assert "--family blurry: unknown family; valid families: spatial, radiometric, morphological, naive, blur2d" in _err(
         capsys, ["calibrate", "--real", str(hidden_strength), "--family", "blurry", "--out", out])
     bad_family = tmp_path / "fam.json"
     bad_family.write_text(json.dumps({"family": "morphological", "ops": {"prune": 0.5}}))

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from noise_reference import normals
 
 import morphgs
 from morphgs import noise, synthetic, trajectory
@@ -36,17 +37,17 @@ def _median_psnr(a: morphgs.Render, b: morphgs.Render) -> float:
     return float(np.median(10 * np.log10(1.0 / np.maximum(mse, 1e-12))))
 
 
-def test_noise_port_matches_the_kernel(room: morphgs.GaussianScene) -> None:
+def test_noise_reference_matches_the_kernel(room: morphgs.GaussianScene) -> None:
     # rng.rs's golden values: normal(42, rotation=6, 1000, j) for j < 4 and uniform(42, prune=4, 5)
     golden = [struct.unpack("<f", struct.pack("<I", b))[0]
               for b in (1075926371, 3223884211, 3204618683, 3205002040, 1063307159)]
-    np.testing.assert_allclose(noise.normals(42, 6, [1000], 4)[0], golden[:4], rtol=2e-6)
+    np.testing.assert_allclose(normals(42, 6, [1000], 4)[0], golden[:4], rtol=2e-6)
     assert noise.uniforms(42, 4, [5])[0] == golden[4]  # 24-bit uniforms are exact
     # the kernel's position jitter is gamma * E_avg * z with z the op-1 normals of each Gaussian
     jittered = morphgs.perturb(room, {"position_jitter": 0.01}, seed=3)
     m = room.means.astype(np.float64)
     z = (jittered.means - m) / (0.01 * np.mean(m.max(0) - m.min(0)))
-    np.testing.assert_allclose(z, noise.normals(3, 1, np.arange(len(room)), 3), atol=2e-5)
+    np.testing.assert_allclose(z, normals(3, 1, np.arange(len(room)), 3), atol=2e-5)
 
 
 def test_strength_zero_is_identity_and_formulas_hold(room: morphgs.GaussianScene) -> None:
@@ -57,11 +58,11 @@ def test_strength_zero_is_identity_and_formulas_hold(room: morphgs.GaussianScene
     out = cfg.apply(room, seed=5)
     assert len(out) == len(room)  # no keep op: nothing pruned
     dlog = out.log_scales.astype(np.float64) - room.log_scales
-    np.testing.assert_allclose(dlog / 0.5, noise.normals(5, noise.OP_LOG_SCALE, np.arange(len(room)), 3), atol=1e-4)
+    np.testing.assert_allclose(dlog / 0.5, normals(5, noise.OP_LOG_SCALE, np.arange(len(room)), 3), atol=1e-4)
     # rotation: the angle between q and q' is |omega| with omega = 0.2 / sqrt(3) * z
     q0 = room.quats / np.linalg.norm(room.quats, axis=1, keepdims=True)
     cos_half = np.abs(np.sum(q0 * out.quats, axis=1)).clip(0, 1)
-    omega = noise.normals(5, noise.OP_ROTATION_ANGLE, np.arange(len(room)), 3) * (0.2 / np.sqrt(3))
+    omega = normals(5, noise.OP_ROTATION_ANGLE, np.arange(len(room)), 3) * (0.2 / np.sqrt(3))
     np.testing.assert_allclose(2 * np.arccos(cos_half), np.linalg.norm(omega, axis=1), atol=2e-3)
     rms = np.sqrt(np.mean(np.sum(omega**2, axis=1)))
     assert 0.19 < rms < 0.21  # the RMS angle is strength * base radians

@@ -188,6 +188,8 @@ def _perturb(
     rotation_noise: float | None,
     seed: int,
     return_mask: bool = False,
+    log_scale_noise: float | None = None,
+    rotation_angle: float | None = None,
 ) -> GaussianScene | tuple[GaussianScene, npt.NDArray[np.bool_]]: ...
 
 # ---- fit (morphgs.fit) ----

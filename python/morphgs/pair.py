@@ -63,6 +63,11 @@ class Corruption:
             config = morphgs.PerturbConfig.preset(config)
         if isinstance(config, Mapping):
             if config.get("kind") == "blur2d":
+                if "quantiles" in config:  # a sigma distribution: each pair draws (`for_seed`)
+                    _, sig = check_quantiles(config["quantiles"])
+                    if sig[-1] > 256.0:
+                        raise ValueError(f"blur sigma must be in [0, 256] pixels, got quantiles up to {sig[-1]}")
+                    return cls("blur2d", {"kind": "blur2d", "quantiles": config["quantiles"]}, None, float("nan"))
                 sigma = float(config.get("sigma", blur_sigma))
                 if not np.isfinite(sigma) or not 0.0 <= sigma <= 256.0:
                     raise ValueError(f"blur sigma must be in [0, 256] pixels, got {sigma}")
@@ -80,12 +85,20 @@ class Corruption:
 
     def strength(self, seed: int) -> float | None:
         """The strength a "strength" corruption uses for pair seed `seed` (drawn from its quantile
-        table when it has one); None for the other kinds."""
-        if self.kind != "strength":
+        table when it has one), or the sigma a blur2d sigma distribution draws; None otherwise."""
+        if self.kind != "strength" and not (self.kind == "blur2d" and "quantiles" in self.config):
             return None
         from morphgs.strength import draw_strength
 
         return draw_strength(self.config, seed)
+
+    def for_seed(self, seed: int) -> Corruption:
+        """The corruption of the pair of seed `seed`: a blur2d sigma distribution with its sigma
+        drawn (as a strength distribution's strength, `morphgs.strength.draw_strength`); the
+        others as they are."""
+        if self.kind == "blur2d" and "quantiles" in self.config:
+            return Corruption("blur2d", self.config, None, float(self.strength(seed) or 0.0))
+        return self
 
     def corrupt_scene(self, scene: Any, seed: int) -> Any:
         """The perturbed copy of `scene` (None for blur2d and sparse)."""
@@ -201,7 +214,7 @@ def render_pair(
     t0 = time.perf_counter()
     scene = morphgs.load(scene_or_path) if isinstance(scene_or_path, (str, os.PathLike)) else scene_or_path
     timings["load"] = time.perf_counter() - t0
-    corruption = Corruption.make(config, blur_sigma=blur_sigma)
+    corruption = Corruption.make(config, blur_sigma=blur_sigma).for_seed(seed)
     t0 = time.perf_counter()
     corrupted_scene = corruption.corrupt_scene(scene, seed)
     timings["perturb"] = time.perf_counter() - t0

@@ -17,9 +17,9 @@ family's base values b (the values at s = 1, `BASE`, or the user's own):
 
 Every op is the identity at s = 0, every op's noise grows continuously with s, and the same seed
 gives the same z at every s (common random numbers), so severity is a smooth function of s.
-keep, position, colour and opacity run in the Rust kernel (op ids 4, 1, 2, 3); log_scale and
-rotation draw from the same counter generator with op ids 7 and 8 (`morphgs.noise`), keyed by
-the Gaussian's index in the input scene.
+Every op runs in the Rust perturb kernel (op ids 4, 1, 2, 3 for keep, position, colour and
+opacity; 7 and 8 for log_scale and rotation), keyed by the Gaussian's index in the input scene,
+with exactly rounded float operations only: the same bytes for any thread count and on any CPU.
 """
 
 from __future__ import annotations
@@ -31,10 +31,10 @@ from typing import Any
 
 import numpy as np
 
+from morphgs import noise
 from morphgs._core import GaussianScene
-from morphgs.noise import OP_LOG_SCALE, OP_ROTATION_ANGLE, normals
 
-__all__ = ["BASE", "FAMILIES", "OPS", "Strength"]
+__all__ = ["BASE", "BLUR_MAX_SIGMA", "FAMILIES", "OPS", "Blur2d", "Strength"]
 
 #: The ops of the strength parameterisation, in application order.
 OPS: tuple[str, ...] = ("position", "color", "opacity", "keep", "log_scale", "rotation")
@@ -140,51 +140,81 @@ class Strength:
         return cls(str(data["family"]), data.get("strength", 1.0), ops)
 
     def apply(self, scene: GaussianScene, *, seed: int, return_mask: bool = False) -> Any:
-        """The perturbed copy of `scene` (seeded; bit-identical for any thread count).
+        """The perturbed copy of `scene` (seeded; the same bytes for any thread count and CPU).
+
+        Every op runs in the Rust kernel in one pass (ops 1 to 4, 7 and 8 of the counter
+        generator), so the noise of Gaussian i is a pure function of (seed, op, i).
 
         Returns the scene, or (scene, keep-mask) with return_mask=True.
         """
-        from morphgs.perturb import PerturbConfig, perturb
+        from morphgs._core import _perturb
+        from morphgs.perturb import _check_seed
 
+        if not isinstance(scene, GaussianScene):
+            raise TypeError(f"scene must be a GaussianScene, got {type(scene).__name__}")
         v = self.values()
-        cfg = PerturbConfig(position_jitter=v.get("position"), color_noise=v.get("color"),
-                            opacity_noise=v.get("opacity"), prune=1.0 - v["keep"] if "keep" in v else None,
-                            scale_noise=None, rotation_noise=None)
-        out, mask = perturb(scene, cfg, seed=seed, return_mask=True)
-        sigma_log, angle = v.get("log_scale", 0.0), v.get("rotation", 0.0)
-        if sigma_log > 0.0 or angle > 0.0:
-            idx = np.flatnonzero(mask)
-            log_scales, quats = out.log_scales, out.quats
-            if sigma_log > 0.0:
-                z = normals(seed, OP_LOG_SCALE, idx, 3)
-                log_scales = (log_scales.astype(np.float64) + sigma_log * z).astype(np.float32)
-            if angle > 0.0:
-                omega = normals(seed, OP_ROTATION_ANGLE, idx, 3) * (angle / math.sqrt(3.0))
-                quats = _rotate(quats, omega)
-            out = GaussianScene.from_arrays(means=out.means, quats=quats, log_scales=log_scales,
-                                            opacity_logits=out.opacity_logits, sh0=out.sh0,
-                                            sh_rest=out.sh_rest, extras=out.extras)
-        return (out, mask) if return_mask else out
+        result: Any = _perturb(
+            scene, position_jitter=v.get("position"), color_noise=v.get("color"),
+            opacity_noise=v.get("opacity"), prune=1.0 - v["keep"] if "keep" in v else None,
+            scale_noise=None, rotation_noise=None, log_scale_noise=v.get("log_scale"),
+            rotation_angle=v.get("rotation"), seed=_check_seed(seed), return_mask=return_mask)
+        return result
 
 
-def _rotate(quats: np.ndarray, omega: np.ndarray) -> np.ndarray:
-    """exp(omega) * q for unit quaternions q (w, x, y, z) and rotation vectors omega (radians)."""
-    q = quats.astype(np.float64)
-    q /= np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-30)
-    theta = np.linalg.norm(omega, axis=1, keepdims=True)
-    half = 0.5 * theta
-    # sin(theta/2)/theta, finite at theta = 0
-    k = np.where(theta > 1e-12, np.sin(half) / np.maximum(theta, 1e-300), 0.5)
-    dw, dv = np.cos(half)[:, 0], omega * k
-    w, v = q[:, 0], q[:, 1:]
-    out = np.empty_like(q)
-    out[:, 0] = dw * w - np.einsum("ij,ij->i", dv, v)
-    out[:, 1:] = dw[:, None] * v + w[:, None] * dv + np.cross(dv, v)
-    return out.astype(np.float32)
+#: The largest blur sigma (pixels) of `Blur2d` (as curate's blur2d).
+BLUR_MAX_SIGMA = 256.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Blur2d:
+    """The paper's 2D baseline (image-space render blur) as a strength family: at strength s the
+    corrupted frames are the clean frames blurred by a Gaussian of sigma = s pixels (s = 0 is the
+    identity). It has one op, "sigma", of base value 1, so the strength is the sigma itself; it
+    acts on rendered frames, not on the scene (`blur`).
+
+    Raises:
+        ValueError: a strength that is not finite, negative or above `BLUR_MAX_SIGMA`.
+    """
+
+    strength: float = 1.0
+
+    def __post_init__(self) -> None:
+        v = _number(self.strength, "strength")
+        if v > BLUR_MAX_SIGMA:
+            raise ValueError(f"a blur2d strength is a sigma in pixels in [0, {BLUR_MAX_SIGMA:g}], got {v!r}")
+        object.__setattr__(self, "strength", v)
+
+    family = "blur2d"
+
+    @property
+    def base(self) -> dict[str, float]:
+        """The one op and its base value (the sigma at strength 1)."""
+        return {"sigma": 1.0}
+
+    def at(self, strength: float) -> Blur2d:
+        return Blur2d(strength)
+
+    def only(self, op: str) -> Blur2d:
+        if op != "sigma":
+            raise ValueError(f"op {op!r} is not enabled in this config (sigma)")
+        return self
+
+    def values(self) -> dict[str, float]:
+        return {"sigma": self.strength}
+
+    def to_dict(self) -> dict[str, Any]:
+        """{"kind": "blur2d", "sigma"} (what curate's blur2d config takes)."""
+        return {"kind": "blur2d", "sigma": self.strength}
+
+    def blur(self, rgb: np.ndarray) -> np.ndarray:
+        """Frames (F, H, W, 3) float32 blurred by sigma = strength pixels (curate's blur2d)."""
+        from morphgs._core import gaussian_blur
+
+        return gaussian_blur(np.ascontiguousarray(rgb, dtype=np.float32), self.strength)
 
 
 #: Op id of a pair's strength draw from a strength distribution (`draw_strength`).
-OP_STRENGTH_DRAW = 9
+OP_STRENGTH_DRAW = noise.OP_STRENGTH_DRAW
 
 
 def check_quantiles(table: Any, where: str = "quantiles") -> tuple[list[float], list[float]]:
@@ -221,10 +251,8 @@ def draw_strength(config: Mapping[str, Any], seed: int) -> float:
     """
     if "quantiles" not in config:
         return _number(config.get("strength", 1.0), "strength")
-    from morphgs.noise import uniforms
-
     p, s = check_quantiles(config["quantiles"])
-    u = float(uniforms(int(seed), OP_STRENGTH_DRAW, [0])[0])
+    u = float(noise.uniforms(int(seed), OP_STRENGTH_DRAW, [0])[0])
     return float(np.interp(u, p, s))
 
 

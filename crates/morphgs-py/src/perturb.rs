@@ -15,6 +15,8 @@ use crate::scene::PyGaussianScene;
 ///     scene: the input scene (never modified).
 ///     position_jitter, color_noise, opacity_noise, prune, scale_noise, rotation_noise: the
 ///         operation parameters of SPEC §2.
+///     log_scale_noise, rotation_angle: the strength parameterisation's relative scale noise
+///         (op 7, sigma in log space) and isotropic rotation (op 8, RMS angle in radians).
 ///     seed: the seed of the counter-based generator (0 <= seed < 2**64).
 ///     return_mask: also return the (N,) boolean keep-mask of the pruning.
 ///
@@ -26,7 +28,8 @@ use crate::scene::PyGaussianScene;
 ///     ValueError: a parameter is invalid (the message names it).
 #[pyfunction]
 #[pyo3(signature = (scene, *, position_jitter, color_noise, opacity_noise, prune, scale_noise,
-                    rotation_noise, seed, return_mask = false))]
+                    rotation_noise, seed, return_mask = false, log_scale_noise = None,
+                    rotation_angle = None))]
 fn _perturb<'py>(
     py: Python<'py>,
     scene: &PyGaussianScene,
@@ -38,6 +41,8 @@ fn _perturb<'py>(
     rotation_noise: Option<f32>,
     seed: u64,
     return_mask: bool,
+    log_scale_noise: Option<f32>,
+    rotation_angle: Option<f32>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let params = PerturbParams {
         position_jitter,
@@ -46,6 +51,8 @@ fn _perturb<'py>(
         prune,
         scale_noise,
         rotation_noise,
+        log_scale_noise,
+        rotation_angle,
     };
     let borrow = scene.borrow(py)?;
     let view = borrow.view()?;

@@ -20,7 +20,9 @@
 //! - A uniform draw in [0, 1) is the top 24 bits of word 0, times 2^-24.
 //!
 //! The op ids are fixed: [`OP_POSITION`] = 1, [`OP_COLOR`] = 2, [`OP_OPACITY`] = 3,
-//! [`OP_PRUNE`] = 4, [`OP_SCALE`] = 5, [`OP_ROTATION`] = 6.
+//! [`OP_PRUNE`] = 4, [`OP_SCALE`] = 5, [`OP_ROTATION`] = 6; the strength parameterisation's
+//! own ops (docs/perturbation.md, "Strength") [`OP_LOG_SCALE`] = 7, [`OP_ROTATION_ANGLE`] = 8,
+//! and a pair's strength draw from a strength distribution [`OP_STRENGTH_DRAW`] = 9.
 
 use crate::fastmath;
 
@@ -36,6 +38,13 @@ pub const OP_PRUNE: u32 = 4;
 pub const OP_SCALE: u32 = 5;
 /// Op id of rotation noise.
 pub const OP_ROTATION: u32 = 6;
+/// Op id of the relative (log-space) scale noise of the strength parameterisation.
+pub const OP_LOG_SCALE: u32 = 7;
+/// Op id of the isotropic rotation (by an angle) of the strength parameterisation.
+pub const OP_ROTATION_ANGLE: u32 = 8;
+/// Op id of a pair's strength draw from a strength distribution (drawn in Python from the
+/// uniform, which is exact: a 24-bit integer times 2^-24).
+pub const OP_STRENGTH_DRAW: u32 = 9;
 
 /// The SplitMix64 increment (2^64 / golden ratio).
 pub const GAMMA: u64 = 0x9e37_79b9_7f4a_7c15;

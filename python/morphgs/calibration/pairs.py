@@ -112,12 +112,17 @@ class Bench:
         if missing:
             raise CalibrationError(f"the real pairs' scene(s) {', '.join(missing)} are not among the SCENES given")
         self.scenes, self.pairs = scenes, list(pairs)
-        self.clean = [_quantise(render_many([scenes[p.scene]], p.cameras)[0].rgb) for p in self.pairs]
+        self._rgb = [render_many([scenes[p.scene]], p.cameras)[0].rgb for p in self.pairs]
+        self.clean = [_quantise(rgb) for rgb in self._rgb]
 
     def corrupted(self, config: Any, index: int) -> np.ndarray:
-        """The synthetic corrupted frames of pair `index` under a `Strength` config."""
+        """The synthetic corrupted frames of pair `index` under a `Strength` config, or a
+        `Blur2d` one (the clean render blurred, as curate's blur2d)."""
         from morphgs.rendering import render_many
+        from morphgs.strength import Blur2d
 
+        if isinstance(config, Blur2d):
+            return _quantise(config.blur(self._rgb[index]))
         p = self.pairs[index]
         scene = config.apply(self.scenes[p.scene], seed=p.seed)
         if len(scene) == 0:

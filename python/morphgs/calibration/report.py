@@ -60,12 +60,40 @@ def _plots(folder: Path, name: str, plot: dict[str, Any]) -> list[str]:
     return files
 
 
+def _mix_lines(doc: dict[str, Any]) -> list[str]:
+    """The op-mix search's tables (one per result that ran it)."""
+    runs = [r for r in doc["results"] if r.get("mix_search")]
+    if not runs:
+        return []
+    lines = ["", "## Op mix search", "",
+             "Each mix (the ops' weights; op k runs at n w_k times the strength) matched pair by pair to the real "
+             "PSNR on the calibration scenes, then compared with the real pairs on the other statistics: W1 over "
+             "pairs / the IQR of the real and every mix's values pooled; the score is their mean. The chosen mix "
+             "(lowest score among those reaching the real median) is calibrated above.", ""]
+    for r in runs:
+        m = r["mix_search"]
+        groups = sorted({g for c in m["candidates"] for g in c["distances"]})
+        lines += [f"### {r['family']} / {r['regime']} (scenes {', '.join(m['scenes'])})", "",
+                  "| mix | median strength | " + " | ".join(groups) + " | score |",
+                  "|---|---|" + "---|" * len(groups) + "---|"]
+        for i, c in enumerate(m["candidates"]):
+            w = ", ".join(f"{k} {v:.2f}" for k, v in c["weights"].items())
+            tags = [t for t, on in (("chosen", i == m["chosen"]), ("preset", i == m["preset"])) if on]
+            name = f"{w}" + (f" (**{', '.join(tags)}**)" if tags else "")
+            med = _f(c["median_strength"], 3) if c["reachable"] else "unreachable"
+            lines.append(f"| {name} | {med} | " + " | ".join(_f(c["distances"].get(g)) for g in groups)
+                         + f" | {_f(c['score'], 3)} |")
+        lines.append("")
+    return lines
+
+
 def write_report(out: Path, doc: dict[str, Any], plot_data: Sequence[dict[str, Any]], *, plots: bool = True) -> None:
     """Write out/report.md (and out/plots/*.png when `plots`)."""
     lines = ["# morphgs calibrate report", "",
              f"Scenes: {', '.join(doc['scenes'])}. Regimes: {', '.join(doc['regimes'])}. "
              f"Families: {', '.join(doc['families'])}. Frames per pair {', '.join(map(str, doc['frames']))}, "
-             f"{doc['resolution'][0]}x{doc['resolution'][1]}, seed {doc['seed']}.", "",
+             f"{doc['resolution'][0]}x{doc['resolution'][1]}, seed {doc['seed']}."
+             + "".join(f" {k}: sparse fits of {v} steps." for k, v in doc.get("fit_steps", {}).items() if v), "",
              "## Strength search", "",
              "| family | regime | real median PSNR | monotone | reachable | median strength (PSNR) "
              "| most severe reached | unreachable pairs | strength quantiles (over pairs) p5 / p50 / p95 | config |",
@@ -101,6 +129,7 @@ def write_report(out: Path, doc: dict[str, Any], plot_data: Sequence[dict[str, A
     for r in doc["results"]:
         sh = ", ".join(f"{k} {100 * v:.0f}%" for k, v in r["op_shares"].items())
         lines.append(f"| {r['family']} | {r['regime']} | {r['op_shares_strength']:.4g} | {sh} |")
+    lines += _mix_lines(doc)
     lines += ["", "## Goodness of fit", "",
               "Distances: W1 / IQR of the real values per statistic. Classifier: out-of-fold AUC of a logistic "
               "regression on every statistic (0.5 = indistinguishable), 95% bootstrap interval. Floor: the same "

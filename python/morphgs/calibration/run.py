@@ -14,14 +14,20 @@ from typing import Any
 import numpy as np
 
 from morphgs.calibration import goodness, stats
+from morphgs.calibration.mix import mix_distances, mixed, simplex_grid
 from morphgs.calibration.pairs import Bench, CalibrationError, RealPair, read_real_pairs
 from morphgs.calibration.search import DEFAULT_GRID, search
-from morphgs.strength import FAMILIES, Strength, draw_strength
+from morphgs.strength import FAMILIES, Blur2d, Strength, draw_strength
 
-__all__ = ["MIN_TRAIN_VIEWS", "calibrate"]
+__all__ = ["BUILTIN_FIT_STEPS", "BUILTIN_SCENES", "MIN_TRAIN_VIEWS", "calibrate"]
 
 #: A regime must leave at least this many training views per scene.
 MIN_TRAIN_VIEWS = 2
+#: Built-in scenes used when no SCENE is given: two calibrate, two are held out.
+BUILTIN_SCENES = 4
+#: The sparse fits' length on the built-in scenes when a regime gives no @STEPS: four fits of
+#: 1500 steps cost what two of curate's default 3000 did (docs/calibration.md, "Measured").
+BUILTIN_FIT_STEPS = 1500
 
 
 def _cpu_seconds() -> float:
@@ -34,9 +40,11 @@ def _slug(text: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "-" for c in text)
 
 
-def _check_regime(spec: str, sources: Sequence[Any], resolution: tuple[int, int]) -> Any:
-    """Parse a --regime (sparse:K / sparse-n:N[@STEPS]) and check it leaves enough views."""
-    from morphgs.curation.plan import parse_config
+def _check_regime(spec: str, sources: Sequence[Any], resolution: tuple[int, int],
+                  default_steps: int | None = None) -> Any:
+    """Parse a --regime (sparse:K / sparse-n:N[@STEPS]) and check it leaves enough views;
+    `default_steps` is the fit length when the regime gives none."""
+    from morphgs.curation.plan import ConfigSpec, parse_config
     from morphgs.curation.sparse import CAPTURE_VIEWS, split_views
 
     try:
@@ -46,6 +54,8 @@ def _check_regime(spec: str, sources: Sequence[Any], resolution: tuple[int, int]
     if cfg.kind != "sparse":
         raise CalibrationError(f"--regime {spec}: expected sparse:K or sparse-n:N (optionally @STEPS); "
                                "use --real DIR for other real pairs")
+    if default_steps is not None and "steps" not in cfg.params:
+        cfg = ConfigSpec(f"{cfg.label}-{default_steps}steps", "sparse", {**cfg.params, "steps": default_steps})
     for src in sources:
         recorded = src.load_cameras(resolution) if src.cameras is not None else None
         n = len(recorded) if recorded is not None else CAPTURE_VIEWS
@@ -71,9 +81,12 @@ def _pair_stats(corrupted: np.ndarray, clean: np.ndarray, lpips: bool) -> dict[s
     return stats.pair_stats(corrupted, clean, lpips=lpips)
 
 
-def _family(spec: str) -> tuple[str, Strength]:
-    """A --family: a family name (its ops at the preset's proportions) or a JSON file
-    {"family", "ops"} fixing the ops and their proportions; (label, base config at strength 1)."""
+def _family(spec: str) -> tuple[str, Strength | Blur2d]:
+    """A --family: a family name (its ops at the preset's proportions), blur2d (strength = sigma
+    in pixels) or a JSON file {"family", "ops"} fixing the ops and their proportions; (label, base
+    config at strength 1)."""
+    if spec == Blur2d.family:
+        return spec, Blur2d()
     if spec.lower().endswith(".json"):
         path = Path(spec)
         try:
@@ -88,17 +101,59 @@ def _family(spec: str) -> tuple[str, Strength]:
             raise CalibrationError(f"--family {spec}: {e}") from None
         return path.stem, cfg.at(1.0)
     if spec not in FAMILIES:
-        raise CalibrationError(f"--family {spec}: unknown family; valid families: {', '.join(FAMILIES)} "
-                               "(or a JSON file {\"family\", \"ops\"})")
+        raise CalibrationError(f"--family {spec}: unknown family; valid families: {', '.join(FAMILIES)}, "
+                               f"{Blur2d.family} (or a JSON file {{\"family\", \"ops\"}})")
     return spec, Strength(spec)
 
 
-def _calibrate_one(label: str, base: Strength, regime: str, pairs: list[RealPair], bench: Bench,
+def _search_mix(label: str, base: Strength, pairs: list[RealPair], bench: Bench, real_psnr: np.ndarray,
+                pair_of_frame: np.ndarray, *, steps: int, grid: Sequence[float], lpips: bool,
+                say: Callable[[str], None]) -> tuple[Strength, dict[str, Any]]:
+    """The op-mix search (morphgs.calibration.mix) on the calibration pairs: each candidate mix
+    matched pair by pair to the real PSNR (a scan at one point per octave of `grid`, then
+    interpolation), its pairs compared with the real ones on the other statistics; the mix of
+    lowest score among those that reach the real median wins. Returns (chosen config, report)."""
+    t0 = time.perf_counter()
+    coarse = list(grid)[::2] if len(grid) >= 6 else list(grid)
+    real_stats = [_pair_stats(p.corrupted, p.clean, lpips) for p in pairs]
+    rows: list[dict[str, Any]] = []
+    synth_all = []
+    for w in simplex_grid(list(base.base), steps):
+        cfg = mixed(base, w)
+
+        def measure(s: float, c: Strength = cfg) -> np.ndarray:
+            return bench.frame_psnr(c.at(s))
+
+        res = search(measure, real_psnr, grid=coarse, pairs=pair_of_frame, iters=6, tol_db=0.1)
+        synth = [_pair_stats(bench.corrupted(cfg.at(s), k), bench.clean[k], lpips)
+                 for k, s in enumerate(res.pair_strengths)]
+        synth_all.append(synth)
+        rows.append({"weights": w, "ops": cfg.base, "reachable": res.reachable,
+                     "median_strength": res.median_strength, "median_psnr_reached": res.median_psnr_reached,
+                     "pair_strengths": res.pair_strengths})
+    for row, d in zip(rows, mix_distances(real_stats, synth_all)):
+        row.update(d)
+    pool = [i for i, r in enumerate(rows) if r["reachable"]] or list(range(len(rows)))
+    best = min(pool, key=lambda i: (rows[i]["score"] if np.isfinite(rows[i]["score"]) else np.inf, i))
+    chosen: dict[str, float] = rows[best]["weights"]
+    say(f"calibrate: {label}: op mix {', '.join(f'{k} {v:.2f}' for k, v in chosen.items())} chosen of {len(rows)} "
+        f"(score {rows[best]['score']:.3f}; the preset's {rows[0]['score']:.3f}) [{time.perf_counter() - t0:.1f} s]")
+    info = {"steps": steps, "grid": coarse, "candidates": rows, "chosen": best, "preset": 0,
+            "scenes": sorted({p.scene for p in pairs})}
+    return mixed(base, chosen), info
+
+
+def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, pairs: list[RealPair], bench: Bench,
                    held_bench: Bench | None,
-                   held: list[RealPair], *, grid: Sequence[float], lpips: bool, say: Callable[[str], None]) -> dict[str, Any]:
+                   held: list[RealPair], *, grid: Sequence[float], lpips: bool, say: Callable[[str], None],
+                   search_mix: bool = False, mix_steps: int = 3) -> dict[str, Any]:
     family = base.family
     real_psnr = np.concatenate([stats.frame_psnr(p.corrupted, p.clean) for p in pairs])
     pair_of_frame = np.concatenate([np.full(len(p.clean), k) for k, p in enumerate(pairs)])
+    mix_info = None
+    if search_mix and isinstance(base, Strength) and len(base.base) >= 2:
+        base, mix_info = _search_mix(label, base, pairs, bench, real_psnr, pair_of_frame, steps=mix_steps, grid=grid,
+                                     lpips=lpips, say=say)
     t0 = time.perf_counter()
     res = search(lambda s: bench.frame_psnr(base.at(s)), real_psnr, grid=grid, pairs=pair_of_frame)
     say(f"calibrate: {label} vs {regime}: real median {res.target_median_psnr:.2f} dB; "
@@ -110,7 +165,8 @@ def _calibrate_one(label: str, base: Strength, regime: str, pairs: list[RealPair
     mses = {op: bench.frame_mse(base.at(s_ref).only(op)) for op in base.base}
     total = sum(mses.values())
     shares = {op: (m / total if total > 0 else 0.0) for op, m in mses.items()}
-    config = {"kind": "strength", "family": family, "ops": base.base, "quantiles": res.quantiles}
+    config: dict[str, Any] = ({"kind": "blur2d", "quantiles": res.quantiles} if isinstance(base, Blur2d) else
+                              {"kind": "strength", "family": family, "ops": base.base, "quantiles": res.quantiles})
     # goodness of fit on held-out scenes (in-sample when there is only one scene)
     eval_pairs, eval_bench = (held, held_bench) if held_bench is not None else (pairs, bench)
     real_stats, synth_stats, sheet = [], [], []
@@ -131,7 +187,7 @@ def _calibrate_one(label: str, base: Strength, regime: str, pairs: list[RealPair
     gof["held_out"] = held_bench is not None
     gof["scenes"] = sorted(set(groups))
     return {"family": label, "base_family": family, "regime": regime, "search": res.to_dict(), "op_shares": shares,
-            "op_shares_strength": s_ref, "config": config, "goodness": gof,
+            "op_shares_strength": s_ref, "config": config, "goodness": gof, "mix_search": mix_info,
             "calibration_scenes": sorted({p.scene for p in pairs}),
             "_plot": {"real_psnr": real_psnr.tolist(),
                       "synth_psnr": np.concatenate([st["frame_psnr"] for st in synth_stats]).tolist(),
@@ -162,6 +218,10 @@ def calibrate(
     plots: bool = True,
     log: Callable[[str], None] | None = None,
     wait: bool = False,
+    builtin_scenes: int = BUILTIN_SCENES,
+    builtin_fit_steps: int | None = BUILTIN_FIT_STEPS,
+    search_mix: bool = False,
+    mix_steps: int = 3,
 ) -> dict[str, Any]:
     """Calibrate each family's strength distribution to each regime's real pairs (docs/calibration.md).
 
@@ -180,6 +240,12 @@ def calibrate(
             for the regimes' pairs. plots: write the PNG plots. log: message sink (stderr).
         wait: when another process writes `out`, wait for it instead of raising FolderBusyError
             (`out` is locked while calibrate runs; the curate of its real pairs locks out/real).
+        builtin_scenes: built-in scenes when `scenes` is empty (4: two calibrate, two held out).
+        builtin_fit_steps: the sparse fits' length on the built-in scenes for a regime without
+            @STEPS (1500; None: curate's default).
+        search_mix: also search each family's op mix (morphgs.calibration.mix; families of two or
+            more ops) and calibrate the mix whose pairs resemble the real ones most.
+        mix_steps: the mix grid's resolution (weights in multiples of 1/mix_steps).
 
     Returns:
         The calibration.json content.
@@ -195,7 +261,9 @@ def calibrate(
     with folder_lock(out, command="calibrate", wait=wait, say=log):
         return _calibrate(scenes, out, regimes=regimes, families=families, real=real, pairs_per_scene=pairs_per_scene,
                           frames=frames, resolution=resolution, seed=seed, builtin_gaussians=builtin_gaussians,
-                          grid=grid, lpips=lpips, workers=workers, plots=plots, log=log)
+                          grid=grid, lpips=lpips, workers=workers, plots=plots, log=log,
+                          builtin_scenes=builtin_scenes, builtin_fit_steps=builtin_fit_steps, search_mix=search_mix,
+                          mix_steps=mix_steps)
 
 
 def _calibrate(
@@ -215,6 +283,10 @@ def _calibrate(
     workers: int = 1,
     plots: bool = True,
     log: Callable[[str], None] | None = None,
+    builtin_scenes: int = BUILTIN_SCENES,
+    builtin_fit_steps: int | None = BUILTIN_FIT_STEPS,
+    search_mix: bool = False,
+    mix_steps: int = 3,
 ) -> dict[str, Any]:
     """`calibrate` with `out` locked (see there)."""
     from morphgs.curation import curate
@@ -229,21 +301,29 @@ def _calibrate(
         raise CalibrationError("at least one --family is needed")
     if not regimes and real is None:
         raise CalibrationError("give at least one --regime (e.g. sparse:20) or --real DIR")
+    if builtin_fit_steps is not None and builtin_fit_steps < 1:
+        raise CalibrationError(f"--sample-fit-steps must be >= 1, got {builtin_fit_steps}")
+    if mix_steps < 1:
+        raise CalibrationError(f"--mix-steps must be >= 1, got {mix_steps}")
     scene_list = [str(s) for s in scenes]
     if scene_list:
         sources, problems = discover(scene_list)
         if problems:
             raise CalibrationError(f"scene {problems[0][0]}: {problems[0][1]}")
     else:
-        sources = builtin_sources(2, n_gaussians=builtin_gaussians)
+        if builtin_scenes < 1:
+            raise CalibrationError(f"--sample-scenes must be >= 1, got {builtin_scenes}")
+        sources = builtin_sources(builtin_scenes, n_gaussians=builtin_gaussians)
     out_dir = Path(out)
     groups: dict[str, list[RealPair]] = {}
+    fit_steps: dict[str, int | None] = {}
     for spec in regimes:
-        cfg = _check_regime(spec, sources, resolution)
+        cfg = _check_regime(spec, sources, resolution, None if scene_list else builtin_fit_steps)
+        fit_steps[spec] = cfg.params.get("steps")
         real_dir = out_dir / "real"
         summary = curate(scene_list, real_dir, configs=[cfg], pairs_per_scene=pairs_per_scene, frames=frames,
                          resolution=resolution, seed=seed, test_fraction=0.0, builtin_gaussians=builtin_gaussians,
-                         workers=workers, progress=False, log=say)
+                         builtin_scenes=builtin_scenes, workers=workers, progress=False, log=say)
         if not summary.ok:
             raise CalibrationError(f"--regime {spec}: making the real pairs failed: {summary.failed}")
         groups[spec] = read_real_pairs(real_dir, regimes=[cfg.label])
@@ -268,7 +348,7 @@ def _calibrate(
         held_bench = Bench(loaded, held) if held else None
         for label, base in bases:
             results.append(_calibrate_one(label, base, regime, calib, bench, held_bench, held, grid=grid, lpips=lpips,
-                                          say=say))
+                                          say=say, search_mix=search_mix, mix_steps=mix_steps))
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "configs").mkdir(exist_ok=True)
     for r in results:
@@ -279,7 +359,7 @@ def _calibrate(
 
     doc = {"schema": 1, "morphgs_version": __version__, "scenes": [s.describe() for s in sources],
            "regimes": list(groups), "families": [lbl for lbl, _ in bases], "real": None if real is None else str(real),
-           "pairs_per_scene": pairs_per_scene, "seed": seed,
+           "pairs_per_scene": pairs_per_scene, "seed": seed, "fit_steps": fit_steps, "search_mix": search_mix,
            "frames": sorted({len(p.clean) for ps in groups.values() for p in ps}),
            "resolution": [int(v) for v in next(iter(sizes))[::-1]],
            "results": [{k: v for k, v in r.items() if k != "_plot"} for r in results]}

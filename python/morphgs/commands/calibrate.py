@@ -35,9 +35,15 @@ def register(sub: Any) -> None:
     p.add_argument("--regime", action="append", dest="regimes", default=[], metavar="REGIME",
                    help="sparse-view regime: sparse:K or sparse-n:N, optionally @STEPS (fit length); repeatable")
     p.add_argument("--family", action="append", dest="families", default=[], metavar="FAMILY",
-                   help="spatial, radiometric, morphological or naive (ops in the preset's proportions), or a "
-                        "JSON file {\"family\": ..., \"ops\": {op: base value}} fixing them; repeatable "
-                        "(default: morphological)")
+                   help="spatial, radiometric, morphological or naive (ops in the preset's proportions), "
+                        "blur2d (the 2D render blur, strength = sigma in pixels), or a JSON file {\"family\": ..., "
+                        "\"ops\": {op: base value}} fixing the ops; repeatable (default: morphological)")
+    p.add_argument("--search-mix", action="store_true",
+                   help="also search each family's op mix (a simplex grid of the ops' weights, each mix matched to "
+                        "the real PSNR) and keep the mix whose SSIM, coverage, spectrum, colour shift and temporal "
+                        "error are closest to the real pairs' on the calibration scenes")
+    p.add_argument("--mix-steps", type=int, default=3,
+                   help="resolution of --search-mix's grid: weights in multiples of 1/N (3)")
     p.add_argument("--real", default=None, metavar="DIR",
                    help="a curated folder of real pairs (any pairs whose corrupted side is real); each config "
                         "name in it is a regime")
@@ -47,6 +53,10 @@ def register(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0, help="run seed (0)")
     p.add_argument("--sample-gaussians", type=int, default=100_000,
                    help="Gaussians per built-in sample scene when no SCENE is given (100000)")
+    p.add_argument("--sample-scenes", type=int, default=4,
+                   help="built-in sample scenes when no SCENE is given (4: two calibrate, two are held out)")
+    p.add_argument("--sample-fit-steps", type=int, default=1500,
+                   help="sparse fit length on the built-in scenes for a --regime without @STEPS (1500)")
     p.add_argument("--grid", type=_grid, default=None, metavar="LO,HI",
                    help="strength range of the log-grid scan, two points per octave (0.0625,128)")
     p.add_argument("--lpips", action="store_true", help="also compare LPIPS (needs the installed weights)")
@@ -65,7 +75,9 @@ def run(args: argparse.Namespace) -> int:
                         real=args.real, pairs_per_scene=args.pairs_per_scene, frames=args.frames,
                         resolution=args.size, seed=args.seed, builtin_gaussians=args.sample_gaussians,
                         lpips=args.lpips, **({"grid": args.grid} if args.grid else {}), workers=args.workers,
-                        plots=not args.no_plots, wait=args.wait)
+                        plots=not args.no_plots, wait=args.wait, builtin_scenes=args.sample_scenes,
+                        builtin_fit_steps=args.sample_fit_steps, search_mix=args.search_mix,
+                        mix_steps=args.mix_steps)
     except (CalibrationError, ValueError) as e:
         print(f"morphgs calibrate: error: {e}", file=sys.stderr)
         return 2

@@ -44,10 +44,10 @@ config forms (--config CFG):
                       a real 3DGS reconstruction from every K-th recorded view (cached in DIR/fits)
   sparse-n:N | sparse-n:N@STEPS
                       a reconstruction from N views spread evenly
-  FILE.json           a PerturbConfig dict, {"kind": "blur2d", "sigma"}, {"kind": "sparse",
-                      "every" | "n", "steps", "fit"} or {"kind": "strength", "family",
+  FILE.json           a PerturbConfig dict, {"kind": "blur2d", "sigma" | "quantiles"}, {"kind":
+                      "sparse", "every" | "n", "steps", "fit"} or {"kind": "strength", "family",
                       "strength" | "quantiles", "ops"} (what morphgs calibrate writes: each pair
-                      draws its strength, recorded in the manifest)
+                      draws its strength or sigma, recorded in the manifest)
 """
 
 

@@ -1,4 +1,8 @@
-"""`morphgs perturb IN OUT --preset morphological --seed 7`: write a perturbed copy of a scene."""
+"""`morphgs perturb IN OUT --preset morphological --seed 7`: write a perturbed copy of a scene.
+
+Also `--preset FAMILY~S` (a family of the strength parameterisation at strength S) and `--config
+FILE` holding a strength config ({"kind": "strength", ...}, e.g. from `morphgs calibrate`; a
+strength distribution draws the strength from the seed, as curate does)."""
 
 from __future__ import annotations
 
@@ -32,12 +36,17 @@ def register(sub: Any) -> None:
     src = p.add_mutually_exclusive_group()
     src.add_argument(
         "--preset",
-        choices=PRESETS,
         default="morphological",
-        help="the starting configuration (default: morphological)",
+        metavar="NAME",
+        help=f"the starting configuration: {', '.join(PRESETS)}, or FAMILY~S, a family of the strength "
+        "parameterisation at strength S (e.g. morphological~2; docs/perturbation.md) (default: morphological)",
     )
     src.add_argument(
-        "--config", metavar="FILE", help="start from a JSON config (as PerturbConfig.to_json writes)"
+        "--config",
+        metavar="FILE",
+        help="start from a JSON config (as PerturbConfig.to_json writes), or a strength config "
+        '{"kind": "strength", "family", "strength" | "quantiles", "ops"} as morphgs calibrate writes '
+        "(a strength distribution draws the strength from --seed, as curate does)",
     )
     for field in FIELDS:
         what = "probability" if field == "prune" else "noise scale"
@@ -53,6 +62,50 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
+def _strength_config(args: argparse.Namespace) -> dict[str, Any] | None:
+    """The strength config of `--preset FAMILY~S` or of a strength `--config` file; None for the
+    PerturbConfig forms.
+
+    Raises:
+        ValueError: an unreadable or invalid file, a bad FAMILY~S, or options that do not apply to
+            a strength config (naming them).
+    """
+    from morphgs.curation.plan import parse_config
+
+    if args.config:
+        path = Path(args.config)
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValueError(f"--config {path}: cannot read JSON ({e})") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"--config {path}: expected a JSON object")
+        if data.get("kind") == "blur2d":
+            raise ValueError(f"--config {path}: blur2d blurs rendered frames, not a scene; use it with morphgs curate")
+        if data.get("kind") != "strength":
+            return None
+        if path.suffix.lower() != ".json":
+            raise ValueError(f"--config {path}: a strength config file must end in .json")
+        spec = str(path)
+    elif "~" in args.preset:
+        spec = args.preset
+    else:
+        return None
+    try:
+        params = parse_config(spec).params
+    except ValueError as e:
+        msg = str(e)
+        raise ValueError(msg if args.config else msg.replace("--config", "--preset", 1)) from None
+    flags = [f"--{_flag(f)}" for f in FIELDS if getattr(args, f) is not None]
+    flags += [f"--no-{_flag(f)}" for f in FIELDS if getattr(args, f"no_{f}")]
+    if args.strength is not None:
+        flags.append("--strength")
+    if flags:
+        raise ValueError(f"{', '.join(flags)} set PerturbConfig fields and do not apply to the strength config "
+                         f"{spec}; give the strength in FAMILY~S or in the file")
+    return {"kind": "strength", **params}
+
+
 def config_from_args(args: argparse.Namespace) -> PerturbConfig:
     """The config the arguments describe: preset or file, then per-field overrides, then strength.
 
@@ -62,6 +115,8 @@ def config_from_args(args: argparse.Namespace) -> PerturbConfig:
     if args.config:
         cfg = PerturbConfig.from_json(Path(args.config).read_text())
     else:
+        if args.preset not in PRESETS:
+            raise ValueError(f"--preset {args.preset}: expected one of {', '.join(PRESETS)} or FAMILY~STRENGTH")
         cfg = PerturbConfig.preset(args.preset)
     changes: dict[str, float | None] = {}
     for field in FIELDS:
@@ -82,13 +137,17 @@ def config_from_args(args: argparse.Namespace) -> PerturbConfig:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        cfg = config_from_args(args)
         if args.seed < 0:
             raise ValueError(f"--seed must be >= 0, got {args.seed}")
+        strength = _strength_config(args)
+        cfg = config_from_args(args) if strength is None else None
     except ValueError as e:
         print(f"morphgs perturb: error: {e}", file=sys.stderr)
         return 2
     scene = morphgs.load(args.input)
+    if strength is not None:
+        return _run_strength(args, scene, strength)
+    assert cfg is not None
     out, mask = morphgs.perturb(scene, cfg, seed=args.seed, return_mask=True)
     morphgs.save_ply(out, args.output)
     if args.mask:
@@ -110,4 +169,35 @@ def run(args: argparse.Namespace) -> int:
     print(f"  gaussians : {len(scene):,} in, {len(out):,} kept, {len(scene) - len(out):,} pruned")
     print(f"  operations: {', '.join(cfg.enabled) or 'none'}")
     print(f"  config    : {cfg.to_json()}")
+    return 0
+
+
+def _run_strength(args: argparse.Namespace, scene: Any, config: dict[str, Any]) -> int:
+    """Perturb with a strength config (its strength drawn from the seed when it is a distribution)."""
+    from morphgs.strength import from_config
+
+    st = from_config(config, args.seed)
+    out, mask = st.apply(scene, seed=args.seed, return_mask=True)
+    morphgs.save_ply(out, args.output)
+    if args.mask:
+        np.save(args.mask, mask)
+    summary = {
+        "input": str(args.input),
+        "output": str(args.output),
+        "seed": args.seed,
+        "gaussians_in": len(scene),
+        "kept": len(out),
+        "pruned": len(scene) - len(out),
+        "strength": st.strength,
+        "config": st.to_dict(),
+    }
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    drawn = " (drawn from its quantile table)" if "quantiles" in config else ""
+    print(f"perturbed {args.input} -> {args.output} (family {st.family}, strength {st.strength:.6g}{drawn}), "
+          f"seed {args.seed}")
+    print(f"  gaussians : {len(scene):,} in, {len(out):,} kept, {len(scene) - len(out):,} pruned")
+    print(f"  operations: {', '.join(f'{k} {v:.6g}' for k, v in st.values().items()) or 'none'}")
+    print(f"  config    : {json.dumps(st.to_dict())}")
     return 0

@@ -55,7 +55,7 @@ class ConfigSpec:
     kind "perturb" carries `PerturbConfig.to_dict()` in `params`; kind "strength" carries
     `Strength.to_dict()` without "kind" (a fixed "strength", or a "quantiles" table of a strength
     distribution each pair draws from, see morphgs.strength); kind "blur2d" carries
-    {"sigma": pixels}; kind "sparse" carries {"every": K} or {"n": N}, optionally "steps" and
+    {"sigma": pixels} or {"quantiles": a sigma distribution}; kind "sparse" carries {"every": K} or {"n": N}, optionally "steps" and
     "fit" (FitConfig overrides), see morphgs.curation.sparse.
     """
 
@@ -98,7 +98,7 @@ def parse_config(spec: str, *, blur_sigma: float = 2.0) -> ConfigSpec:
     the smooth, scene-aware strength parameterisation (`morphgs.strength.Strength`); `sparse:K` (a reconstruction from every
     K-th recorded view, the paper's S_K) or `sparse-n:N` (from N views spread evenly), each
     optionally `@STEPS`; or a path to a JSON file holding a `PerturbConfig.to_dict()` (or
-    {"kind": "blur2d", "sigma": s}, or {"kind": "sparse", "every": K | "n": N, "steps": S,
+    {"kind": "blur2d", "sigma": s | "quantiles": {...}}, or {"kind": "sparse", "every": K | "n": N, "steps": S,
     "fit": {FitConfig overrides}}, or {"kind": "strength", "family", "strength": S | "quantiles":
     {"p": [...], "strength": [...]}, "ops": {...}} as `morphgs calibrate` writes), labelled by the
     file stem.
@@ -118,6 +118,13 @@ def parse_config(spec: str, *, blur_sigma: float = 2.0) -> ConfigSpec:
         if not isinstance(d, dict):
             raise ValueError(f"--config {spec}: expected a JSON object")
         if d.get("kind") == "blur2d":
+            if "quantiles" in d:  # a sigma distribution, as `morphgs calibrate --family blur2d` writes
+                from morphgs.strength import check_quantiles
+
+                _, sig = check_quantiles(d["quantiles"], f"--config {spec}: quantiles")
+                if sig[-1] > 256:
+                    raise ValueError(f"--config {spec}: quantiles.strength: blur sigmas must be in [0, 256] pixels")
+                return ConfigSpec(p.stem, "blur2d", {"quantiles": d["quantiles"]})
             return ConfigSpec(p.stem, "blur2d", {"sigma": float(d.get("sigma", blur_sigma))})
         if d.get("kind") == "sparse":
             if ("every" in d) == ("n" in d):

@@ -110,7 +110,7 @@ def make_pair(
 
     t_start = time.perf_counter()
     cams = job_cameras(job, scene, recorded, opts.trajectory)
-    corruption = Corruption.make(job.config)
+    corruption = Corruption.make(job.config).for_seed(job.seed)
     t0 = time.perf_counter()
     fit_info = None
     if corruption.kind == "sparse":

@@ -247,6 +247,68 @@ fn run_chunk_impl(
             }
         }
     }
+    if let Some((key, sigma)) = ops.log_scale {
+        draw_normals(key, 3, &s.idx, &mut s.base, &mut s.z);
+        interleave3(&s.z, &mut s.flat);
+        for (v, &z) in out.log_scales.iter_mut().zip(&s.flat) {
+            *v += sigma * z;
+        }
+    }
+    if let Some((key, sigma)) = ops.rotation_angle {
+        draw_normals(key, 3, &s.idx, &mut s.base, &mut s.z);
+        let [z0, z1, z2, _] = &s.z;
+        for (((q, &a), &b), &c) in out.quats.chunks_exact_mut(4).zip(z0).zip(z1).zip(z2) {
+            let r = rotate([q[0], q[1], q[2], q[3]], [sigma * a, sigma * b, sigma * c]);
+            q.copy_from_slice(&r);
+        }
+    }
+}
+
+/// exp(omega) * unit(q): q (w, x, y, z) turned by the rotation vector omega (radians), with
+/// exactly rounded operations only (so the same bits on every CPU).
+#[inline(always)]
+pub(crate) fn rotate(q: [f32; 4], omega: [f32; 3]) -> [f32; 4] {
+    let u = unit(q);
+    let theta = (omega[0] * omega[0] + omega[1] * omega[1] + omega[2] * omega[2]).sqrt();
+    let (sh, dw) = sin_cos(0.5 * theta);
+    // sin(theta / 2) / theta, 1/2 at theta = 0
+    let k = if theta > 0.0 { sh / theta } else { 0.5 };
+    let d = [omega[0] * k, omega[1] * k, omega[2] * k];
+    let v = [u[1], u[2], u[3]];
+    [
+        dw * u[0] - (d[0] * v[0] + d[1] * v[1] + d[2] * v[2]),
+        dw * v[0] + u[0] * d[0] + (d[1] * v[2] - d[2] * v[1]),
+        dw * v[1] + u[0] * d[1] + (d[2] * v[0] - d[0] * v[2]),
+        dw * v[2] + u[0] * d[2] + (d[0] * v[1] - d[1] * v[0]),
+    ]
+}
+
+/// (sin x, cos x) for finite x >= 0: reduced to [-pi/4, pi/4] by quarter turns in float64
+/// (exactly rounded operations), then [`fastmath::sin_cos_quarter`]; a non-finite x gives NaN.
+#[inline(always)]
+pub(crate) fn sin_cos(x: f32) -> (f32, f32) {
+    let h = f64::from(x);
+    let n = (h * core::f64::consts::FRAC_2_PI + 0.5).floor();
+    let r = (h - n * core::f64::consts::FRAC_PI_2) as f32;
+    let (s, c) = fastmath::sin_cos_quarter(r.abs());
+    let s = if r < 0.0 { -s } else { s };
+    // n quarter turns: 0: (s, c), 1: (c, -s), 2: (-s, -c), 3: (-c, s)
+    let quadrant = if n.is_finite() {
+        (n as i64 & 3) as u32
+    } else {
+        0
+    };
+    let (s, c) = match quadrant {
+        0 => (s, c),
+        1 => (c, -s),
+        2 => (-s, -c),
+        _ => (-c, s),
+    };
+    if x.is_finite() {
+        (s, c)
+    } else {
+        (f32::NAN, f32::NAN)
+    }
 }
 
 /// Normal draws 0..dims of every row's stream, draw j into `z[j]` (the bits of
@@ -412,4 +474,136 @@ fn fix_log_scale(mut v: f32) -> f32 {
         v = toward_zero(v);
     }
     v
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::{
+        op_key, OP_COLOR, OP_LOG_SCALE, OP_OPACITY, OP_POSITION, OP_ROTATION, OP_ROTATION_ANGLE,
+        OP_SCALE,
+    };
+    use crate::scene::Scene;
+
+    /// A scene of closed-form values, with a few huge and tiny ones to reach the clamps.
+    fn scene(n: usize) -> Scene {
+        let f = |i: usize, j: usize| ((i * 7 + j * 13) % 97) as f32 / 97.0;
+        let mut s = Scene {
+            means: (0..n * 3).map(|t| f(t / 3, t % 3) * 10.0).collect(),
+            quats: (0..n * 4).map(|t| f(t / 4, t % 4 + 1) - 0.5).collect(),
+            log_scales: (0..n * 3)
+                .map(|t| f(t / 3, t % 3 + 5) * 8.0 - 12.0)
+                .collect(),
+            opacity_logits: (0..n).map(|i| f(i, 9) * 16.0 - 8.0).collect(),
+            sh0: (0..n * 3)
+                .map(|t| f(t / 3, t % 3 + 11) * 4.0 - 2.0)
+                .collect(),
+            sh_rest: vec![0.0; n * 9],
+            sh_degree: 1,
+            extras: Vec::new(),
+        };
+        s.opacity_logits[0] = 30.0;
+        s.log_scales[0] = -18.0;
+        s
+    }
+
+    /// Every op (the paper's six and the strength ops 7 and 8) through one build of the kernel
+    /// (0 portable, 1 AVX2, 2 AVX-512) over the rows not divisible by 3 (a pruned-like gather);
+    /// None when the CPU lacks the build's features.
+    fn run_build(build: u8, s: &Scene, ops: &Ops) -> Option<Scene> {
+        #[cfg(target_arch = "x86_64")]
+        let has = |f: &str| match f {
+            "avx2" => std::is_x86_feature_detected!("avx2"),
+            _ => {
+                std::is_x86_feature_detected!("avx512f")
+                    && std::is_x86_feature_detected!("avx512dq")
+                    && std::is_x86_feature_detected!("avx512vl")
+                    && std::is_x86_feature_detected!("avx2")
+            }
+        };
+        let mut scratch = Scratch::default();
+        scratch
+            .idx
+            .extend((0..s.len() as u64).filter(|i| i % 3 != 0));
+        let m = scratch.idx.len();
+        let mut out = Scene {
+            means: vec![0.0; m * 3],
+            quats: vec![0.0; m * 4],
+            log_scales: vec![0.0; m * 3],
+            opacity_logits: vec![0.0; m],
+            sh0: vec![0.0; m * 3],
+            sh_rest: vec![0.0; m * 9],
+            sh_degree: 1,
+            extras: Vec::new(),
+        };
+        let rows = Rows {
+            means: &mut out.means,
+            quats: &mut out.quats,
+            log_scales: &mut out.log_scales,
+            opacity_logits: &mut out.opacity_logits,
+            sh0: &mut out.sh0,
+            sh_rest: &mut out.sh_rest,
+            extras: Vec::new(),
+        };
+        let view = s.view();
+        match build {
+            0 => run_chunk_impl(&view, &[], 9, ops, rows, &mut scratch),
+            #[cfg(target_arch = "x86_64")]
+            1 if has("avx2") => {
+                // SAFETY: the CPU has the features (checked).
+                unsafe { run_chunk_avx2(&view, &[], 9, ops, rows, &mut scratch) }
+            }
+            #[cfg(target_arch = "x86_64")]
+            2 if has("avx512") => {
+                // SAFETY: as above.
+                unsafe { run_chunk_avx512(&view, &[], 9, ops, rows, &mut scratch) }
+            }
+            _ => return None,
+        }
+        Some(out)
+    }
+
+    #[test]
+    fn every_simd_build_gives_the_portable_bits() {
+        let s = scene(3000);
+        let seed = 77;
+        let ops = Ops {
+            position: Some((op_key(seed, OP_POSITION), 0.05)),
+            color: Some((op_key(seed, OP_COLOR), 0.3)),
+            opacity: Some((op_key(seed, OP_OPACITY), 0.3)),
+            scale: Some((op_key(seed, OP_SCALE), 0.2)),
+            rotation: Some((op_key(seed, OP_ROTATION), 0.4)),
+            log_scale: Some((op_key(seed, OP_LOG_SCALE), 0.9)),
+            // an RMS angle of about 17 rad: many quarter-turn reductions
+            rotation_angle: Some((op_key(seed, OP_ROTATION_ANGLE), 10.0)),
+        };
+        let portable = run_build(0, &s, &ops).expect("portable");
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let mut compared = 0;
+        for build in [1, 2] {
+            let Some(out) = run_build(build, &s, &ops) else {
+                continue;
+            };
+            compared += 1;
+            assert_eq!(bits(&out.means), bits(&portable.means), "build {build}");
+            assert_eq!(bits(&out.quats), bits(&portable.quats), "build {build}");
+            assert_eq!(
+                bits(&out.log_scales),
+                bits(&portable.log_scales),
+                "build {build}"
+            );
+            assert_eq!(
+                bits(&out.opacity_logits),
+                bits(&portable.opacity_logits),
+                "build {build}"
+            );
+            assert_eq!(bits(&out.sh0), bits(&portable.sh0), "build {build}");
+        }
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            assert!(compared >= 1);
+        }
+        let _ = compared;
+        assert!(portable.quats.iter().all(|v| v.is_finite()));
+    }
 }

@@ -1,4 +1,5 @@
-//! The paper's six perturbation operations (SPEC §2), seeded and parallel.
+//! The paper's six perturbation operations (SPEC §2), seeded and parallel, and the strength
+//! parameterisation's relative scale noise and rotation by an angle (ops 7 and 8).
 //!
 //! [`perturb`] reads a scene, decides which Gaussians survive pruning, allocates the output arrays
 //! once for the survivors and fills them in parallel over fixed-size chunks of the input: every
@@ -15,7 +16,10 @@ mod kernel;
 
 use crate::error::{Error, Result};
 use crate::mem::zeroed_f32;
-use crate::rng::{op_key, OP_COLOR, OP_OPACITY, OP_POSITION, OP_PRUNE, OP_ROTATION, OP_SCALE};
+use crate::rng::{
+    op_key, OP_COLOR, OP_LOG_SCALE, OP_OPACITY, OP_POSITION, OP_PRUNE, OP_ROTATION,
+    OP_ROTATION_ANGLE, OP_SCALE,
+};
 use crate::scene::{Scene, SceneView};
 
 /// Gaussians per parallel work item (fixed, never derived from the thread count).
@@ -42,6 +46,12 @@ pub struct PerturbParams {
     pub scale_noise: Option<f32>,
     /// sigma_rot: noise on the normalised quaternion.
     pub rotation_noise: Option<f32>,
+    /// Strength parameterisation (op 7): sigma of the noise added to each log axis scale,
+    /// `log s' = log s + sigma * z`, so relative to each Gaussian's own scale.
+    pub log_scale_noise: Option<f32>,
+    /// Strength parameterisation (op 8): RMS angle (radians) of an isotropic rotation,
+    /// `q' = exp(omega) * q` with `omega = angle / sqrt(3) * z`, `z ~ N(0, I3)`.
+    pub rotation_angle: Option<f32>,
 }
 
 impl PerturbParams {
@@ -53,6 +63,8 @@ impl PerturbParams {
         prune: Some(0.5),
         scale_noise: Some(0.01),
         rotation_noise: Some(0.01),
+        log_scale_noise: None,
+        rotation_angle: None,
     };
 
     /// Names accepted by [`PerturbParams::preset`].
@@ -97,6 +109,8 @@ impl PerturbParams {
             ("opacity_noise", self.opacity_noise),
             ("scale_noise", self.scale_noise),
             ("rotation_noise", self.rotation_noise),
+            ("log_scale_noise", self.log_scale_noise),
+            ("rotation_angle", self.rotation_angle),
         ];
         for (name, v) in noises {
             if let Some(v) = v {
@@ -192,10 +206,17 @@ pub fn perturb_changed(
     }
     let (s, _) = run(view, &[], params, seed, true)?;
     let some = |v: Vec<f32>, on: Option<f32>| on.filter(|&x| x > 0.0).map(|_| v);
+    let either = |a: Option<f32>, b: Option<f32>| a.filter(|&x| x > 0.0).or(b);
     Ok(Some(Changed {
         means: some(s.means, params.position_jitter),
-        quats: some(s.quats, params.rotation_noise),
-        log_scales: some(s.log_scales, params.scale_noise),
+        quats: some(
+            s.quats,
+            either(params.rotation_noise, params.rotation_angle),
+        ),
+        log_scales: some(
+            s.log_scales,
+            either(params.scale_noise, params.log_scale_noise),
+        ),
         opacity_logits: some(s.opacity_logits, params.opacity_noise),
         sh0: some(s.sh0, params.color_noise),
     }))
@@ -239,6 +260,9 @@ fn run(
         opacity: active(params.opacity_noise).map(|s| (op_key(seed, OP_OPACITY), s)),
         scale: active(params.scale_noise).map(|s| (op_key(seed, OP_SCALE), s)),
         rotation: active(params.rotation_noise).map(|s| (op_key(seed, OP_ROTATION), s)),
+        log_scale: active(params.log_scale_noise).map(|s| (op_key(seed, OP_LOG_SCALE), s)),
+        rotation_angle: active(params.rotation_angle)
+            .map(|a| (op_key(seed, OP_ROTATION_ANGLE), a / 3f32.sqrt())),
     };
     let only_changed = only_changed && m == n;
     let buffer = |len: usize, written: bool| {
@@ -250,8 +274,11 @@ fn run(
     };
     let mut out = Scene {
         means: buffer(m * 3, ops.position.is_some()),
-        quats: buffer(m * 4, ops.rotation.is_some()),
-        log_scales: buffer(m * 3, ops.scale.is_some()),
+        quats: buffer(
+            m * 4,
+            ops.rotation.is_some() || ops.rotation_angle.is_some(),
+        ),
+        log_scales: buffer(m * 3, ops.scale.is_some() || ops.log_scale.is_some()),
         opacity_logits: buffer(m, ops.opacity.is_some()),
         sh0: buffer(m * 3, ops.color.is_some()),
         sh_rest: buffer(m * k3, false),
@@ -302,6 +329,10 @@ pub(crate) struct Ops {
     pub opacity: Option<(u64, f32)>,
     pub scale: Option<(u64, f32)>,
     pub rotation: Option<(u64, f32)>,
+    /// Op 7: sigma in log space.
+    pub log_scale: Option<(u64, f32)>,
+    /// Op 8: sigma of each rotation-vector component (the RMS angle / sqrt 3).
+    pub rotation_angle: Option<(u64, f32)>,
 }
 
 /// Mutable output rows of one chunk.
@@ -484,6 +515,8 @@ mod tests {
             prune: Some(0.0),
             scale_noise: Some(0.0),
             rotation_noise: Some(0.0),
+            log_scale_noise: Some(0.0),
+            rotation_angle: Some(0.0),
         };
         for p in [zero, PerturbParams::default()] {
             let (out, keep) = run(&s, &p, 1);
@@ -585,6 +618,125 @@ mod tests {
             ..Default::default()
         };
         assert!(perturb_changed(&s.view(), &bad, 4).is_err());
+    }
+
+    /// The strength ops (7, 8) at once with pruning, as `morphgs.Strength` runs them.
+    const STRENGTH: PerturbParams = PerturbParams {
+        position_jitter: None,
+        color_noise: None,
+        opacity_noise: None,
+        prune: Some(0.4),
+        scale_noise: None,
+        rotation_noise: None,
+        log_scale_noise: Some(0.7),
+        rotation_angle: Some(1.3),
+    };
+
+    #[test]
+    fn strength_ops_draw_ops_7_and_8_of_each_input_index() {
+        let s = scene(CHUNK + 700, 1);
+        let (out, keep) = run(&s, &STRENGTH, 21);
+        let kept: Vec<usize> = (0..s.len()).filter(|&i| keep[i]).collect();
+        assert_eq!(out.len(), kept.len());
+        let sigma = 1.3f32 / 3f32.sqrt();
+        for (r, &i) in kept.iter().enumerate() {
+            for d in 0..3 {
+                let z = crate::rng::normal(21, OP_LOG_SCALE, i as u64, d as u32);
+                let want = s.log_scales[i * 3 + d] + 0.7 * z;
+                assert_eq!(out.log_scales[r * 3 + d].to_bits(), want.to_bits());
+            }
+            // the rotation in float64 from the same draws
+            let z: Vec<f64> = (0..3)
+                .map(|d| f64::from(sigma * crate::rng::normal(21, OP_ROTATION_ANGLE, i as u64, d)))
+                .collect();
+            let theta = (z[0] * z[0] + z[1] * z[1] + z[2] * z[2]).sqrt();
+            let k = if theta > 0.0 {
+                (0.5 * theta).sin() / theta
+            } else {
+                0.5
+            };
+            let (dw, dv) = ((0.5 * theta).cos(), [z[0] * k, z[1] * k, z[2] * k]);
+            let q: Vec<f64> = s.quats[i * 4..i * 4 + 4]
+                .iter()
+                .map(|&v| f64::from(v))
+                .collect();
+            let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+            let (w, v) = (q[0] / n, [q[1] / n, q[2] / n, q[3] / n]);
+            let want = [
+                dw * w - (dv[0] * v[0] + dv[1] * v[1] + dv[2] * v[2]),
+                dw * v[0] + w * dv[0] + dv[1] * v[2] - dv[2] * v[1],
+                dw * v[1] + w * dv[1] + dv[2] * v[0] - dv[0] * v[2],
+                dw * v[2] + w * dv[2] + dv[0] * v[1] - dv[1] * v[0],
+            ];
+            for k in 0..4 {
+                let got = f64::from(out.quats[r * 4 + k]);
+                assert!(
+                    (got - want[k]).abs() < 2e-6,
+                    "row {i}: {got} vs {}",
+                    want[k]
+                );
+            }
+        }
+        // the rows the strength ops do not touch follow the mask unchanged
+        let kept_scene = s.filter(&keep);
+        assert_eq!(out.means, kept_scene.means);
+        assert_eq!(out.sh0, kept_scene.sh0);
+    }
+
+    #[test]
+    fn strength_ops_match_thread_count_one_bit_for_bit() {
+        let s = scene(3 * CHUNK + 11, 2);
+        let (a, ka) = run(&s, &STRENGTH, 8);
+        let single = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .expect("pool");
+        let (b, kb) = single.install(|| run(&s, &STRENGTH, 8));
+        assert_eq!(ka, kb);
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&a.quats), bits(&b.quats));
+        assert_eq!(bits(&a.log_scales), bits(&b.log_scales));
+        // and the same noise without pruning (perturb_changed) for the same input index
+        let p = PerturbParams {
+            prune: None,
+            ..STRENGTH
+        };
+        let c = perturb_changed(&s.view(), &p, 8)
+            .expect("valid")
+            .expect("no pruning");
+        let (full, _) = run(&s, &p, 8);
+        assert_eq!(c.quats.expect("rotated"), full.quats);
+        assert_eq!(c.log_scales.expect("scaled"), full.log_scales);
+        assert!(c.means.is_none() && c.sh0.is_none());
+    }
+
+    #[test]
+    fn rotation_by_an_angle_turns_by_that_angle() {
+        for (x, want) in [(0.0f32, 0.0f64), (0.3, 0.3), (2.0, 2.0), (7.0, 7.0)] {
+            let q = kernel::rotate([0.3, -0.5, 0.1, 0.8], [x * 0.6, 0.0, x * 0.8]);
+            let u = {
+                let n = (0.09f64 + 0.25 + 0.01 + 0.64).sqrt();
+                [0.3 / n, -0.5 / n, 0.1 / n, 0.8 / n]
+            };
+            let dot: f64 = (0..4).map(|k| f64::from(q[k]) * u[k]).sum();
+            // |<q', q>| = |cos(angle / 2)|
+            assert!((dot - (want / 2.0).cos()).abs() < 1e-6, "{x}: {dot}");
+            let n: f32 = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+            assert!((n - 1.0).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn sin_cos_is_accurate_over_many_turns() {
+        for t in 0..20_000 {
+            let x = t as f32 * 0.01;
+            let (s, c) = kernel::sin_cos(x);
+            let xd = f64::from(x);
+            assert!((f64::from(s) - xd.sin()).abs() < 1e-6, "sin {x}");
+            assert!((f64::from(c) - xd.cos()).abs() < 1e-6, "cos {x}");
+        }
+        let (s, c) = kernel::sin_cos(f32::INFINITY);
+        assert!(s.is_nan() && c.is_nan());
     }
 
     #[test]
