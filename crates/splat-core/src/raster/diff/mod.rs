@@ -147,6 +147,47 @@ impl Gradients {
         z(&mut self.colors, if given_colors { n * 3 } else { 0 });
         self.background = [0.0; 3];
     }
+
+    /// [`Gradients::reset`] for buffers that were reset for the same sizes and since then
+    /// received only backward passes at SH degree `degree` or lower (`None`: unknown): the
+    /// higher SH bands are still zero and are left as they are, so an optimiser whose degree
+    /// grows step by step does not clear all of `sh_rest` every step (45 of a Gaussian's 59
+    /// floats with 3 bands stored and degree 0 in use). Other sizes get a full reset.
+    pub fn reset_since(
+        &mut self,
+        n: usize,
+        sh_rest_k: usize,
+        given_colors: bool,
+        degree: Option<u8>,
+    ) {
+        let same = self.means.len() == n * 3
+            && self.sh_rest.len() == n * sh_rest_k * 3
+            && self.colors.len() == if given_colors { n * 3 } else { 0 };
+        let Some(d) = degree.filter(|_| same) else {
+            return self.reset(n, sh_rest_k, given_colors);
+        };
+        for v in [
+            &mut self.means,
+            &mut self.quats,
+            &mut self.log_scales,
+            &mut self.opacity_logits,
+            &mut self.sh0,
+            &mut self.scales,
+            &mut self.opacities,
+            &mut self.colors,
+        ] {
+            v.fill(0.0);
+        }
+        self.background = [0.0; 3];
+        let used = ((d as usize + 1) * (d as usize + 1) - 1).min(sh_rest_k) * 3;
+        if used == sh_rest_k * 3 {
+            self.sh_rest.fill(0.0);
+        } else if used > 0 {
+            for g in self.sh_rest.chunks_exact_mut(sh_rest_k * 3) {
+                g[..used].fill(0.0);
+            }
+        }
+    }
 }
 
 /// One view's intermediate gradients per Gaussian (gsplat's `rasterize_to_pixels` VJP outputs:
