@@ -257,8 +257,8 @@ struct Saved {
 }
 
 /// Buffers of the differentiable rasterizer, reused across calls, and the state one forward
-/// leaves for its backward. About 64 + 8 + 4 bytes per visible Gaussian and 4 bytes per
-/// intersection (depth-sorted splats, their ids and tile ranges, the tile lists), 20 bytes per
+/// leaves for its backward. About 64 + 4 + 4 bytes per visible Gaussian and 4 bytes per
+/// intersection (depth-sorted splats, their ids and sorted positions, the tile lists), 20 bytes per
 /// pixel (final transmittance, colour and depth sums), and during the backward 48 bytes per
 /// intersection of a band plus 48 bytes per visible Gaussian.
 #[derive(Default)]

@@ -426,7 +426,10 @@ fn reset_since_a_lower_degree_gives_the_fresh_reset_gradients() {
     forward(&mut ws, &s, &cam, &at(1));
     ws.backward(&s.view(), None, &grads, &mut g, None, None)
         .expect("backward");
-    assert!(g.sh_rest.iter().any(|&v| v != 0.0), "degree 1 writes band 1");
+    assert!(
+        g.sh_rest.iter().any(|&v| v != 0.0),
+        "degree 1 writes band 1"
+    );
     g.reset_since(s.len(), s.sh_rest_k(), false, Some(1));
     assert!(g.sh_rest.iter().all(|&v| v == 0.0));
     forward(&mut ws, &s, &cam, &at(2));
