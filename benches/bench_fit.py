@@ -5,12 +5,16 @@ CPU measurements (docs/fit.md; rebuilt here from the built-in synthetic scene).
     python benches/bench_fit.py                    # everything (about 30-40 min on 2 idle cores)
     python benches/bench_fit.py --only garden      # garden | quality | sparse | opensplat
     python benches/bench_fit.py --quick            # tiny sizes, a smoke run
+    python benches/bench_fit.py --only garden --baseline /tmp/old   # A/B against an older build
 
 Sections:
 - garden: 24 views of gsplat's garden profiling scene along a smooth path through its 3 cameras
   (648x420), a fit initialised from the garden points (111,785 Gaussians, 3-NN scales, opacity
   0.1); steps/s over the first steps (no densification yet) at 1 and 2 threads (a subprocess
-  each), with the per-stage split and the process CPU time per step.
+  each), with the per-stage split and the process CPU time per step. With --baseline DIR (a
+  folder holding an older build's `morphgs` package, e.g. a copy of python/morphgs with its
+  `_core` built from main), the 2-thread garden step of that build and of this one alternate
+  for --rounds rounds in the same session: per-round medians, then the median of each.
 - quality: the same fit for `--quality-steps` steps with the default recipe: held-out PSNR/SSIM
   (every 8th view) and the Gaussian count over the steps.
 - sparse: a 200k-Gaussian synthetic scene captured by 300 views along a 180-degree arc of its
@@ -151,6 +155,39 @@ def section_garden(tmp: Path, quick: bool) -> None:
               f"{1e3 * s['backward_s']:9.1f} {1e3 * s['adam_s']:5.1f}")
 
 
+def section_garden_ab(tmp: Path, quick: bool, baseline: str, rounds: int) -> None:
+    """The 2-thread garden step of the build in `baseline` and of this one, alternating."""
+    import statistics
+
+    data = tmp / "garden"
+    if not (data / "transforms.json").exists():
+        garden_dataset(data, 8 if quick else 24)
+    steps = 8 if quick else 60
+    cfg = {"steps": 30_000}
+    print(f"\n## garden A/B, 2 threads, {rounds} rounds of {steps} steps (load average {_load()})")
+    print(f"{'build':>8} {'round':>5} {'steps/s':>8} {'ms/step':>8} {'CPU ms/step':>11}  forward  loss  backward  adam")
+    res: dict[str, list[dict]] = {"baseline": [], "this": []}
+    for r in range(rounds):
+        for which in (("baseline", "this") if r % 2 == 0 else ("this", "baseline")):
+            x = run_fit_until(data, cfg, threads=2, until=steps, baseline=baseline if which == "baseline" else None)
+            res[which].append(x)
+            st = x["stages"]
+            print(f"{which:>8} {r:>5} {x['steps_per_s']:>8.2f} {1e3 * st['seconds']:>8.1f} "
+                  f"{1e3 * x['cpu'] / x['steps']:>11.1f}  {1e3 * st['forward_s']:7.1f} {1e3 * st['loss_s']:5.1f} "
+                  f"{1e3 * st['backward_s']:9.1f} {1e3 * st['adam_s']:5.1f}")
+    med = {w: {k: statistics.median(x["stages"][k] for x in v) for k in ("seconds", "forward_s", "loss_s",
+                                                                       "backward_s", "adam_s")}
+           for w, v in res.items()}
+    cpu = {w: statistics.median(x["cpu"] / x["steps"] for x in v) for w, v in res.items()}
+    for w in ("baseline", "this"):
+        m = med[w]
+        print(f"{w:>8} median {1 / m['seconds']:>8.2f} {1e3 * m['seconds']:>8.1f} {1e3 * cpu[w]:>11.1f}  "
+              f"{1e3 * m['forward_s']:7.1f} {1e3 * m['loss_s']:5.1f} {1e3 * m['backward_s']:9.1f} {1e3 * m['adam_s']:5.1f}")
+    print(f"this / baseline: step {med['this']['seconds'] / med['baseline']['seconds']:.3f}, "
+          f"backward {med['this']['backward_s'] / med['baseline']['backward_s']:.3f}, "
+          f"CPU {cpu['this'] / cpu['baseline']:.3f}")
+
+
 # a run cut after `until` steps (the config keeps its step count so the schedule is real)
 UNTIL = """
 import json, sys, time
@@ -176,9 +213,11 @@ print(json.dumps({"steps": len(rows), "wall": wall, "cpu": cpu, "steps_per_s": l
 """
 
 
-def run_fit_until(data: Path, cfg: dict, *, threads: int, until: int) -> dict:
+def run_fit_until(data: Path, cfg: dict, *, threads: int, until: int, baseline: str | None = None) -> dict:
     env = dict(os.environ, MORPHGS_NUM_THREADS=str(threads))
     env.pop("RAYON_NUM_THREADS", None)
+    if baseline:
+        env["PYTHONPATH"] = os.pathsep.join([baseline, env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     out = subprocess.run([sys.executable, "-c", UNTIL, str(data), json.dumps(cfg), str(until)], env=env,
                          capture_output=True, text=True, timeout=3600)
     if out.returncode != 0:
@@ -383,10 +422,15 @@ def main() -> None:
     ap.add_argument("--opensplat", default=None, metavar="BIN",
                     help="an OpenSplat binary (CPU build) to run on the same data (else its figures are cited)")
     ap.add_argument("--dir", default=None, help="scratch folder (default: a temporary one, removed)")
+    ap.add_argument("--baseline", default=None, metavar="DIR",
+                    help="garden: also alternate with the older build whose morphgs package is in DIR")
+    ap.add_argument("--rounds", type=int, default=4, help="rounds of the --baseline A/B (4)")
     a = ap.parse_args()
     if a.worker:
         worker(a)
         return
+    if a.baseline and not (Path(a.baseline) / "morphgs" / "__init__.py").exists():
+        raise SystemExit(f"bench_fit: error: --baseline {a.baseline} holds no morphgs package (morphgs/__init__.py)")
     sections = a.only or ["garden", "quality", "sparse", "opensplat"]
     size = tuple(int(v) for v in a.sparse_size.split("x"))
     tmp = Path(tempfile.mkdtemp(prefix="bench_fit_", dir=a.dir))
@@ -394,6 +438,8 @@ def main() -> None:
         print(f"morphgs fit benchmark; {os.cpu_count()} CPUs")
         if "garden" in sections:
             section_garden(tmp, a.quick)
+            if a.baseline:
+                section_garden_ab(tmp, a.quick, a.baseline, a.rounds)
         if "quality" in sections:
             section_quality(tmp, a.quick, a.quality_steps)
         if "sparse" in sections:

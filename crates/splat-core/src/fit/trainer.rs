@@ -142,6 +142,8 @@ pub struct Trainer {
     ws: Workspace,
     loss: LossWorkspace,
     grads: Gradients,
+    /// The SH degree of the last backward into `grads` (None before the first).
+    grads_degree: Option<u8>,
     rgb: Vec<f32>,
     depth: Vec<f32>,
     alpha: Vec<f32>,
@@ -241,6 +243,7 @@ impl Trainer {
             ws: Workspace::default(),
             loss,
             grads: Gradients::default(),
+            grads_degree: None,
             rgb: Vec::new(),
             depth: Vec::new(),
             alpha: Vec::new(),
@@ -370,7 +373,10 @@ impl Trainer {
         }
         let t2 = Instant::now();
         let n = self.params.len();
-        self.grads.reset(n, self.params.view().sh_rest_k(), false);
+        // the last step's backward wrote SH bands up to its degree only
+        let written = self.grads_degree.replace(degree);
+        self.grads
+            .reset_since(n, self.params.view().sh_rest_k(), false, written);
         let densify = match &self.cfg.strategy {
             Strategy::Default(d) if s < d.refine_stop => Some(&mut self.stats),
             _ => None,

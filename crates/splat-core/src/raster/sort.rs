@@ -180,9 +180,6 @@ struct BinChunk {
     offsets: Vec<u32>,
     /// Positions in the sorted splat array.
     items: Vec<u32>,
-    /// With the splat map (for the backward): each splat's entries in `items`, splat by splat
-    /// (the chunk's order), each splat's tiles in row-major order.
-    entry_of: Vec<u32>,
 }
 
 /// Per-tile lists of sorted splat positions.
@@ -197,19 +194,12 @@ impl TileBins {
     /// Bucket depth-sorted splats by tile.
     pub(crate) fn build(sorted: &[Splat], tiles_x: u32, tiles_y: u32) -> Result<Self> {
         let mut bins = TileBins::default();
-        bins.rebuild(sorted, tiles_x, tiles_y, false)?;
+        bins.rebuild(sorted, tiles_x, tiles_y)?;
         Ok(bins)
     }
 
-    /// [`TileBins::build`] reusing this value's buffers (an optimiser loop bins every step);
-    /// `splat_map` also records where each splat's entries are ([`TileBins::entries_of`]).
-    pub(crate) fn rebuild(
-        &mut self,
-        sorted: &[Splat],
-        tiles_x: u32,
-        tiles_y: u32,
-        splat_map: bool,
-    ) -> Result<()> {
+    /// [`TileBins::build`] reusing this value's buffers (an optimiser loop bins every step).
+    pub(crate) fn rebuild(&mut self, sorted: &[Splat], tiles_x: u32, tiles_y: u32) -> Result<()> {
         let n_tiles = (tiles_x * tiles_y) as usize;
         self.tiles_x = tiles_x;
         self.tiles_y = tiles_y;
@@ -250,11 +240,6 @@ impl TileBins {
                 let items = &mut chunk.items;
                 items.clear();
                 items.resize(total as usize, 0);
-                let entry_of = &mut chunk.entry_of;
-                entry_of.clear();
-                if splat_map {
-                    entry_of.reserve(total as usize);
-                }
                 for (j, s) in part.iter().enumerate() {
                     let (x0, x1, y0, y1) = tile_range(s, tiles_x, tiles_y);
                     for ty in y0..y1 {
@@ -262,9 +247,6 @@ impl TileBins {
                         for tx in x0..x1 {
                             let cur = &mut cursor[row + tx as usize];
                             items[*cur as usize] = (base + j) as u32;
-                            if splat_map {
-                                entry_of.push(*cur);
-                            }
                             *cur += 1;
                         }
                     }
@@ -287,12 +269,12 @@ impl TileBins {
         self.chunks[c].offsets[t]
     }
 
-    /// With the splat map: chunk c's entry indices of all its splats' tiles (splat-major, each
-    /// splat's tiles row-major); splat j of the chunk starts at the sum of the earlier splats'
-    /// tile counts.
+    /// Chunk c's entries of tiles [t0, t1): those tiles' slices of their lists, one after the
+    /// other (tile order).
     #[inline]
-    pub(crate) fn entries_of(&self, c: usize) -> &[u32] {
-        &self.chunks[c].entry_of
+    pub(crate) fn chunk_items(&self, c: usize, t0: usize, t1: usize) -> &[u32] {
+        let ch = &self.chunks[c];
+        &ch.items[ch.offsets[t0] as usize..ch.offsets[t1] as usize]
     }
 
     /// Number of entries in tile `t`'s list.
@@ -316,7 +298,7 @@ impl TileBins {
     pub(crate) fn bytes(&self) -> usize {
         self.chunks
             .iter()
-            .map(|c| (c.offsets.capacity() + c.items.capacity() + c.entry_of.capacity()) * 4)
+            .map(|c| (c.offsets.capacity() + c.items.capacity()) * 4)
             .sum()
     }
 

@@ -17,6 +17,8 @@
 //! Determinism: each (tile, Gaussian) intersection writes its gradient sums into a slot of its
 //! own; each Gaussian then adds its slots in a fixed order (its tiles in row-major order). No
 //! float is reduced across threads, so gradients are the same bits for 1 or N threads.
+//! The slots lie in tile-list order; the sums stream through them once per binning chunk (whose
+//! Gaussians' sums that chunk's task owns), so each Gaussian meets its tiles in row-major order.
 //! Memory: 48 bytes per slot; the image is processed in bands of tile rows whose slots fit
 //! [`DiffOptions::slot_budget`] (the sums do not depend on the banding), plus 48 bytes per
 //! visible Gaussian for the running sums.
@@ -145,6 +147,47 @@ impl Gradients {
         z(&mut self.colors, if given_colors { n * 3 } else { 0 });
         self.background = [0.0; 3];
     }
+
+    /// [`Gradients::reset`] for buffers that were reset for the same sizes and since then
+    /// received only backward passes at SH degree `degree` or lower (`None`: unknown): the
+    /// higher SH bands are still zero and are left as they are, so an optimiser whose degree
+    /// grows step by step does not clear all of `sh_rest` every step (45 of a Gaussian's 59
+    /// floats with 3 bands stored and degree 0 in use). Other sizes get a full reset.
+    pub fn reset_since(
+        &mut self,
+        n: usize,
+        sh_rest_k: usize,
+        given_colors: bool,
+        degree: Option<u8>,
+    ) {
+        let same = self.means.len() == n * 3
+            && self.sh_rest.len() == n * sh_rest_k * 3
+            && self.colors.len() == if given_colors { n * 3 } else { 0 };
+        let Some(d) = degree.filter(|_| same) else {
+            return self.reset(n, sh_rest_k, given_colors);
+        };
+        for v in [
+            &mut self.means,
+            &mut self.quats,
+            &mut self.log_scales,
+            &mut self.opacity_logits,
+            &mut self.sh0,
+            &mut self.scales,
+            &mut self.opacities,
+            &mut self.colors,
+        ] {
+            v.fill(0.0);
+        }
+        self.background = [0.0; 3];
+        let used = ((d as usize + 1) * (d as usize + 1) - 1).min(sh_rest_k) * 3;
+        if used == sh_rest_k * 3 {
+            self.sh_rest.fill(0.0);
+        } else if used > 0 {
+            for g in self.sh_rest.chunks_exact_mut(sh_rest_k * 3) {
+                g[..used].fill(0.0);
+            }
+        }
+    }
 }
 
 /// One view's intermediate gradients per Gaussian (gsplat's `rasterize_to_pixels` VJP outputs:
@@ -214,8 +257,8 @@ struct Saved {
 }
 
 /// Buffers of the differentiable rasterizer, reused across calls, and the state one forward
-/// leaves for its backward. About 64 + 8 + 4 bytes per visible Gaussian and 4 bytes per
-/// intersection (depth-sorted splats, their ids and tile ranges, the tile lists), 20 bytes per
+/// leaves for its backward. About 64 + 4 + 4 bytes per visible Gaussian and 4 bytes per
+/// intersection (depth-sorted splats, their ids and sorted positions, the tile lists), 20 bytes per
 /// pixel (final transmittance, colour and depth sums), and during the backward 48 bytes per
 /// intersection of a band plus 48 bytes per visible Gaussian.
 #[derive(Default)]
@@ -228,10 +271,6 @@ pub struct Workspace {
     sorted: Vec<Splat>,
     ids: Vec<u32>,
     bins: TileBins,
-    /// Tile range (x0, x1, y0, y1) of each sorted splat.
-    rects: Vec<[u16; 4]>,
-    /// Where each sorted splat's entries start in its binning chunk's splat map.
-    first: Vec<u32>,
     tiles: Vec<TileOut>,
     /// First visible rank of each projection chunk: visible Gaussians in index order are
     /// `parts` concatenated, rank = part_off[c] + j.
@@ -331,25 +370,8 @@ impl Workspace {
         }
         let t2 = Instant::now();
         let (tiles_x, tiles_y) = cam.tiles();
-        self.bins.rebuild(&self.sorted, tiles_x, tiles_y, true)?;
+        self.bins.rebuild(&self.sorted, tiles_x, tiles_y)?;
         stats.intersections = self.bins.intersections();
-        self.sorted
-            .par_iter()
-            .with_min_len(4096)
-            .map(|s| {
-                let (x0, x1, y0, y1) = sort::tile_range(s, tiles_x, tiles_y);
-                [x0 as u16, x1 as u16, y0 as u16, y1 as u16]
-            })
-            .collect_into_vec(&mut self.rects);
-        self.first.clear();
-        let mut sum = 0u32;
-        for (p, rc) in self.rects.iter().enumerate() {
-            if p % TileBins::CHUNK == 0 {
-                sum = 0;
-            }
-            self.first.push(sum);
-            sum += (rc[1] - rc[0]) as u32 * (rc[3] - rc[2]) as u32;
-        }
         let t3 = Instant::now();
         let blend = BlendParams {
             width: cam.width,
@@ -476,8 +498,10 @@ impl Workspace {
             let t0 = Instant::now();
             let total = self.band_layout(r0, r1);
             stats.slot_bytes = stats.slot_bytes.max(total as u64 * SLOT_BYTES as u64);
-            self.slots.clear();
-            self.slots.resize(total, [0.0; slot::LEN]);
+            // no zeroing: the tile pass writes every slot of the band (TileSink::finish)
+            if self.slots.len() < total {
+                self.slots.resize(total, [0.0; slot::LEN]);
+            }
             let (evals, bg) = self.blend_band(&sv, grads, r0, r1);
             stats.evaluations += evals;
             for c in 0..3 {
@@ -606,13 +630,9 @@ impl Workspace {
                 .sum::<usize>()
             + v(self.keys.capacity() + self.tmp.capacity(), 8)
             + v(
-                self.ids.capacity()
-                    + self.pos.capacity()
-                    + self.first.capacity()
-                    + self.band_lo.capacity(),
+                self.ids.capacity() + self.pos.capacity() + self.band_lo.capacity(),
                 4,
             )
-            + v(self.rects.capacity(), 8)
             + self.bins.bytes()
             + v(self.tiles.capacity(), size_of::<TileOut>())
             + v(self.slots.capacity() + self.acc.capacity(), SLOT_BYTES)
@@ -777,55 +797,28 @@ impl Workspace {
     }
 
     /// Add each visible splat's slots of rows [r0, r1) to its running sums, in row-major
-    /// tile order (gathered through the binning's splat map).
+    /// tile order: one task per binning chunk walks the chunk's slots of the band in storage
+    /// order (tile by tile), adding each to its splat's sums, which only that task touches.
     fn reduce_band(&mut self, r0: u32, r1: u32) {
-        let (slots, rects, first, bins) = (&self.slots, &self.rects, &self.first, &self.bins);
-        let (band_base, band_lo) = (&self.band_base, &self.band_lo);
-        // splat p's slots of the band, as (band offset, its entries in the splat map)
-        let entries = |p: usize| -> (usize, u32, &[u32]) {
-            let rc = rects[p];
-            let (y0, w) = (rc[2] as u32, (rc[1] - rc[0]) as u32);
-            let row0 = y0.max(r0);
-            let row1 = (rc[3] as u32).min(r1);
-            let bc = p / TileBins::CHUNK;
-            if row1 <= row0 {
-                return (0, 0, &[]);
-            }
-            let f = first[p] as usize;
-            let map = &bins.entries_of(bc)
-                [f + ((row0 - y0) * w) as usize..f + ((row1 - y0) * w) as usize];
-            (band_base[bc], band_lo[bc], map)
-        };
-        let n = rects.len();
+        let tx = self.bins.tiles_x as usize;
+        let (t0, t1) = (r0 as usize * tx, r1 as usize * tx);
+        let (slots, bins, band_base) = (&self.slots, &self.bins, &self.band_base);
         self.acc
-            .par_chunks_mut(GAUSS_CHUNK)
+            .par_chunks_mut(TileBins::CHUNK)
             .enumerate()
             .for_each(|(c, accs)| {
-                for (j, acc) in accs.iter_mut().enumerate() {
-                    let p = c * GAUSS_CHUNK + j;
-                    // the slots lie scattered over the tiles' runs: fetch a few splats ahead
-                    if p + REDUCE_PREFETCH < n {
-                        let (base, lo, map) = entries(p + REDUCE_PREFETCH);
-                        for &e in map {
-                            prefetch_slot(slots, base + (e - lo) as usize);
-                        }
+                let base = c * TileBins::CHUNK;
+                let items = bins.chunk_items(c, t0, t1);
+                let run = &slots[band_base[c]..band_base[c] + items.len()];
+                for (&p, s) in items.iter().zip(run) {
+                    let acc = &mut accs[p as usize - base];
+                    for (a, v) in acc.iter_mut().zip(s) {
+                        *a += v;
                     }
-                    let (base, lo, map) = entries(p);
-                    let mut a = *acc;
-                    for &e in map {
-                        let s = &slots[base + (e - lo) as usize];
-                        for (a, v) in a.iter_mut().zip(s) {
-                            *a += v;
-                        }
-                    }
-                    *acc = a;
                 }
             });
     }
 }
-
-/// How many splats ahead the slot reduction prefetches.
-const REDUCE_PREFETCH: usize = 4;
 
 /// How many Gaussians ahead the per-Gaussian pass prefetches its slot sums.
 const ACC_PREFETCH: usize = 12;
@@ -846,9 +839,6 @@ fn prefetch_slot(slots: &[[f32; slot::LEN]], i: usize) {
     #[cfg(not(target_arch = "x86_64"))]
     let _ = (slots, i);
 }
-
-/// Visible Gaussians per per-Gaussian work unit (fixed, independent of the thread count).
-const GAUSS_CHUNK: usize = 2048;
 
 fn check_colors(c: &[f32], n: usize) -> Result<()> {
     if c.len() != n * 3 {

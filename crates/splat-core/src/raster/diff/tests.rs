@@ -401,3 +401,48 @@ fn backward_checks_its_inputs() {
         .expect("backward");
     assert!(g.means.iter().chain(&g.sh0).all(|&v| v == 0.0));
 }
+
+#[test]
+fn reset_since_a_lower_degree_gives_the_fresh_reset_gradients() {
+    // a scene storing SH degree 3, backward passes at degree 1 then 2 (as an optimiser raises
+    // its degree): clearing only the bands the previous pass could write leaves the same bits
+    let s = scene(300, 3, 11);
+    let cam = camera(64, 48);
+    let (r, _, _) = image_grads(&cam, 12);
+    let grads = ImageGrads {
+        rgb: Some(&r),
+        ..ImageGrads::default()
+    };
+    let at = |degree: u8| DiffOptions {
+        render: RenderOptions {
+            sh_degree: Some(degree),
+            ..RenderOptions::default()
+        },
+        ..DiffOptions::default()
+    };
+    let mut ws = Workspace::default();
+    let mut g = Gradients::default();
+    g.reset_since(s.len(), s.sh_rest_k(), false, None);
+    forward(&mut ws, &s, &cam, &at(1));
+    ws.backward(&s.view(), None, &grads, &mut g, None, None)
+        .expect("backward");
+    assert!(
+        g.sh_rest.iter().any(|&v| v != 0.0),
+        "degree 1 writes band 1"
+    );
+    g.reset_since(s.len(), s.sh_rest_k(), false, Some(1));
+    assert!(g.sh_rest.iter().all(|&v| v == 0.0));
+    forward(&mut ws, &s, &cam, &at(2));
+    ws.backward(&s.view(), None, &grads, &mut g, None, None)
+        .expect("backward");
+    let mut fresh = Gradients::default();
+    fresh.reset(s.len(), s.sh_rest_k(), false);
+    ws.backward(&s.view(), None, &grads, &mut fresh, None, None)
+        .expect("backward");
+    let none = DensifyStats::default();
+    assert_eq!(grad_bits(&g, &none), grad_bits(&fresh, &none));
+    // another size is a full reset
+    g.reset_since(10, s.sh_rest_k(), false, Some(0));
+    assert_eq!(g.sh_rest.len(), 10 * s.sh_rest_k() * 3);
+    assert!(g.means.iter().chain(&g.sh_rest).all(|&v| v == 0.0));
+}
