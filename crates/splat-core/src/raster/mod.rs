@@ -417,31 +417,35 @@ fn render_frames_sharing(
         frames[u % f].push((rgb, depth, alpha));
     }
     let n0 = scenes[0].len();
+    // slot buffers of finished frames, reused by the next ones (one per frame in flight, so
+    // each buffer's pages are faulted in once)
+    let pool = std::sync::Mutex::new(Vec::new());
     let per_frame: Vec<Vec<RenderStats>> = frames
         .into_par_iter()
         .enumerate()
-        .map_init(
-            || share::slots(n0),
-            |slots, (k, units)| {
-                // frame k's stamp: slots left by an earlier frame of this buffer never match
-                let stamp = k as u32 + 1;
-                let mut stats = Vec::with_capacity(units.len());
-                for (s, (rgb, depth, alpha)) in units.into_iter().enumerate() {
-                    let colours = match s {
-                        0 => share::FrameColours::Record(slots, stamp),
-                        _ => match &maps[s - 1] {
-                            Some(map) => share::FrameColours::Reuse(map, slots, stamp),
-                            None => share::FrameColours::Off,
-                        },
-                    };
-                    let st = render_into_sharing(
-                        &scenes[s], &cams[k], opts, rgb, depth, alpha, colours,
-                    )?;
-                    stats.push(st);
-                }
-                Ok(stats)
-            },
-        )
+        .map(|(k, units)| {
+            let popped = pool.lock().ok().and_then(|mut p| p.pop());
+            let mut slots = popped.unwrap_or_else(|| share::slots(n0));
+            // frame k's stamp: slots left by an earlier frame of this buffer never match
+            let stamp = k as u32 + 1;
+            let mut stats = Vec::with_capacity(units.len());
+            for (s, (rgb, depth, alpha)) in units.into_iter().enumerate() {
+                let colours = match s {
+                    0 => share::FrameColours::Record(&mut slots, stamp),
+                    _ => match &maps[s - 1] {
+                        Some(map) => share::FrameColours::Reuse(map, &slots, stamp),
+                        None => share::FrameColours::Off,
+                    },
+                };
+                let st =
+                    render_into_sharing(&scenes[s], &cams[k], opts, rgb, depth, alpha, colours)?;
+                stats.push(st);
+            }
+            if let Ok(mut p) = pool.lock() {
+                p.push(slots);
+            }
+            Ok(stats)
+        })
         .collect::<Result<_>>()?;
     // back to unit order (u = s * F + k)
     Ok((0..scenes.len())
