@@ -21,6 +21,10 @@ pub(crate) const NO_MATCH: u32 = u32::MAX;
 /// run only costs the share of the Gaussian after it).
 const WINDOW: usize = 64;
 
+/// Gaussians of the other scene matched before [`colour_map`] gives up on one of which fewer
+/// than an eighth match.
+const PROBE: usize = 4096;
+
 /// One Gaussian's colour computed in one frame: `[r, g, b, stamp]` as bits, valid for the
 /// frame whose stamp it holds (stamps start at 1, so a zeroed slot is never valid).
 pub(crate) type ColourSlot = [u32; 4];
@@ -52,12 +56,19 @@ pub(crate) fn colour_map(base: &SceneView<'_>, other: &SceneView<'_>) -> Option<
     };
     let mut map = vec![NO_MATCH; m];
     let mut next = 0usize;
+    let mut found = 0usize;
     for (j, slot) in map.iter_mut().enumerate() {
+        // a copy whose means moved (spatial noise) shares nothing: stop looking early rather
+        // than scan WINDOW Gaussians for each of its Gaussians
+        if j == PROBE && found * 8 < PROBE {
+            return None;
+        }
         let want = bits(other.means, j);
         let end = (next + WINDOW).min(n);
         if let Some(d) = (next..end).position(|i| bits(base.means, i) == want) {
             *slot = (next + d) as u32;
             next += d + 1;
+            found += 1;
         }
     }
     // the SH must match too (a radiometric perturbation keeps the means)
@@ -124,5 +135,50 @@ impl ChunkColours<'_> {
             let [r, g, b] = rgb.map(f32::to_bits);
             slots[i - *lo] = [r, g, b, *stamp];
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::Scene;
+
+    fn cloud(n: usize) -> Scene {
+        let mut s = Scene::empty(1);
+        let k = s.sh_rest_k() * 3;
+        for i in 0..n {
+            let v = i as f32;
+            s.means.extend([v * 0.001, v * 0.002, 1.0 + v * 0.003]);
+            s.quats.extend([1.0, 0.0, 0.0, 0.0]);
+            s.log_scales.extend([-3.0; 3]);
+            s.opacity_logits.push(0.0);
+            s.sh0.extend([0.1, 0.2, 0.3]);
+            s.sh_rest.extend((0..k).map(|c| (i * k + c) as f32 * 1e-4));
+        }
+        s
+    }
+
+    /// A pruned copy maps every survivor to its source; a copy whose means all moved maps
+    /// nothing (and gives up after the probe); another SH degree maps nothing.
+    #[test]
+    fn maps_survivors_and_gives_up_on_moved_means() {
+        let base = cloud(3 * PROBE);
+        let keep: Vec<bool> = (0..base.len()).map(|i| i % 5 != 2).collect();
+        let kept = base.filter(&keep);
+        let map = colour_map(&base.view(), &kept.view()).expect("a pruned copy matches");
+        let want: Vec<u32> = (0..base.len() as u32).filter(|&i| i % 5 != 2).collect();
+        assert_eq!(map, want);
+        let mut moved = kept.clone();
+        for v in moved.means.iter_mut() {
+            *v += 0.5;
+        }
+        assert!(colour_map(&base.view(), &moved.view()).is_none());
+        let mut lower = Scene::empty(0);
+        lower.means = kept.means.clone();
+        lower.quats = kept.quats.clone();
+        lower.log_scales = kept.log_scales.clone();
+        lower.opacity_logits = kept.opacity_logits.clone();
+        lower.sh0 = kept.sh0.clone();
+        assert!(colour_map(&base.view(), &lower.view()).is_none());
     }
 }
