@@ -37,6 +37,18 @@ def test_pair_is_the_render_of_the_scene_and_of_its_seeded_perturbation(scene, c
     assert not np.array_equal(pair.clean.rgb, pair.corrupted.rgb)
 
 
+@pytest.mark.parametrize("config", ["spatial", "radiometric", "naive"])
+def test_pair_colours_shared_between_the_scenes_change_no_byte(scene, cams, config: str) -> None:
+    # the corrupted render takes the clean render's colours of Gaussians whose mean and SH it
+    # kept; spatial noise moves means and radiometric noise changes SH: those compute their own
+    pair = morphgs.render_pair(scene, cams, config=config, seed=3)
+    corrupted = morphgs.render(morphgs.perturb(scene, config, seed=3), cams)
+    for a, b in ((pair.corrupted.rgb, corrupted.rgb), (pair.corrupted.depth, corrupted.depth),
+                 (pair.corrupted.alpha, corrupted.alpha)):
+        assert a.tobytes() == b.tobytes()
+    assert pair.clean.rgb.tobytes() == morphgs.render(scene, cams).rgb.tobytes()
+
+
 def test_pair_seed_is_deterministic_and_changes_only_the_corrupted_side(scene, cams) -> None:
     a = morphgs.render_pair(scene, cams, config="naive", seed=3)
     b = morphgs.render_pair(scene, cams, config="naive", seed=3)

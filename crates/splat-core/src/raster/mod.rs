@@ -24,6 +24,7 @@ mod blend_avx512;
 pub mod diff;
 pub mod project;
 pub mod sh;
+mod share;
 pub mod sort;
 
 pub use project::{project_all, Projection, Splat};
@@ -194,6 +195,27 @@ pub fn render_into(
     depth: &mut [f32],
     alpha: &mut [f32],
 ) -> Result<RenderStats> {
+    render_into_sharing(
+        scene,
+        cam,
+        opts,
+        rgb,
+        depth,
+        alpha,
+        share::FrameColours::Off,
+    )
+}
+
+/// [`render_into`] recording or reusing the frame's shared colours ([`share`]).
+fn render_into_sharing(
+    scene: &SceneView<'_>,
+    cam: &Camera,
+    opts: &RenderOptions,
+    rgb: &mut [f32],
+    depth: &mut [f32],
+    alpha: &mut [f32],
+    colours: share::FrameColours<'_>,
+) -> Result<RenderStats> {
     cam.validate()?;
     opts.validate()?;
     scene.validate()?;
@@ -224,7 +246,7 @@ pub fn render_into(
 
     let t0 = Instant::now();
     let proj = project::Projector::new(cam, opts, degree);
-    let visible = project::project_visible(scene, &proj);
+    let visible = project::project_visible_sharing(scene, &proj, colours);
     stats.visible = visible.iter().map(|p| p.len() as u64).sum();
     let t1 = Instant::now();
     let sorted = sort::sort_by_depth(&visible);
@@ -310,17 +332,21 @@ pub fn render_batch(
     let mut rgb = vec![0.0f32; total];
     let mut depth = vec![0.0f32; npix * units];
     let mut alpha = vec![0.0f32; npix * units];
-    let per_unit: Vec<RenderStats> = rgb
-        .par_chunks_mut(npix * 3)
-        .zip(depth.par_chunks_mut(npix))
-        .zip(alpha.par_chunks_mut(npix))
-        .enumerate()
-        .map(|(u, ((rgb, depth), alpha))| {
-            let scene = &scenes[u / cams.len()];
-            let cam = &cams[u % cams.len()];
-            render_into(scene, cam, opts, rgb, depth, alpha)
-        })
-        .collect::<Result<_>>()?;
+    let maps = colour_maps(scenes, cams.len(), opts)?;
+    let per_unit: Vec<RenderStats> = if let Some(maps) = maps {
+        render_frames_sharing(scenes, cams, opts, &maps, &mut rgb, &mut depth, &mut alpha)?
+    } else {
+        rgb.par_chunks_mut(npix * 3)
+            .zip(depth.par_chunks_mut(npix))
+            .zip(alpha.par_chunks_mut(npix))
+            .enumerate()
+            .map(|(u, ((rgb, depth), alpha))| {
+                let scene = &scenes[u / cams.len()];
+                let cam = &cams[u % cams.len()];
+                render_into(scene, cam, opts, rgb, depth, alpha)
+            })
+            .collect::<Result<_>>()?
+    };
     let mut stats = RenderStats::default();
     for s in &per_unit {
         stats.add(s);
@@ -335,6 +361,96 @@ pub fn render_batch(
         alpha,
         stats,
     })
+}
+
+/// For each scene after the first, its [`share::colour_map`] against the first (`None` for a
+/// scene that shares nothing), when sharing colours can pay: two or more scenes, the same SH
+/// degree, and two or more frames (the maps cost about one projection of the scenes).
+#[allow(clippy::type_complexity)]
+fn colour_maps(
+    scenes: &[SceneView<'_>],
+    frames: usize,
+    opts: &RenderOptions,
+) -> Result<Option<Vec<Option<Vec<u32>>>>> {
+    let Some(first) = scenes.first() else {
+        return Ok(None);
+    };
+    if scenes.len() < 2 || frames < 2 {
+        return Ok(None);
+    }
+    let degree = opts.effective_sh_degree(first.sh_degree)?;
+    let mut maps = Vec::with_capacity(scenes.len() - 1);
+    for s in &scenes[1..] {
+        let same = opts.effective_sh_degree(s.sh_degree)? == degree;
+        maps.push(if same {
+            share::colour_map(first, s)
+        } else {
+            None
+        });
+    }
+    Ok(maps.iter().any(Option::is_some).then_some(maps))
+}
+
+/// The units of [`render_batch`] frame by frame: each frame renders the first scene, recording
+/// its colours, then the others, reusing them where `maps` says a Gaussian's mean and SH equal
+/// one of the first scene's. Returns the per-unit stats in unit order (scene-major).
+fn render_frames_sharing(
+    scenes: &[SceneView<'_>],
+    cams: &[Camera],
+    opts: &RenderOptions,
+    maps: &[Option<Vec<u32>>],
+    rgb: &mut [f32],
+    depth: &mut [f32],
+    alpha: &mut [f32],
+) -> Result<Vec<RenderStats>> {
+    type Unit<'b> = (&'b mut [f32], &'b mut [f32], &'b mut [f32]);
+    let f = cams.len();
+    let npix = cams[0].width as usize * cams[0].height as usize;
+    // group the units' outputs by frame: frames[k][s] is scene s's images of frame k
+    let mut frames: Vec<Vec<Unit<'_>>> = (0..f).map(|_| Vec::new()).collect();
+    for (u, ((rgb, depth), alpha)) in rgb
+        .chunks_mut(npix * 3)
+        .zip(depth.chunks_mut(npix))
+        .zip(alpha.chunks_mut(npix))
+        .enumerate()
+    {
+        frames[u % f].push((rgb, depth, alpha));
+    }
+    let n0 = scenes[0].len();
+    // slot buffers of finished frames, reused by the next ones (one per frame in flight, so
+    // each buffer's pages are faulted in once)
+    let pool = std::sync::Mutex::new(Vec::new());
+    let per_frame: Vec<Vec<RenderStats>> = frames
+        .into_par_iter()
+        .enumerate()
+        .map(|(k, units)| {
+            let popped = pool.lock().ok().and_then(|mut p| p.pop());
+            let mut slots = popped.unwrap_or_else(|| share::slots(n0));
+            // frame k's stamp: slots left by an earlier frame of this buffer never match
+            let stamp = k as u32 + 1;
+            let mut stats = Vec::with_capacity(units.len());
+            for (s, (rgb, depth, alpha)) in units.into_iter().enumerate() {
+                let colours = match s {
+                    0 => share::FrameColours::Record(&mut slots, stamp),
+                    _ => match &maps[s - 1] {
+                        Some(map) => share::FrameColours::Reuse(map, &slots, stamp),
+                        None => share::FrameColours::Off,
+                    },
+                };
+                let st =
+                    render_into_sharing(&scenes[s], &cams[k], opts, rgb, depth, alpha, colours)?;
+                stats.push(st);
+            }
+            if let Ok(mut p) = pool.lock() {
+                p.push(slots);
+            }
+            Ok(stats)
+        })
+        .collect::<Result<_>>()?;
+    // back to unit order (u = s * F + k)
+    Ok((0..scenes.len())
+        .flat_map(|s| per_frame.iter().map(move |fr| fr[s]))
+        .collect())
 }
 
 #[cfg(test)]
@@ -587,6 +703,108 @@ mod tests {
         assert_eq!(bits(&a.1), bits(&b.1));
         assert_eq!(bits(&a.2), bits(&b.2));
         assert_eq!(a.3.evaluations, b.3.evaluations);
+    }
+
+    /// A degree-3 copy of `scene(n)` with view-dependent colours.
+    fn scene_sh3(n: usize) -> Scene {
+        let base = scene(n);
+        let mut s = Scene::empty(3);
+        s.means = base.means;
+        s.quats = base.quats;
+        s.log_scales = base.log_scales;
+        s.opacity_logits = base.opacity_logits;
+        s.sh0 = base.sh0;
+        let k = s.sh_rest_k() * 3;
+        s.sh_rest = (0..n * k)
+            .map(|i| ((i * 7919 % 1000) as f32 / 1000.0 - 0.5) * 0.6)
+            .collect();
+        s
+    }
+
+    /// A "pair": the clean scene, and a copy pruned with changed scales and rotations, some
+    /// means moved, some SH changed and some quaternions broken. Rendering both in one batch
+    /// (the copy taking the clean render's colours where its mean and SH match) gives each
+    /// scene's own render bit for bit, for every frame.
+    #[test]
+    fn shared_colours_give_the_bits_of_separate_renders() {
+        let clean = scene_sh3(6000);
+        let keep: Vec<bool> = (0..clean.len())
+            .map(|i| i % 3 != 1 && i % 401 != 0)
+            .collect();
+        let mut other = clean.filter(&keep);
+        let k = other.sh_rest_k() * 3;
+        for j in 0..other.len() {
+            for c in 0..3 {
+                other.log_scales[j * 3 + c] += 0.3 * ((j + c) % 5) as f32 - 0.6;
+            }
+            other.quats[j * 4 + 1] += 0.1;
+            match j % 37 {
+                0 => other.means[j * 3] += 0.01,
+                1 => other.sh_rest[j * k + k - 1] += 0.25,
+                2 => other.sh0[j * 3 + 2] = -other.sh0[j * 3 + 2],
+                3 => other.quats[j * 4] = f32::NAN,
+                _ => {}
+            }
+        }
+        other.normalize_quats();
+        let map = share::colour_map(&clean.view(), &other.view()).expect("matches");
+        let matched = map.iter().filter(|&&i| i != share::NO_MATCH).count();
+        assert!(
+            matched > other.len() * 9 / 10 && matched < other.len(),
+            "{matched}"
+        );
+        for (j, &i) in map.iter().enumerate() {
+            if i != share::NO_MATCH {
+                assert_eq!(other.means[j * 3], clean.means[i as usize * 3]);
+                assert_eq!(
+                    other.sh_rest[j * k + k - 1],
+                    clean.sh_rest[i as usize * k + k - 1]
+                );
+            }
+        }
+        let mut cams = Vec::new();
+        for f in 0..3 {
+            let mut c = camera();
+            c.world_to_camera[0][3] = 0.3 * f as f64 - 0.3;
+            c.world_to_camera[1][3] = 0.1 * f as f64;
+            cams.push(c);
+        }
+        let views = [clean.view(), other.view()];
+        for antialiased in [false, true] {
+            let opts = RenderOptions {
+                antialiased,
+                ..Default::default()
+            };
+            let batch = render_batch(&views, &cams, &opts).expect("batch");
+            let (w, h) = (cams[0].width as usize, cams[0].height as usize);
+            let npix = w * h;
+            for (s, view) in views.iter().enumerate() {
+                for (f, cam) in cams.iter().enumerate() {
+                    let (mut rgb, mut depth, mut alpha) =
+                        (vec![0.0; npix * 3], vec![0.0; npix], vec![0.0; npix]);
+                    render_into(view, cam, &opts, &mut rgb, &mut depth, &mut alpha)
+                        .expect("render");
+                    let u = s * cams.len() + f;
+                    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                    let ctx = format!("scene {s} frame {f} antialiased {antialiased}");
+                    assert_eq!(
+                        bits(&batch.rgb[u * npix * 3..(u + 1) * npix * 3]),
+                        bits(&rgb),
+                        "{ctx}"
+                    );
+                    assert_eq!(
+                        bits(&batch.depth[u * npix..(u + 1) * npix]),
+                        bits(&depth),
+                        "{ctx}"
+                    );
+                    assert_eq!(
+                        bits(&batch.alpha[u * npix..(u + 1) * npix]),
+                        bits(&alpha),
+                        "{ctx}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]

@@ -3,6 +3,7 @@
 //! optional antialiasing compensation, the 1/255 opacity cull and the opacity-aware extent.
 use rayon::prelude::*;
 
+use super::share::{ChunkColours, FrameColours};
 use super::{sh, RenderOptions};
 use crate::camera::Camera;
 use crate::fastmath;
@@ -129,7 +130,7 @@ impl Projector {
         if !fp.ok[0] {
             return None;
         }
-        self.finish(scene, i, &sc, &fp, 0)
+        self.finish(scene, i, &sc, &fp, 0, &mut ChunkColours::Off)
     }
 
     /// Project Gaussians `lo..hi` and append the visible splats to `out` in index order.
@@ -147,6 +148,19 @@ impl Projector {
         out: &mut Vec<Splat>,
         ids: Option<&mut Vec<u32>>,
     ) {
+        self.project_range_sharing(scene, lo, hi, out, ids, &mut ChunkColours::Off)
+    }
+
+    /// [`Projector::project_range`] recording or reusing shared colours (see [`super::share`]).
+    pub(crate) fn project_range_sharing(
+        &self,
+        scene: &SceneView<'_>,
+        lo: usize,
+        hi: usize,
+        out: &mut Vec<Splat>,
+        ids: Option<&mut Vec<u32>>,
+        colours: &mut ChunkColours<'_>,
+    ) {
         #[cfg(target_arch = "x86_64")]
         {
             if std::is_x86_feature_detected!("avx512f")
@@ -155,14 +169,14 @@ impl Projector {
                 && std::is_x86_feature_detected!("avx2")
             {
                 // SAFETY: the CPU has these features (checked just above).
-                return unsafe { self.project_range_avx512(scene, lo, hi, out, ids) };
+                return unsafe { self.project_range_avx512(scene, lo, hi, out, ids, colours) };
             }
             if std::is_x86_feature_detected!("avx2") {
                 // SAFETY: the CPU has AVX2 (checked just above).
-                return unsafe { self.project_range_avx2(scene, lo, hi, out, ids) };
+                return unsafe { self.project_range_avx2(scene, lo, hi, out, ids, colours) };
             }
         }
-        self.project_range_impl(scene, lo, hi, out, ids)
+        self.project_range_impl(scene, lo, hi, out, ids, colours)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -174,8 +188,9 @@ impl Projector {
         hi: usize,
         out: &mut Vec<Splat>,
         ids: Option<&mut Vec<u32>>,
+        colours: &mut ChunkColours<'_>,
     ) {
-        self.project_range_impl(scene, lo, hi, out, ids)
+        self.project_range_impl(scene, lo, hi, out, ids, colours)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -187,8 +202,9 @@ impl Projector {
         hi: usize,
         out: &mut Vec<Splat>,
         ids: Option<&mut Vec<u32>>,
+        colours: &mut ChunkColours<'_>,
     ) {
-        self.project_range_impl(scene, lo, hi, out, ids)
+        self.project_range_impl(scene, lo, hi, out, ids, colours)
     }
 
     /// `ids`, when given, receives the Gaussian index of every splat pushed to `out`.
@@ -200,6 +216,7 @@ impl Projector {
         hi: usize,
         out: &mut Vec<Splat>,
         mut ids: Option<&mut Vec<u32>>,
+        colours: &mut ChunkColours<'_>,
     ) {
         let mut survivors: Vec<usize> = Vec::with_capacity(hi - lo);
         let mut i0 = lo;
@@ -222,7 +239,7 @@ impl Projector {
             let fp = self.footprint(&g, &sc);
             for (l, &i) in block.iter().enumerate() {
                 if fp.ok[l] {
-                    if let Some((s, _)) = self.finish(scene, i, &sc, &fp, l) {
+                    if let Some((s, _)) = self.finish(scene, i, &sc, &fp, l, colours) {
                         out.push(s);
                         if let Some(ids) = ids.as_deref_mut() {
                             ids.push(i as u32);
@@ -398,19 +415,34 @@ impl Projector {
         sc: &ScreenLanes,
         fp: &FootLanes,
         l: usize,
+        colours: &mut ChunkColours<'_>,
     ) -> Option<(Splat, f32)> {
-        let mean = &scene.means[i * 3..i * 3 + 3];
-        let sh0 = &scene.sh0[i * 3..i * 3 + 3];
         let q = &scene.quats[i * 4..i * 4 + 4];
-        // colour along the view direction mean - camera centre
-        let (dir, _) = self.view_dir([mean[0], mean[1], mean[2]]);
-        let k = scene.sh_rest_k() * 3;
-        let rest = &scene.sh_rest[i * k..i * k + k];
-        // every stored value must be finite, including SH bands this render does not use
-        if !all_finite(rest) || !all_finite(q) {
-            return None;
-        }
-        let rgb = sh::color(self.sh_degree, dir, sh0, rest);
+        let rgb = match colours.lookup(i) {
+            // another scene's Gaussian with this mean and these SH bits (so finite SH) got
+            // this colour this frame
+            Some(rgb) => {
+                if !all_finite(q) {
+                    return None;
+                }
+                rgb
+            }
+            None => {
+                let mean = &scene.means[i * 3..i * 3 + 3];
+                let sh0 = &scene.sh0[i * 3..i * 3 + 3];
+                // colour along the view direction mean - camera centre
+                let (dir, _) = self.view_dir([mean[0], mean[1], mean[2]]);
+                let k = scene.sh_rest_k() * 3;
+                let rest = &scene.sh_rest[i * k..i * k + k];
+                // every stored value must be finite, including SH bands this render does not use
+                if !all_finite(rest) || !all_finite(q) {
+                    return None;
+                }
+                let rgb = sh::color(self.sh_degree, dir, sh0, rest);
+                colours.record(i, rgb);
+                rgb
+            }
+        };
         let conic = [fp.conic[0][l], fp.conic[1][l], fp.conic[2][l]];
         let level = fp.ln_over[l] * 1.0001 + 1e-4;
         let splat = Splat {
@@ -560,18 +592,42 @@ fn splat_is_finite(s: &Splat) -> bool {
 pub(crate) const PROJECT_CHUNK_BITS: u32 = 13;
 
 /// The visible splats of one view, per projection chunk, each in Gaussian-index order.
+#[cfg(test)]
 pub(crate) fn project_visible(scene: &SceneView<'_>, proj: &Projector) -> Vec<Vec<Splat>> {
+    project_visible_sharing(scene, proj, FrameColours::Off)
+}
+
+/// [`project_visible`] recording or reusing the frame's shared colours (see
+/// [`super::share`]); the splats are the same bits either way. A recording buffer holds at
+/// least one slot per Gaussian.
+pub(crate) fn project_visible_sharing(
+    scene: &SceneView<'_>,
+    proj: &Projector,
+    colours: FrameColours<'_>,
+) -> Vec<Vec<Splat>> {
     let n = scene.len();
-    (0..n.div_ceil(PROJECT_CHUNK))
-        .into_par_iter()
-        .map(|c| {
-            let lo = c * PROJECT_CHUNK;
-            let hi = (lo + PROJECT_CHUNK).min(n);
-            let mut out = Vec::new();
-            proj.project_range(scene, lo, hi, &mut out, None);
-            out
-        })
-        .collect()
+    let run = |c: usize, mut cc: ChunkColours<'_>| {
+        let lo = c * PROJECT_CHUNK;
+        let hi = (lo + PROJECT_CHUNK).min(n);
+        let mut out = Vec::new();
+        proj.project_range_sharing(scene, lo, hi, &mut out, None, &mut cc);
+        out
+    };
+    match colours {
+        FrameColours::Record(slots, stamp) => slots[..n]
+            .par_chunks_mut(PROJECT_CHUNK)
+            .enumerate()
+            .map(|(c, part)| run(c, ChunkColours::Record(part, c * PROJECT_CHUNK, stamp)))
+            .collect(),
+        FrameColours::Reuse(map, slots, stamp) => (0..n.div_ceil(PROJECT_CHUNK))
+            .into_par_iter()
+            .map(|c| run(c, ChunkColours::Reuse(map, slots, stamp)))
+            .collect(),
+        FrameColours::Off => (0..n.div_ceil(PROJECT_CHUNK))
+            .into_par_iter()
+            .map(|c| run(c, ChunkColours::Off))
+            .collect(),
+    }
 }
 
 /// [`project_visible`] into reused buffers, with the Gaussian index of every splat:
@@ -737,7 +793,14 @@ mod tests {
                 // the plain build too
                 let mut plain = Vec::new();
                 for (lo, hi) in ranges {
-                    proj.project_range_impl(&view, lo, hi, &mut plain, None);
+                    proj.project_range_impl(
+                        &view,
+                        lo,
+                        hi,
+                        &mut plain,
+                        None,
+                        &mut ChunkColours::Off,
+                    );
                 }
                 assert_eq!(bits(&plain), bits(&want), "degree {degree}, plain build");
             }

@@ -174,12 +174,18 @@ pub(crate) fn tile_range(s: &Splat, tiles_x: u32, tiles_y: u32) -> (u32, u32, u3
     )
 }
 
+// tile coordinates of a valid camera fit the u16 of `BinChunk::ranges`
+const _: () = assert!(crate::camera::MAX_IMAGE_SIDE.div_ceil(TILE) <= u16::MAX as u32);
+
 #[derive(Default)]
 struct BinChunk {
     /// n_tiles + 1 offsets into `items`.
     offsets: Vec<u32>,
     /// Positions in the sorted splat array.
     items: Vec<u32>,
+    /// Each splat's tile range (x0, x1, y0, y1) from the counting pass, so the filling pass
+    /// reads 8 bytes per splat instead of the splat's 64 again.
+    ranges: Vec<[u16; 4]>,
 }
 
 /// Per-tile lists of sorted splat positions.
@@ -216,8 +222,12 @@ impl TileBins {
                 offsets.clear();
                 offsets.resize(n_tiles + 1, 0);
                 let mut total = 0u64;
+                let ranges = &mut chunk.ranges;
+                ranges.clear();
+                ranges.reserve(part.len());
                 for s in part {
                     let (x0, x1, y0, y1) = tile_range(s, tiles_x, tiles_y);
+                    ranges.push([x0, x1, y0, y1].map(|v| v as u16));
                     total += (x1 - x0) as u64 * (y1 - y0) as u64;
                     if total > u32::MAX as u64 {
                         return Err(Error::InvalidArgument(format!(
@@ -240,8 +250,8 @@ impl TileBins {
                 let items = &mut chunk.items;
                 items.clear();
                 items.resize(total as usize, 0);
-                for (j, s) in part.iter().enumerate() {
-                    let (x0, x1, y0, y1) = tile_range(s, tiles_x, tiles_y);
+                for (j, r) in ranges.iter().enumerate() {
+                    let [x0, x1, y0, y1] = r.map(u32::from);
                     for ty in y0..y1 {
                         let row = (ty * tiles_x) as usize;
                         for tx in x0..x1 {
