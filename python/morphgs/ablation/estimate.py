@@ -49,8 +49,14 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
         elif st == "trainsets":
             n = len(j.kwargs["scene_dirs"]) * S["conditions"]["pairs_per_scene"]
             s = n * frames * px * gauss * 2 * UNIT["render"]
-            if j.kwargs["spec"].kind == "sparse":
+            if getattr(j.kwargs["spec"], "kind", None) == "sparse":
                 s += len(j.kwargs["scene_dirs"]) * S["sparse"]["steps"] * px * UNIT["fit"]
+        elif st == "calibration":
+            # the strength scan and bisection (grid + ~10 points) plus op shares and the goodness of
+            # fit render every calibration pair (half the training scenes' pairs) ~len(grid) + 15
+            # times; x2 for perturbing, quantising and the statistics
+            n = len(j.kwargs["scene_dirs"]) * S["conditions"]["pairs_per_scene"] / 2
+            s = 2 * (len(j.kwargs["grid"]) + 15) * n * frames * px * gauss * UNIT["render"]
         elif st == "training":
             ch, cw = S["training"]["crop"]
             if S["model"]["name"] == "tiny":
