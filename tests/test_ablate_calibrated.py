@@ -89,6 +89,8 @@ def test_a_calibrated_condition_runs_end_to_end_and_is_closer_to_the_target_seve
     table = (cal / "table.md").read_text()
     assert f"| S8 | {CAL} |" in table and "| S8 | target-S8 |" not in table
     assert f"- {CAL}: morphological calibrated against target-S8's real pairs" in table
+    assert "S8: each calibrated condition − its family at the default strength" in table
+    assert f"| {CAL} | " in table.split("its family at the default strength")[1]
 
 
 def test_a_rerun_recomputes_nothing(cal: Path, study_file: Path) -> None:

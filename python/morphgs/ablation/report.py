@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from morphgs.ablation.study import condition_regime
+from morphgs.ablation.study import calibrated_family, condition_regime
 from morphgs.ablation.stats import mean_ci, paired_permutation_p
 
 __all__ = ["COLUMNS", "format_table", "gather", "make", "rank_marks"]
@@ -99,30 +99,37 @@ def format_table(records: Sequence[dict[str, Any]], *, regimes: Sequence[str], c
             lines.append(f"| {rg} | {name} | {sev_s} | " + " | ".join(cells[c][k] for k, *_ in COLUMNS) + " |")
         lines.append("")
         for ref in (["naive"] if "naive" in conditions else []) + ([target] if target else []):
-            tests.append(f"### {rg}: each condition − {label(ref)} (mean paired difference, sign-flip permutation p)")
-            tests.append("")
-            tests.append("| condition | " + " | ".join(c[1] for c in COLUMNS) + " |")
-            tests.append("|" + "---|" * (1 + len(COLUMNS)))
-            for c in rows:
-                if c == ref:
-                    continue
-                out = []
-                for key, _, _, digits in COLUMNS:
-                    a, b = _units(by_row[c], key), _units(by_row[ref], key)
-                    common = [k for k in a if k in b]
-                    if len(common) < 2:
-                        out.append("n/a")
-                        continue
-                    d = sum(a[k] - b[k] for k in common) / len(common)
-                    p = paired_permutation_p([a[k] for k in common], [b[k] for k in common])
-                    out.append(f"{d:+.{digits}f} (p={p:.3f})" if math.isfinite(d) and not math.isnan(p) else "n/a")
-                tests.append(f"| {label(c)} | " + " | ".join(out) + " |")
-            tests.append("")
+            tests += _paired_tests(f"{rg}: each condition − {label(ref)}", [(c, ref) for c in rows if c != ref], by_row)
+        # a calibrated condition against its family at the default strength (the calibration's own effect)
+        pairs = [(c, fam) for c in rows if (fam := calibrated_family(c)) is not None and fam in conditions]
+        if pairs:
+            tests += _paired_tests(f"{rg}: each calibrated condition − its family at the default strength", pairs,
+                                   by_row)
     if tests:
         lines += ["## Paired tests", "", *tests]
     if notes:
         lines += ["## Notes", "", *[f"- {n}" for n in notes], ""]
     return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def _paired_tests(title: str, pairs: Sequence[tuple[str, str]], by_row: dict[str, list[dict[str, Any]]]) -> list[str]:
+    """A paired-test table: per (condition, reference), the mean paired difference over (scene,
+    seed) units and its sign-flip permutation p, per metric."""
+    out = [f"### {title} (mean paired difference, sign-flip permutation p)", "",
+           "| condition | " + " | ".join(c[1] for c in COLUMNS) + " |", "|" + "---|" * (1 + len(COLUMNS))]
+    for c, ref in pairs:
+        cells = []
+        for key, _, _, digits in COLUMNS:
+            a, b = _units(by_row[c], key), _units(by_row[ref], key)
+            common = [k for k in a if k in b]
+            if len(common) < 2:
+                cells.append("n/a")
+                continue
+            d = sum(a[k] - b[k] for k in common) / len(common)
+            p = paired_permutation_p([a[k] for k in common], [b[k] for k in common])
+            cells.append(f"{d:+.{digits}f} (p={p:.3f})" if math.isfinite(d) and not math.isnan(p) else "n/a")
+        out.append(f"| {label(c)} | " + " | ".join(cells) + " |")
+    return [*out, ""]
 
 
 def gather(jobs: Sequence[tuple[str, str, dict[str, Any]]]) -> dict[str, Any]:
