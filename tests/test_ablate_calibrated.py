@@ -128,3 +128,29 @@ def test_an_unknown_calibrated_family_is_one_line_naming_conditions_train(tmp_pa
     assert r.returncode == 1 and len(lines) == 1, r.stderr
     assert lines[0].startswith(f"morphgs ablate: error: {f}: conditions.train: unknown condition "
                                "'calibrated:morphologic' (calibrated:FAMILY takes one of the families "), lines[0]
+
+
+def test_the_calibration_key_is_the_target_sets_key_the_family_and_the_grid(tmp_path: Path) -> None:
+    from morphgs.ablation import load_study
+    from morphgs.ablation.recipe import build_plan
+
+    def plan(text: str) -> dict[str, object]:
+        f = tmp_path / "p.toml"
+        f.write_text('preset = "smoke"\n' + text, encoding="utf-8")
+        return {f"{j.ref.stage}/{j.ref.name}": j for j in build_plan(load_study(f), tmp_path / "s")}
+
+    base = plan('[conditions]\ntrain = ["calibrated:morphological", "calibrated:naive"]\n')
+    morph, naive = base["calibration/calibrated_morphological-S8"], base["calibration/calibrated_naive-S8"]
+    target = base["trainsets/target-S8"]
+    # both calibrate against the one target set of the regime (also trained: targets = true)
+    assert morph.inputs["target"] == naive.inputs["target"] == target.ref.key and "training/target-S8-s0" in base
+    assert morph.ref.key != naive.ref.key and morph.inputs["family"] == "morphological"
+    assert base["trainsets/calibrated_morphological-S8"].inputs["calibration"] == morph.ref.key
+    # a change of the target's sparse fits changes the calibration and what reads it, not the others
+    other = plan('[conditions]\ntrain = ["calibrated:morphological", "calibrated:naive"]\n[sparse]\nsteps = 151\n')
+    assert other["calibration/calibrated_morphological-S8"].ref.key != morph.ref.key
+    assert other["captures/sample-0"].ref.key == base["captures/sample-0"].ref.key
+    # without targets, the target set is still built for the calibration, but not trained
+    lean = plan('[conditions]\ntrain = ["calibrated:morphological"]\ntargets = false\n')
+    assert "trainsets/target-S8" in lean and not any(k.startswith("training/target") for k in lean)
+    assert lean["calibration/calibrated_morphological-S8"].ref.key == morph.ref.key

@@ -5,8 +5,9 @@ The table: rows are the conditions grouped by regime (the training sets, then th
 target), then the control rows (input, identity, oracle; they do not compete for best); columns
 are Table 1's nine metrics. Cells are the mean +- 95 % CI over (test scene, seed) units (the
 clips of a unit averaged first); best in bold, second best in italics. Each row prints its
-severity (the PSNR of its own training pairs); below, paired tests against `naive` and against
-the regime's target.
+severity (the PSNR of its own training pairs); below, paired tests against `naive`, against
+the regime's target, and of each calibrated condition against its family at the default strength;
+the notes summarise each calibration (stages/calibration.py).
 """
 
 from __future__ import annotations
