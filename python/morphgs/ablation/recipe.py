@@ -112,7 +112,7 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
     ts_common = {"captures": [cap[s].ref.key for s in sc.train], "pairs_per_scene": S["conditions"]["pairs_per_scene"],
                  "frames": S["clips"]["frames"], "size": list(size), "seed": PAIRS_SEED}
     ts_kw: dict[str, Any] = dict(scene_dirs=train_dirs, pairs_per_scene=int(S["conditions"]["pairs_per_scene"]),
-                 frames=int(S["clips"]["frames"]), size=size, seed=PAIRS_SEED)
+                                 frames=int(S["clips"]["frames"]), size=size, seed=PAIRS_SEED)
     calibrated = [c for c in study.conditions if calibrated_family(c) is not None]
     needed = [c for c in study.conditions if calibrated_family(c) is None]
     needed += [t for t in regimes if t not in needed and any(condition_regime(c) == regimes[t].label for c in calibrated)]
