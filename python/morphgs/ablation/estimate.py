@@ -24,6 +24,8 @@ UNIT = {
     "train_tiny": 3.0e-6,   # s per (pixel x frame x step) of the default tiny refiner incl. CKA probes
     "refine": 1.1e-6,       # s per (pixel x frame) of refine + write
     "metrics2d": 1.2e-6,    # s per (pixel x frame): PSNR, SSIM, LPIPS, E_flow (DIS)
+    "calibrate": 1.5,       # s per calibration stage besides its renders (statistics, goodness of fit, plots;
+                            # the smoke preset's calibration takes 1.5 s in all)
     "gpu_step": 1.0,        # s per training step of the sandbox/controlnet refiners on one GPU (a guess)
 }
 
@@ -49,8 +51,14 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
         elif st == "trainsets":
             n = len(j.kwargs["scene_dirs"]) * S["conditions"]["pairs_per_scene"]
             s = n * frames * px * gauss * 2 * UNIT["render"]
-            if j.kwargs["spec"].kind == "sparse":
+            if getattr(j.kwargs["spec"], "kind", None) == "sparse":
                 s += len(j.kwargs["scene_dirs"]) * S["sparse"]["steps"] * px * UNIT["fit"]
+        elif st == "calibration":
+            # the strength scan and bisection (grid + ~10 points) plus op shares and the goodness of
+            # fit render every calibration pair (half the training scenes' pairs) ~len(grid) + 15
+            # times; x2 for perturbing, quantising and the statistics
+            n = len(j.kwargs["scene_dirs"]) * S["conditions"]["pairs_per_scene"] / 2
+            s = UNIT["calibrate"] + 2 * (len(j.kwargs["grid"]) + 15) * n * frames * px * gauss * UNIT["render"]
         elif st == "training":
             ch, cw = S["training"]["crop"]
             if S["model"]["name"] == "tiny":

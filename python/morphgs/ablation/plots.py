@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from morphgs.ablation.study import condition_regime
+
 __all__ = ["write_all"]
 
 
@@ -31,7 +33,7 @@ def bars(out: Path, records: Sequence[dict[str, Any]], regimes: Sequence[str], c
     fig, axes = plt.subplots(len(regimes), len(COLUMNS), figsize=(2.6 * len(COLUMNS), 2.6 * len(regimes)),
                              squeeze=False)
     for i, rg in enumerate(regimes):
-        rows = [c for c in conditions if not c.startswith("target-") or c == f"target-{rg}"] + ["input"]
+        rows = [c for c in conditions if condition_regime(c) in (None, rg)] + ["input"]
         for j, (key, name, _, _) in enumerate(COLUMNS):
             ax = axes[i][j]
             ms, cis = [], []
@@ -40,7 +42,7 @@ def bars(out: Path, records: Sequence[dict[str, Any]], regimes: Sequence[str], c
                                                key).values()))
                 ms.append(m if math.isfinite(m) else 0.0)
                 cis.append(ci if math.isfinite(ci) else 0.0)
-            colors = ["0.6" if c in CONTROLS else "C3" if c.startswith("target-") else "C0" for c in rows]
+            colors = ["0.6" if c in CONTROLS else "C3" if c.startswith("target-") else "C2" if c.startswith("calibrated:") else "C0" for c in rows]
             ax.bar(range(len(rows)), ms, yerr=cis, color=colors, capsize=2)
             ax.set_xticks(range(len(rows)))
             ax.set_xticklabels([label(c) for c in rows], rotation=70, fontsize=6)

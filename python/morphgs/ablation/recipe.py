@@ -3,6 +3,8 @@ STUDY/<stage>/<name>-<key>/, and its key hashes everything it reads:
 
     captures/<scene>     key(scene file or built-in parameters, capture.views, capture.size)
     trainsets/<cond>     key(condition, captures of the train scenes, pairs_per_scene, frames, [sparse] for targets)
+    calibration/<cond>   key(trainsets/target-<regime>, family, the strength grid)   (calibrated:FAMILY-<regime>)
+    trainsets/<cond>     key(calibration/<cond>, captures, pairs_per_scene, frames)  (curated with its distribution)
     training/<cond>-s<seed>  key(trainsets/<cond>, model, its config file, its overrides, [training], seed, probe capture)
     testsets/<scene>-<regime>  key(captures/<scene>, regime, [sparse], clips.frames, clips.per_scene)
     refine/<row>-<scene>-<regime>  key(testsets/..., training/... or the control row)
@@ -30,14 +32,17 @@ from typing import Any
 
 from morphgs.ablation import cache
 from morphgs.ablation.scenes import SceneSet, capture_size, resolve_scenes, scene_fingerprint
-from morphgs.ablation.study import Study, StudyError, flatten, target_name, to_toml
+from morphgs.ablation.study import (Study, StudyError, calibrated_family, condition_regime, flatten, target_name,
+                                    to_toml)
 from morphgs.reliability.checksums import CHECKSUMS
 
 __all__ = ["Job", "build_plan", "check_study_folder", "run_study"]
 
-STAGES = ("captures", "trainsets", "training", "testsets", "refine", "metrics2d", "metrics3d", "report")
+STAGES = ("captures", "trainsets", "calibration", "training", "testsets", "refine", "metrics2d", "metrics3d", "report")
 PAIRS_SEED = 0   # the training pairs' run seed (the same noise streams for every condition)
 FIT_SEED = 0     # sparse fits and re-fits: one seed, every row sees the same test sets
+# the calibration stage's strength scan: calibrate's default log grid (2^-4 .. 2^7, two per octave)
+CALIBRATION_GRID = tuple(float(2.0 ** (k / 2 - 4)) for k in range(23))
 
 
 @dataclass(frozen=True)
@@ -100,20 +105,37 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
         cap[sid] = add("captures", sid, inputs, 0, source=src, views=int(S["capture"]["views"]), size=size,
                        up=S["capture"]["up"])
 
-    # 2. training sets: per condition, on the train scenes' captures
+    # 2. training sets: per condition, on the train scenes' captures (a target per regime also when
+    # only a calibrated condition needs it: its real pairs are what the family is calibrated against)
     train_dirs = [str(cap[s].ref.path / s) for s in sc.train]
     regimes = {target_name(r): r for r in study.regimes}
+    ts_common = {"captures": [cap[s].ref.key for s in sc.train], "pairs_per_scene": S["conditions"]["pairs_per_scene"],
+                 "frames": S["clips"]["frames"], "size": list(size), "seed": PAIRS_SEED}
+    ts_kw: dict[str, Any] = dict(scene_dirs=train_dirs, pairs_per_scene=int(S["conditions"]["pairs_per_scene"]),
+                                 frames=int(S["clips"]["frames"]), size=size, seed=PAIRS_SEED)
+    calibrated = [c for c in study.conditions if calibrated_family(c) is not None]
+    needed = [c for c in study.conditions if calibrated_family(c) is None]
+    needed += [t for t in regimes if t not in needed and any(condition_regime(c) == regimes[t].label for c in calibrated)]
     tsets: dict[str, Job] = {}
-    for cond in study.conditions:
-        r = regimes.get(cond) if S["conditions"]["targets"] else None
+    for cond in needed:
+        r = regimes.get(cond) if cond.startswith("target-") else None
         spec = TS.condition_spec(cond, blur_sigma=float(S["conditions"]["blur_sigma"]),
                                  regime=r.params if r else None, sparse=S["sparse"])
-        tsets[cond] = add("trainsets", _slug(cond), {"spec": spec.as_dict(), "captures": [cap[s].ref.key for s in sc.train],
-                                              "pairs_per_scene": S["conditions"]["pairs_per_scene"],
-                                              "frames": S["clips"]["frames"], "size": list(size), "seed": PAIRS_SEED},
-                          1, resumable=r is not None, scene_dirs=train_dirs, spec=spec,
-                          pairs_per_scene=int(S["conditions"]["pairs_per_scene"]), frames=int(S["clips"]["frames"]),
-                          size=size, seed=PAIRS_SEED, meta={"condition": cond})
+        tsets[cond] = add("trainsets", _slug(cond), {"spec": spec.as_dict(), **ts_common}, 1,
+                          resumable=r is not None, spec=spec, meta={"condition": cond}, **ts_kw)
+
+    # 2b. calibration: per calibrated condition (family x regime), against the regime's target set;
+    # then its training set, curated with the calibrated strength distribution
+    calib: dict[str, Job] = {}
+    for cond in calibrated:
+        fam, tgt = calibrated_family(cond), tsets[f"target-{condition_regime(cond)}"]
+        calib[cond] = add("calibration", _slug(cond),
+                          {"target": tgt.ref.key, "family": fam, "grid": list(CALIBRATION_GRID), "lpips": False},
+                          2, scene_dirs=train_dirs, real_dir=str(tgt.ref.path / "data"), family=fam,
+                          grid=list(CALIBRATION_GRID), meta={"condition": cond})
+        tsets[cond] = add("trainsets", _slug(cond), {"calibration": calib[cond].ref.key, **ts_common}, 3,
+                          spec=_slug(cond), calibration_dir=str(calib[cond].ref.path), meta={"condition": cond},
+                          **ts_kw)
 
     # 3. training: per (condition, seed); the CKA probe is the first training scene's capture
     probe = cap[sc.train[0]]
@@ -126,7 +148,7 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
                 "training", f"{_slug(cond)}-s{seed}",
                 {"trainset": tsets[cond].ref.key, "model": S["model"]["name"], "model_config": model_hash,
                  "overrides": over, "probe": probe.ref.key, "probe_rows": S["training"]["probe_rows"]},
-                2, resumable=True, data=str(tsets[cond].ref.path / "data"), model=S["model"]["name"],
+                4 if cond in calib else 3, resumable=True, data=str(tsets[cond].ref.path / "data"), model=S["model"]["name"],
                 model_config=S["model"]["config"], overrides=over, probe_dir=str(probe.ref.path / sc.train[0]),
                 probe_rows=int(S["training"]["probe_rows"]), threads=int(S["training"]["threads"]),
                 meta={"condition": cond, "seed": seed})
@@ -139,7 +161,7 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
                 "testsets", f"{sid}-{r.label}",
                 {"capture": cap[sid].ref.key, "regime": r.params, "sparse": S["sparse"], "frames": S["clips"]["frames"],
                  "per_scene": S["clips"]["per_scene"], "seed": FIT_SEED},
-                2, resumable=True, capture_dir=str(cap[sid].ref.path), regime=r.params, sparse=S["sparse"],
+                3, resumable=True, capture_dir=str(cap[sid].ref.path), regime=r.params, sparse=S["sparse"],
                 frames=int(S["clips"]["frames"]), per_scene=int(S["clips"]["per_scene"]), seed=FIT_SEED,
                 meta={"scene": sid, "regime": r.label})
 
@@ -155,27 +177,27 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
             meta = {"scene": sid, "regime": rl, "condition": cond, "seed": rseed}
             ref_in = {"testset": tj.ref.key, "run": rj.ref.key if rj else None, "row": cond,
                       "window": S["training"]["window"]}
-            fj = add("refine", f"{row}-{sid}-{rl}", ref_in, 3, testset_dir=str(tj.ref.path), row=cond,
+            fj = add("refine", f"{row}-{sid}-{rl}", ref_in, 5, testset_dir=str(tj.ref.path), row=cond,
                      run_dir=str(rj.ref.path / "run") if rj else None, window=int(S["training"]["window"]),
                      threads=threads, meta=meta)
             add("metrics2d", f"{row}-{sid}-{rl}",
                 {"refined": fj.ref.key, "testset": tj.ref.key, "lpips": S["metrics"]["lpips"],
                  "lpips_net": S["metrics"]["lpips_net"], "lpips_available": lp_note is None, "eflow": S["metrics"]["eflow"]},
-                4, testset_dir=str(tj.ref.path), refined_dir=str(fj.ref.path), lpips=S["metrics"]["lpips"],
+                6, testset_dir=str(tj.ref.path), refined_dir=str(fj.ref.path), lpips=S["metrics"]["lpips"],
                 lpips_net=S["metrics"]["lpips_net"], eflow=bool(S["metrics"]["eflow"]), threads=threads, meta=meta)
             add("metrics3d", f"{row}-{sid}-{rl}",
                 {"refined": fj.ref.key, "testset": tj.ref.key, "refit": S["refit"], "heldout": S["clips"]["heldout"],
                  "fscore": S["metrics"]["fscore"], "lpips_available": lp_note is None,
                  "lpips_net": S["metrics"]["lpips_net"], "seed": FIT_SEED},
-                4, resumable=True, testset_dir=str(tj.ref.path), refined_dir=str(fj.ref.path), refit=S["refit"],
+                6, resumable=True, testset_dir=str(tj.ref.path), refined_dir=str(fj.ref.path), refit=S["refit"],
                 heldout=list(S["clips"]["heldout"]), thresholds=list(S["metrics"]["fscore"]), lpips_note=lp_note,
                 lpips_net=S["metrics"]["lpips_net"], seed=FIT_SEED, threads=threads, meta=meta)
 
     # 8. the report: every metrics output, the severities and the CKA curves
-    parts = {j.ref.path.name: j.ref.key for j in jobs if j.ref.stage in ("metrics2d", "metrics3d", "trainsets", "training")}
-    add("report", "report", {"parts": parts, "settings": flatten(S)}, 5, study=study, root=str(root),
-        jobs=[(j.ref.stage, str(j.ref.path), j.meta) for j in jobs
-              if j.ref.stage in ("metrics2d", "metrics3d", "trainsets", "training", "testsets", "refine")],
+    read = ("metrics2d", "metrics3d", "trainsets", "training", "calibration")
+    parts = {j.ref.path.name: j.ref.key for j in jobs if j.ref.stage in read}
+    add("report", "report", {"parts": parts, "settings": flatten(S)}, 7, study=study, root=str(root),
+        jobs=[(j.ref.stage, str(j.ref.path), j.meta) for j in jobs if j.ref.stage in (*read, "testsets", "refine")],
         lpips_note=lp_note)
     return jobs
 

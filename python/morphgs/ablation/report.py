@@ -5,8 +5,9 @@ The table: rows are the conditions grouped by regime (the training sets, then th
 target), then the control rows (input, identity, oracle; they do not compete for best); columns
 are Table 1's nine metrics. Cells are the mean +- 95 % CI over (test scene, seed) units (the
 clips of a unit averaged first); best in bold, second best in italics. Each row prints its
-severity (the PSNR of its own training pairs); below, paired tests against `naive` and against
-the regime's target.
+severity (the PSNR of its own training pairs); below, paired tests against `naive`, against
+the regime's target, and of each calibrated condition against its family at the default strength;
+the notes summarise each calibration (stages/calibration.py).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from morphgs.ablation.study import calibrated_family, condition_regime
 from morphgs.ablation.stats import mean_ci, paired_permutation_p
 
 __all__ = ["COLUMNS", "format_table", "gather", "make", "rank_marks"]
@@ -79,7 +81,7 @@ def format_table(records: Sequence[dict[str, Any]], *, regimes: Sequence[str], c
     sep = "|" + "---|" * (3 + len(COLUMNS))
     tests: list[str] = []
     for rg in regimes:
-        rows = [c for c in conditions if not c.startswith("target-") or c == f"target-{rg}"]
+        rows = [c for c in conditions if condition_regime(c) in (None, rg)]
         target = f"target-{rg}" if f"target-{rg}" in conditions else None
         by_row = {c: [r for r in records if r["regime"] == rg and r["condition"] == c] for c in [*rows, *CONTROLS]}
         cells: dict[str, dict[str, str]] = {c: {} for c in by_row}
@@ -98,25 +100,12 @@ def format_table(records: Sequence[dict[str, Any]], *, regimes: Sequence[str], c
             lines.append(f"| {rg} | {name} | {sev_s} | " + " | ".join(cells[c][k] for k, *_ in COLUMNS) + " |")
         lines.append("")
         for ref in (["naive"] if "naive" in conditions else []) + ([target] if target else []):
-            tests.append(f"### {rg}: each condition − {label(ref)} (mean paired difference, sign-flip permutation p)")
-            tests.append("")
-            tests.append("| condition | " + " | ".join(c[1] for c in COLUMNS) + " |")
-            tests.append("|" + "---|" * (1 + len(COLUMNS)))
-            for c in rows:
-                if c == ref:
-                    continue
-                out = []
-                for key, _, _, digits in COLUMNS:
-                    a, b = _units(by_row[c], key), _units(by_row[ref], key)
-                    common = [k for k in a if k in b]
-                    if len(common) < 2:
-                        out.append("n/a")
-                        continue
-                    d = sum(a[k] - b[k] for k in common) / len(common)
-                    p = paired_permutation_p([a[k] for k in common], [b[k] for k in common])
-                    out.append(f"{d:+.{digits}f} (p={p:.3f})" if math.isfinite(d) and not math.isnan(p) else "n/a")
-                tests.append(f"| {label(c)} | " + " | ".join(out) + " |")
-            tests.append("")
+            tests += _paired_tests(f"{rg}: each condition − {label(ref)}", [(c, ref) for c in rows if c != ref], by_row)
+        # a calibrated condition against its family at the default strength (the calibration's own effect)
+        pairs = [(c, fam) for c in rows if (fam := calibrated_family(c)) is not None and fam in conditions]
+        if pairs:
+            tests += _paired_tests(f"{rg}: each calibrated condition − its family at the default strength", pairs,
+                                   by_row)
     if tests:
         lines += ["## Paired tests", "", *tests]
     if notes:
@@ -124,14 +113,37 @@ def format_table(records: Sequence[dict[str, Any]], *, regimes: Sequence[str], c
     return "\n".join(lines).rstrip("\n") + "\n"
 
 
+def _paired_tests(title: str, pairs: Sequence[tuple[str, str]], by_row: dict[str, list[dict[str, Any]]]) -> list[str]:
+    """A paired-test table: per (condition, reference), the mean paired difference over (scene,
+    seed) units and its sign-flip permutation p, per metric."""
+    out = [f"### {title} (mean paired difference, sign-flip permutation p)", "",
+           "| condition | " + " | ".join(c[1] for c in COLUMNS) + " |", "|" + "---|" * (1 + len(COLUMNS))]
+    for c, ref in pairs:
+        cells = []
+        for key, _, _, digits in COLUMNS:
+            a, b = _units(by_row[c], key), _units(by_row[ref], key)
+            common = [k for k in a if k in b]
+            if len(common) < 2:
+                cells.append("n/a")
+                continue
+            d = sum(a[k] - b[k] for k in common) / len(common)
+            p = paired_permutation_p([a[k] for k in common], [b[k] for k in common])
+            cells.append(f"{d:+.{digits}f} (p={p:.3f})" if math.isfinite(d) and not math.isnan(p) else "n/a")
+        out.append(f"| {label(c)} | " + " | ".join(cells) + " |")
+    return [*out, ""]
+
+
 def gather(jobs: Sequence[tuple[str, str, dict[str, Any]]]) -> dict[str, Any]:
     """Per-clip records, severities and CKA curves from the finished stage outputs."""
     recs: dict[tuple[Any, ...], dict[str, Any]] = {}
     severity: dict[str, float] = {}
+    calibration: dict[str, dict[str, Any]] = {}
     cka: list[dict[str, Any]] = []
     for stage, path, meta in jobs:
         p = Path(path)
-        if stage == "trainsets":
+        if stage == "calibration":
+            calibration[meta["condition"]] = json.loads((p / "summary.json").read_text())
+        elif stage == "trainsets":
             severity[meta["condition"]] = json.loads((p / "severity.json").read_text())["psnr_mean"]
         elif stage == "training":
             cka.append({"condition": meta["condition"], "seed": meta["seed"],
@@ -144,7 +156,22 @@ def gather(jobs: Sequence[tuple[str, str, dict[str, Any]]]) -> dict[str, Any]:
                 rec.update(vals)
     records = sorted(recs.values(), key=lambda r: (r["regime"], r["condition"], str(r["seed"]), r["scene"], r["clip"]))
     return {"records": records, "severity": dict(sorted(severity.items())),
+            "calibration": dict(sorted(calibration.items())),
             "cka": sorted(cka, key=lambda c: (c["condition"], c["seed"]))}
+
+
+def calibration_note(condition: str, c: dict[str, Any]) -> str:
+    """One line on a calibrated condition: what it was matched to and what it reached."""
+    reg = condition.rsplit("-", 1)[-1]
+    if c["reachable"]:
+        med = f"median strength {c['median_strength']:.3g} ({c['median_psnr_reached']:.2f} dB)"
+    else:
+        med = f"UNREACHABLE (most severe {c['most_severe_psnr']:.2f} dB)"
+    fit = "matched" if c.get("matched") else f"not matched (furthest: {c.get('furthest')})"
+    return (f"{condition}: {c['family']} calibrated against target-{reg}'s real pairs (median {c['real_median_psnr']:.2f} dB): "
+            f"{med}; strength p5/p50/p95 {c['strength_p05']:.3g} / {c['strength_p50']:.3g} / {c['strength_p95']:.3g}"
+            f"{'' if c['monotone'] else '; severity not monotone in strength'}; held-out goodness of fit: {fit} "
+            "(calibration/<condition>/calib/report.md).")
 
 
 def _csv(records: Sequence[dict[str, Any]]) -> str:
@@ -167,11 +194,13 @@ def make(work: Path, *, study: Any, root: str, jobs: Sequence[tuple[str, str, di
     notes = []
     if lpips_note:
         notes.append(f"LPIPS columns read n/a: {lpips_note}.")
+    notes += [calibration_note(c, v) for c, v in g["calibration"].items()]
     notes.append("Geometry ground truth: depth of the clean dense 3DGS at the clip cameras, unprojected where "
                  "alpha >= 0.5, in units of the clean scene's bbox diagonal (docs/ablation.md).")
     (work / "table.md").write_text(format_table(g["records"], regimes=regimes, conditions=study.conditions,
                                                 severity=g["severity"], notes=notes), encoding="utf-8")
     (work / "results.json").write_text(json.dumps({"records": g["records"], "severity": g["severity"],
+                                                   "calibration": g["calibration"],
                                                    "cka": g["cka"], "lpips_note": lpips_note},
                                                   indent=1, sort_keys=True) + "\n", encoding="utf-8")
     (work / "results.csv").write_text(_csv(g["records"]), encoding="utf-8")

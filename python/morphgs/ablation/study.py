@@ -22,7 +22,13 @@ from typing import Any
 from morphgs._core import MorphgsError
 from morphgs.ablation import presets
 
-__all__ = ["Regime", "Study", "StudyError", "flatten", "load_study", "to_toml"]
+__all__ = ["CALIBRATED", "Regime", "Study", "StudyError", "calibrated_family", "condition_regime", "flatten",
+           "load_study", "to_toml"]
+
+#: The prefix of a calibrated condition in `conditions.train`: `calibrated:FAMILY` is, per regime
+#: S_K, FAMILY's strength distribution calibrated against that regime's target training set
+#: (`morphgs calibrate --real`), curated on the training scenes (condition `calibrated:FAMILY-S_K`).
+CALIBRATED = "calibrated:"
 
 
 class StudyError(MorphgsError):
@@ -60,8 +66,11 @@ class Study:
 
     @property
     def conditions(self) -> list[str]:
-        """The condition names: the training sets as written, then one target per regime."""
-        names = list(self.settings["conditions"]["train"])
+        """The condition names: the training sets as written (a `calibrated:FAMILY` one per regime,
+        `calibrated:FAMILY-S20`), then one target per regime."""
+        names = []
+        for c in self.settings["conditions"]["train"]:
+            names += [f"{c}-{r.label}" for r in self.regimes] if c.startswith(CALIBRATED) else [c]
         if self.settings["conditions"]["targets"]:
             names += [target_name(r) for r in self.regimes]
         return names
@@ -73,6 +82,23 @@ class Study:
 
 def target_name(regime: Regime) -> str:
     return f"target-{regime.label}"
+
+
+def calibrated_family(condition: str) -> str | None:
+    """The family of a calibrated condition (`calibrated:FAMILY` or `calibrated:FAMILY-S20`), else None."""
+    if not condition.startswith(CALIBRATED):
+        return None
+    return condition[len(CALIBRATED):].split("-", 1)[0]
+
+
+def condition_regime(condition: str) -> str | None:
+    """The regime label a condition belongs to (`target-S20`, `calibrated:FAMILY-S20`: S20), or None
+    for a condition shown in every regime."""
+    if condition.startswith("target-"):
+        return condition[len("target-"):]
+    if condition.startswith(CALIBRATED) and "-" in condition:
+        return condition.rsplit("-", 1)[1]
+    return None
 
 
 def _where(source: str, key: str) -> str:
@@ -133,6 +159,14 @@ def _validate(s: dict[str, Any], source: str) -> None:
     for c in names:
         if not isinstance(c, str):
             raise StudyError(f"{_where(source, 'conditions.train')}: {c!r} is not a curate config string")
+        if c.startswith(CALIBRATED):
+            from morphgs.strength import FAMILIES
+
+            fam = c[len(CALIBRATED):]
+            if fam not in FAMILIES:
+                raise StudyError(f"{_where(source, 'conditions.train')}: unknown condition {c!r} "
+                                 f"(calibrated:FAMILY takes one of the families {', '.join(FAMILIES)})")
+            continue
         try:
             parse_config(c, blur_sigma=float(s["conditions"]["blur_sigma"]))
         except (ValueError, MorphgsError) as e:

@@ -57,6 +57,8 @@ def _plan_text(study: Any, out: Path, workers: int) -> str:
     total = 0.0
     for st in STAGES:
         js = [j for j in jobs if j.ref.stage == st]
+        if not js:  # calibration, without calibrated conditions
+            continue
         todo = sum(not cache.is_done(j.ref) for j in js)
         s = est.get(st, 0.0)
         total += s

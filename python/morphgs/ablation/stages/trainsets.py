@@ -3,7 +3,9 @@
 (corrupted vs clean), printed in the table's rows so a severity mismatch shows.
 
 A target condition is `{"kind": "sparse", "every": K}` (or "n"): pairs whose corrupted side is a
-sparse fit of the training scene, with the study's sparse-fit settings.
+sparse fit of the training scene, with the study's sparse-fit settings. A calibrated condition
+(`calibrated:FAMILY-S_K`) is curated with the strength distribution its calibration stage wrote
+(`stages/calibration.py`): each pair draws its strength from it, seeded.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["condition_spec", "make", "severity"]
+__all__ = ["calibrated_spec", "condition_spec", "make", "severity"]
 
 
 def condition_spec(name: str, *, blur_sigma: float, regime: dict[str, int] | None, sparse: dict[str, Any]) -> Any:
@@ -25,6 +27,18 @@ def condition_spec(name: str, *, blur_sigma: float, regime: dict[str, int] | Non
         return parse_config(name, blur_sigma=blur_sigma)
     fit = {"init": {"random_points": int(sparse["random_points"])}, "mcmc": {"cap_max": int(sparse["cap_max"])}}
     return ConfigSpec(name, "sparse", {**regime, "steps": int(sparse["steps"]), "fit": fit})
+
+
+def calibrated_spec(name: str, calibration_dir: str | Path) -> Any:
+    """The curate ConfigSpec of a calibrated condition: the calibration stage's config.json,
+    labelled by the condition's folder-safe name."""
+    import dataclasses
+
+    from morphgs.ablation.stages.calibration import CONFIG
+    from morphgs.curation.plan import parse_config
+
+    spec = parse_config(str(Path(calibration_dir) / CONFIG))
+    return dataclasses.replace(spec, label=name)
 
 
 def severity(data: Path) -> dict[str, float]:
@@ -43,10 +57,14 @@ def severity(data: Path) -> dict[str, float]:
 
 
 def make(work: Path, *, scene_dirs: list[str], spec: Any, pairs_per_scene: int, frames: int,
-         size: tuple[int, int], seed: int) -> None:
-    """Curate the condition into `work/data` and write `work/severity.json`."""
+         size: tuple[int, int], seed: int, calibration_dir: str | None = None) -> None:
+    """Curate the condition into `work/data` and write `work/severity.json` (`spec` is the label
+    of a calibrated condition, whose config is read from `calibration_dir`)."""
     from morphgs.ablation.study import StudyError
     from morphgs.curation import curate
+
+    if calibration_dir is not None:
+        spec = calibrated_spec(spec, calibration_dir)
 
     data = work / "data"
     summary = curate(scene_dirs, data, configs=[spec], pairs_per_scene=pairs_per_scene, frames=frames,

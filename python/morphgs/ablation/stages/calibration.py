@@ -1,0 +1,55 @@
+"""Stage 2b, calibration: a calibrated condition's strength distribution (`calibrated:FAMILY`).
+
+Per regime S_K, `morphgs calibrate --real` of FAMILY against that regime's target training set:
+the real sparse-view pairs of the training scenes (the very pairs target-S_K trains on), with the
+training scenes' capture folders as the clean scenes. The result is the strength-distribution
+config (`config.json`, `{"kind": "strength", "family", "ops", "quantiles"}`) that the calibrated
+training set is curated with, plus calibrate's own outputs in `calib/` (calibration.json,
+report.md with the goodness of fit on the held-out half of the training scenes) and a short
+`summary.json` that the report prints.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+__all__ = ["CONFIG", "SUMMARY", "make", "summary"]
+
+CONFIG = "config.json"
+SUMMARY = "summary.json"
+
+
+def summary(result: dict[str, Any]) -> dict[str, Any]:
+    """The few figures of one calibrate result the ablation report shows."""
+    s = result["search"]
+    q = dict(zip(s["quantiles"]["p"], s["quantiles"]["strength"]))
+    g = result.get("goodness", {})
+    return {"family": result["family"], "real_median_psnr": s["target_median_psnr"],
+            "reachable": s["reachable"], "monotone": s["monotone"], "median_strength": s["median_strength"],
+            "median_psnr_reached": s["median_psnr_reached"], "most_severe_psnr": s["most_severe_psnr"],
+            "unreachable_pairs": s["unreachable_frames"], "strength_p05": q.get(0.05), "strength_p50": q.get(0.5),
+            "strength_p95": q.get(0.95), "matched": g.get("matched"), "furthest": g.get("furthest"),
+            "calibration_scenes": result.get("calibration_scenes")}
+
+
+def make(work: Path, *, scene_dirs: list[str], real_dir: str, family: str, grid: Sequence[float]) -> None:
+    """Calibrate `family` against the curated real pairs in `real_dir` into `work/calib`; write
+    `work/config.json` (the strength distribution) and `work/summary.json`."""
+    from morphgs.ablation.study import StudyError
+    from morphgs.calibration.pairs import CalibrationError
+    from morphgs.calibration.run import calibrate
+
+    try:
+        doc = calibrate(scene_dirs, work / "calib", real=real_dir, families=[family], grid=list(grid), lpips=False,
+                        workers=1, plots=True, log=lambda m: None)
+    except CalibrationError as e:
+        raise StudyError(f"calibration of {family} against {real_dir}: {e}") from None
+    (result,) = doc["results"]
+    (work / "calib" / "timings.json").unlink(missing_ok=True)  # wall times: not part of the stage's bytes
+    for lock in (work / "calib").glob(".morphgs*.lock"):  # calibrate's (released) lock file
+        lock.unlink()
+    (work / CONFIG).write_text(json.dumps(result["config"], indent=1, sort_keys=True) + "\n", encoding="utf-8")
+    (work / SUMMARY).write_text(json.dumps(summary(result), indent=1, sort_keys=True) + "\n", encoding="utf-8")

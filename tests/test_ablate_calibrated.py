@@ -1,0 +1,156 @@
+"""A calibrated condition in `morphgs ablate` (`calibrated:FAMILY`, issue 23), end to end through
+the CLI on the smoke preset: per regime, the family is calibrated against the regime's target
+training set (built even with targets = false), a training set is curated with the calibrated
+strength distribution, and its refiners get rows in that regime. Its training pairs are far
+closer to the target's severity than the family's default strength; a rerun recomputes nothing;
+two workers give the same bytes; --dry-run counts and estimates the stage; an unknown family is
+one line naming conditions.train."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("torch")
+pytest.importorskip("accelerate")
+pytest.importorskip("matplotlib")
+
+ENV = {**os.environ, "MORPHGS_NUM_THREADS": "2"}
+STUDY = """preset = "smoke"
+[conditions]
+train = ["morphological", "calibrated:morphological"]
+targets = false
+"""
+CAL = "calibrated:morphological-S8"
+
+
+def _run(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "morphgs", "ablate", *args], env=ENV, capture_output=True,
+                          text=True, timeout=900)
+
+
+def _ablate(*args: str) -> subprocess.CompletedProcess[str]:
+    r = _run(*args)
+    assert r.returncode == 0, r.stderr[-4000:]
+    return r
+
+
+def _last_run(study: Path) -> dict:
+    return json.loads((study / "runs.jsonl").read_text().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def study_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    p = tmp_path_factory.mktemp("calstudy") / "study.toml"
+    p.write_text(STUDY, encoding="utf-8")
+    return p
+
+
+@pytest.fixture(scope="module")
+def cal(study_file: Path) -> Path:
+    out = study_file.parent / "study"
+    _ablate("--study", str(study_file), "--out", str(out))
+    return out
+
+
+def test_a_calibrated_condition_runs_end_to_end_and_is_closer_to_the_target_severity(cal: Path) -> None:
+    counts = _last_run(cal)["counts"]
+    # trainsets: morphological, target-S8 (built for the calibration only: targets = false) and the
+    # calibrated set; trainings: morphological and the calibrated condition, 2 seeds each
+    assert counts["calibration"] == {"computed": 1, "reused": 0}
+    assert counts["trainsets"] == {"computed": 3, "reused": 0}
+    assert counts["training"] == {"computed": 4, "reused": 0}
+    res = json.loads((cal / "results.json").read_text())
+    rows = {(r["condition"], r["seed"]) for r in res["records"] if r["seed"] is not None}
+    assert rows == {(c, s) for c in ("morphological", CAL) for s in (0, 1)}
+    sev = res["severity"]
+    assert set(sev) == {"morphological", "target-S8", CAL}
+    # the point of the calibration: its pairs are as corrupted as the real sparse-view pairs, the
+    # default-strength family's are not (smoke: about 21 dB against 11 dB)
+    assert abs(sev[CAL] - sev["target-S8"]) < 0.5 * abs(sev["morphological"] - sev["target-S8"]), sev
+    c = res["calibration"][CAL]
+    assert c["family"] == "morphological" and c["reachable"] and c["median_strength"] > 1.0
+    # the stage's own outputs: the config the training set was curated with, calibrate's report
+    (cdir,) = (cal / "calibration").glob("calibrated_morphological-S8-*")
+    config = json.loads((cdir / "config.json").read_text())
+    assert config["kind"] == "strength" and config["family"] == "morphological" and "quantiles" in config
+    assert (cdir / "calib" / "calibration.json").is_file() and (cdir / "calib" / "report.md").is_file()
+    # every calibrated pair records the strength it drew from that distribution
+    (tdir,) = (cal / "trainsets").glob("calibrated_morphological-S8-*")
+    recs = [json.loads(line) for m in sorted((tdir / "data").glob("manifest*.jsonl"))
+            for line in m.read_text().splitlines() if line.strip()]
+    lo, hi = config["quantiles"]["strength"][0], config["quantiles"]["strength"][-1]
+    assert recs and all(lo - 1e-9 <= r["strength"] <= hi + 1e-9 for r in recs)
+    table = (cal / "table.md").read_text()
+    assert f"| S8 | {CAL} |" in table and "| S8 | target-S8 |" not in table
+    assert f"- {CAL}: morphological calibrated against target-S8's real pairs" in table
+    assert "S8: each calibrated condition − its family at the default strength" in table
+    assert f"| {CAL} | " in table.split("its family at the default strength")[1]
+
+
+def test_a_rerun_recomputes_nothing(cal: Path, study_file: Path) -> None:
+    before = (cal / "results.json").read_bytes()
+    r = _ablate("--study", str(study_file), "--out", str(cal))
+    assert "0 stage output(s) computed" in r.stderr
+    assert all(c["computed"] == 0 for c in _last_run(cal)["counts"].values())
+    assert (cal / "results.json").read_bytes() == before
+
+
+def test_two_workers_give_the_same_bytes(cal: Path, study_file: Path, tmp_path: Path) -> None:
+    out = tmp_path / "j2"
+    _ablate("--study", str(study_file), "--out", str(out), "-j", "2")
+    for f in ("results.json", "results.csv", "table.md"):
+        assert (out / f).read_bytes() == (cal / f).read_bytes(), f
+    (a,) = (cal / "calibration").glob("*/config.json")
+    (b,) = (out / "calibration").glob("*/config.json")
+    assert a.read_bytes() == b.read_bytes()
+
+
+def test_dry_run_counts_and_estimates_the_calibration_stage(study_file: Path, tmp_path: Path) -> None:
+    r = _ablate("--study", str(study_file), "--out", str(tmp_path / "dry"), "--dry-run")
+    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("calibration"))
+    jobs, todo = line.split()[1:3]
+    assert (jobs, todo) == ("1", "1") and line.split()[3] != "0", line
+    assert f"conditions: morphological, {CAL};" in r.stdout
+    assert not (tmp_path / "dry").exists()
+
+
+def test_an_unknown_calibrated_family_is_one_line_naming_conditions_train(tmp_path: Path) -> None:
+    f = tmp_path / "bad.toml"
+    f.write_text('preset = "smoke"\n[conditions]\ntrain = ["calibrated:morphologic"]\n', encoding="utf-8")
+    r = _run("--study", str(f), "--out", str(tmp_path / "s"))
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 1 and len(lines) == 1, r.stderr
+    assert lines[0].startswith(f"morphgs ablate: error: {f}: conditions.train: unknown condition "
+                               "'calibrated:morphologic' (calibrated:FAMILY takes one of the families "), lines[0]
+
+
+def test_the_calibration_key_is_the_target_sets_key_the_family_and_the_grid(tmp_path: Path) -> None:
+    from morphgs.ablation import load_study
+    from morphgs.ablation.recipe import build_plan
+
+    def plan(text: str) -> dict[str, object]:
+        f = tmp_path / "p.toml"
+        f.write_text('preset = "smoke"\n' + text, encoding="utf-8")
+        return {f"{j.ref.stage}/{j.ref.name}": j for j in build_plan(load_study(f), tmp_path / "s")}
+
+    base = plan('[conditions]\ntrain = ["calibrated:morphological", "calibrated:naive"]\n')
+    morph, naive = base["calibration/calibrated_morphological-S8"], base["calibration/calibrated_naive-S8"]
+    target = base["trainsets/target-S8"]
+    # both calibrate against the one target set of the regime (also trained: targets = true)
+    assert morph.inputs["target"] == naive.inputs["target"] == target.ref.key and "training/target-S8-s0" in base
+    assert morph.ref.key != naive.ref.key and morph.inputs["family"] == "morphological"
+    assert base["trainsets/calibrated_morphological-S8"].inputs["calibration"] == morph.ref.key
+    # a change of the target's sparse fits changes the calibration and what reads it, not the others
+    other = plan('[conditions]\ntrain = ["calibrated:morphological", "calibrated:naive"]\n[sparse]\nsteps = 151\n')
+    assert other["calibration/calibrated_morphological-S8"].ref.key != morph.ref.key
+    assert other["captures/sample-0"].ref.key == base["captures/sample-0"].ref.key
+    # without targets, the target set is still built for the calibration, but not trained
+    lean = plan('[conditions]\ntrain = ["calibrated:morphological"]\ntargets = false\n')
+    assert "trainsets/target-S8" in lean and not any(k.startswith("training/target") for k in lean)
+    assert lean["calibration/calibrated_morphological-S8"].ref.key == morph.ref.key
