@@ -259,117 +259,88 @@ def calibrate(
     from morphgs.reliability import folder_lock
 
     with folder_lock(out, command="calibrate", wait=wait, say=log):
-        return _calibrate(scenes, out, regimes=regimes, families=families, real=real, pairs_per_scene=pairs_per_scene,
-                          frames=frames, resolution=resolution, seed=seed, builtin_gaussians=builtin_gaussians,
-                          grid=grid, lpips=lpips, workers=workers, plots=plots, log=log,
-                          builtin_scenes=builtin_scenes, builtin_fit_steps=builtin_fit_steps, search_mix=search_mix,
-                          mix_steps=mix_steps)
+        from morphgs.curation import curate
+        from morphgs.curation.sources import builtin_sources, discover
 
+        say = log or (lambda m: print(m, file=sys.stderr))
+        t_wall, t_cpu = time.perf_counter(), _cpu_seconds()
+        bases = [_family(f) for f in families]
+        if len({lbl for lbl, _ in bases}) != len(bases):
+            raise CalibrationError(f"--family: the families must have distinct names, got {[lbl for lbl, _ in bases]}")
+        if not families:
+            raise CalibrationError("at least one --family is needed")
+        if not regimes and real is None:
+            raise CalibrationError("give at least one --regime (e.g. sparse:20) or --real DIR")
+        if builtin_fit_steps is not None and builtin_fit_steps < 1:
+            raise CalibrationError(f"--sample-fit-steps must be >= 1, got {builtin_fit_steps}")
+        if mix_steps < 1:
+            raise CalibrationError(f"--mix-steps must be >= 1, got {mix_steps}")
+        scene_list = [str(s) for s in scenes]
+        if scene_list:
+            sources, problems = discover(scene_list)
+            if problems:
+                raise CalibrationError(f"scene {problems[0][0]}: {problems[0][1]}")
+        else:
+            if builtin_scenes < 1:
+                raise CalibrationError(f"--sample-scenes must be >= 1, got {builtin_scenes}")
+            sources = builtin_sources(builtin_scenes, n_gaussians=builtin_gaussians)
+        out_dir = Path(out)
+        groups: dict[str, list[RealPair]] = {}
+        fit_steps: dict[str, int | None] = {}
+        for spec in regimes:
+            cfg = _check_regime(spec, sources, resolution, None if scene_list else builtin_fit_steps)
+            fit_steps[spec] = cfg.params.get("steps")
+            real_dir = out_dir / "real"
+            summary = curate(scene_list, real_dir, configs=[cfg], pairs_per_scene=pairs_per_scene, frames=frames,
+                             resolution=resolution, seed=seed, test_fraction=0.0, builtin_gaussians=builtin_gaussians,
+                             builtin_scenes=builtin_scenes, workers=workers, progress=False, log=say)
+            if not summary.ok:
+                raise CalibrationError(f"--regime {spec}: making the real pairs failed: {summary.failed}")
+            groups[spec] = read_real_pairs(real_dir, regimes=[cfg.label])
+        if real is not None:
+            for p in read_real_pairs(real):
+                groups.setdefault(p.regime, []).append(p)
+        sizes = {p.clean.shape[1:3] for ps in groups.values() for p in ps}
+        if len(sizes) > 1:
+            raise CalibrationError(f"real pairs of mismatched sizes {sorted(sizes)}: the regimes' pairs (--size) and "
+                                   "--real's must have one size")
+        needed = sorted({p.scene for ps in groups.values() for p in ps})
+        by_id = {s.id: s for s in sources}
+        missing = [n for n in needed if n not in by_id]
+        if missing:
+            raise CalibrationError(f"the real pairs' scene(s) {', '.join(missing)} are not among the scenes "
+                                   f"({', '.join(sorted(by_id)) or 'none'}); give them as SCENE arguments")
+        loaded = {n: by_id[n].load() for n in needed}
+        results = []
+        for regime, pairs in groups.items():
+            calib, held = _split_scenes(pairs)
+            bench = Bench(loaded, calib)
+            held_bench = Bench(loaded, held) if held else None
+            for label, base in bases:
+                results.append(_calibrate_one(label, base, regime, calib, bench, held_bench, held, grid=grid,
+                                              lpips=lpips, say=say, search_mix=search_mix, mix_steps=mix_steps))
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "configs").mkdir(exist_ok=True)
+        for r in results:
+            name = f"{r['family']}-{_slug(r['regime'])}.json"
+            r["config_file"] = f"configs/{name}"
+            (out_dir / "configs" / name).write_text(json.dumps(r["config"], indent=1) + "\n", encoding="utf-8")
+        from morphgs import __version__
 
-def _calibrate(
-    scenes: Iterable[str | os.PathLike[str]] = (),
-    out: str | os.PathLike[str] = "out/calib",
-    *,
-    regimes: Sequence[str] = (),
-    families: Sequence[str] = ("morphological",),
-    real: str | os.PathLike[str] | None = None,
-    pairs_per_scene: int = 2,
-    frames: int = 16,
-    resolution: tuple[int, int] = (128, 96),
-    seed: int = 0,
-    builtin_gaussians: int = 100_000,
-    grid: Sequence[float] = DEFAULT_GRID,
-    lpips: bool = False,
-    workers: int = 1,
-    plots: bool = True,
-    log: Callable[[str], None] | None = None,
-    builtin_scenes: int = BUILTIN_SCENES,
-    builtin_fit_steps: int | None = BUILTIN_FIT_STEPS,
-    search_mix: bool = False,
-    mix_steps: int = 3,
-) -> dict[str, Any]:
-    """`calibrate` with `out` locked (see there)."""
-    from morphgs.curation import curate
-    from morphgs.curation.sources import builtin_sources, discover
+        doc = {"schema": 1, "morphgs_version": __version__, "scenes": [s.describe() for s in sources],
+               "regimes": list(groups), "families": [lbl for lbl, _ in bases],
+               "real": None if real is None else str(real),
+               "pairs_per_scene": pairs_per_scene, "seed": seed, "fit_steps": fit_steps, "search_mix": search_mix,
+               "frames": sorted({len(p.clean) for ps in groups.values() for p in ps}),
+               "resolution": [int(v) for v in next(iter(sizes))[::-1]],
+               "results": [{k: v for k, v in r.items() if k != "_plot"} for r in results]}
+        from morphgs.calibration.report import write_report
 
-    say = log or (lambda m: print(m, file=sys.stderr))
-    t_wall, t_cpu = time.perf_counter(), _cpu_seconds()
-    bases = [_family(f) for f in families]
-    if len({lbl for lbl, _ in bases}) != len(bases):
-        raise CalibrationError(f"--family: the families must have distinct names, got {[lbl for lbl, _ in bases]}")
-    if not families:
-        raise CalibrationError("at least one --family is needed")
-    if not regimes and real is None:
-        raise CalibrationError("give at least one --regime (e.g. sparse:20) or --real DIR")
-    if builtin_fit_steps is not None and builtin_fit_steps < 1:
-        raise CalibrationError(f"--sample-fit-steps must be >= 1, got {builtin_fit_steps}")
-    if mix_steps < 1:
-        raise CalibrationError(f"--mix-steps must be >= 1, got {mix_steps}")
-    scene_list = [str(s) for s in scenes]
-    if scene_list:
-        sources, problems = discover(scene_list)
-        if problems:
-            raise CalibrationError(f"scene {problems[0][0]}: {problems[0][1]}")
-    else:
-        if builtin_scenes < 1:
-            raise CalibrationError(f"--sample-scenes must be >= 1, got {builtin_scenes}")
-        sources = builtin_sources(builtin_scenes, n_gaussians=builtin_gaussians)
-    out_dir = Path(out)
-    groups: dict[str, list[RealPair]] = {}
-    fit_steps: dict[str, int | None] = {}
-    for spec in regimes:
-        cfg = _check_regime(spec, sources, resolution, None if scene_list else builtin_fit_steps)
-        fit_steps[spec] = cfg.params.get("steps")
-        real_dir = out_dir / "real"
-        summary = curate(scene_list, real_dir, configs=[cfg], pairs_per_scene=pairs_per_scene, frames=frames,
-                         resolution=resolution, seed=seed, test_fraction=0.0, builtin_gaussians=builtin_gaussians,
-                         builtin_scenes=builtin_scenes, workers=workers, progress=False, log=say)
-        if not summary.ok:
-            raise CalibrationError(f"--regime {spec}: making the real pairs failed: {summary.failed}")
-        groups[spec] = read_real_pairs(real_dir, regimes=[cfg.label])
-    if real is not None:
-        for p in read_real_pairs(real):
-            groups.setdefault(p.regime, []).append(p)
-    sizes = {p.clean.shape[1:3] for ps in groups.values() for p in ps}
-    if len(sizes) > 1:
-        raise CalibrationError(f"real pairs of mismatched sizes {sorted(sizes)}: the regimes' pairs (--size) and "
-                               "--real's must have one size")
-    needed = sorted({p.scene for ps in groups.values() for p in ps})
-    by_id = {s.id: s for s in sources}
-    missing = [n for n in needed if n not in by_id]
-    if missing:
-        raise CalibrationError(f"the real pairs' scene(s) {', '.join(missing)} are not among the scenes "
-                               f"({', '.join(sorted(by_id)) or 'none'}); give them as SCENE arguments")
-    loaded = {n: by_id[n].load() for n in needed}
-    results = []
-    for regime, pairs in groups.items():
-        calib, held = _split_scenes(pairs)
-        bench = Bench(loaded, calib)
-        held_bench = Bench(loaded, held) if held else None
-        for label, base in bases:
-            results.append(_calibrate_one(label, base, regime, calib, bench, held_bench, held, grid=grid, lpips=lpips,
-                                          say=say, search_mix=search_mix, mix_steps=mix_steps))
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "configs").mkdir(exist_ok=True)
-    for r in results:
-        name = f"{r['family']}-{_slug(r['regime'])}.json"
-        r["config_file"] = f"configs/{name}"
-        (out_dir / "configs" / name).write_text(json.dumps(r["config"], indent=1) + "\n", encoding="utf-8")
-    from morphgs import __version__
-
-    doc = {"schema": 1, "morphgs_version": __version__, "scenes": [s.describe() for s in sources],
-           "regimes": list(groups), "families": [lbl for lbl, _ in bases], "real": None if real is None else str(real),
-           "pairs_per_scene": pairs_per_scene, "seed": seed, "fit_steps": fit_steps, "search_mix": search_mix,
-           "frames": sorted({len(p.clean) for ps in groups.values() for p in ps}),
-           "resolution": [int(v) for v in next(iter(sizes))[::-1]],
-           "results": [{k: v for k, v in r.items() if k != "_plot"} for r in results]}
-    from morphgs.calibration.report import write_report
-
-    write_report(out_dir, doc, [r["_plot"] for r in results], plots=plots)
-    (out_dir / "calibration.json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
-    # timings apart, so that calibration.json, the configs and report.md are the same bytes on every run
-    secs = {"wall": round(time.perf_counter() - t_wall, 2), "cpu": round(_cpu_seconds() - t_cpu, 2)}
-    (out_dir / "timings.json").write_text(json.dumps(secs) + "\n", encoding="utf-8")
-    say(f"calibrate: wrote {out_dir / 'calibration.json'}, {out_dir / 'report.md'} and "
-        f"{len(results)} config(s) in {out_dir / 'configs'} ({secs['wall']:.1f} s, CPU {secs['cpu']:.1f} s)")
-    return doc
+        write_report(out_dir, doc, [r["_plot"] for r in results], plots=plots)
+        (out_dir / "calibration.json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        # timings apart, so that calibration.json, the configs and report.md are the same bytes on every run
+        secs = {"wall": round(time.perf_counter() - t_wall, 2), "cpu": round(_cpu_seconds() - t_cpu, 2)}
+        (out_dir / "timings.json").write_text(json.dumps(secs) + "\n", encoding="utf-8")
+        say(f"calibrate: wrote {out_dir / 'calibration.json'}, {out_dir / 'report.md'} and "
+            f"{len(results)} config(s) in {out_dir / 'configs'} ({secs['wall']:.1f} s, CPU {secs['cpu']:.1f} s)")
+        return doc

@@ -146,58 +146,32 @@ def run(args: argparse.Namespace) -> int:
         return 2
     scene = morphgs.load(args.input)
     if strength is not None:
-        return _run_strength(args, scene, strength)
-    assert cfg is not None
-    out, mask = morphgs.perturb(scene, cfg, seed=args.seed, return_mask=True)
+        from morphgs.strength import from_config
+
+        st = from_config(strength, args.seed)
+        out, mask = st.apply(scene, seed=args.seed, return_mask=True)
+        extra: dict[str, Any] = {"strength": st.strength, "config": st.to_dict()}
+        drawn = " (drawn from its quantile table)" if "quantiles" in strength else ""
+        label = f" (family {st.family}, strength {st.strength:.6g}{drawn})"
+        ops = ", ".join(f"{k} {v:.6g}" for k, v in st.values().items())
+        config_text = json.dumps(st.to_dict())
+    else:
+        assert cfg is not None
+        out, mask = morphgs.perturb(scene, cfg, seed=args.seed, return_mask=True)
+        extra = {"config": cfg.to_dict()}
+        label = f" (preset {cfg.name})" if cfg.name else ""
+        ops = ", ".join(cfg.enabled)
+        config_text = cfg.to_json()
     morphgs.save_ply(out, args.output)
     if args.mask:
         np.save(args.mask, mask)
-    summary = {
-        "input": str(args.input),
-        "output": str(args.output),
-        "seed": args.seed,
-        "gaussians_in": len(scene),
-        "kept": len(out),
-        "pruned": len(scene) - len(out),
-        "config": cfg.to_dict(),
-    }
+    summary = {"input": str(args.input), "output": str(args.output), "seed": args.seed, "gaussians_in": len(scene),
+               "kept": len(out), "pruned": len(scene) - len(out), **extra}
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
-    label = f" (preset {cfg.name})" if cfg.name else ""
     print(f"perturbed {args.input} -> {args.output}{label}, seed {args.seed}")
     print(f"  gaussians : {len(scene):,} in, {len(out):,} kept, {len(scene) - len(out):,} pruned")
-    print(f"  operations: {', '.join(cfg.enabled) or 'none'}")
-    print(f"  config    : {cfg.to_json()}")
-    return 0
-
-
-def _run_strength(args: argparse.Namespace, scene: Any, config: dict[str, Any]) -> int:
-    """Perturb with a strength config (its strength drawn from the seed when it is a distribution)."""
-    from morphgs.strength import from_config
-
-    st = from_config(config, args.seed)
-    out, mask = st.apply(scene, seed=args.seed, return_mask=True)
-    morphgs.save_ply(out, args.output)
-    if args.mask:
-        np.save(args.mask, mask)
-    summary = {
-        "input": str(args.input),
-        "output": str(args.output),
-        "seed": args.seed,
-        "gaussians_in": len(scene),
-        "kept": len(out),
-        "pruned": len(scene) - len(out),
-        "strength": st.strength,
-        "config": st.to_dict(),
-    }
-    if args.json:
-        print(json.dumps(summary, indent=2))
-        return 0
-    drawn = " (drawn from its quantile table)" if "quantiles" in config else ""
-    print(f"perturbed {args.input} -> {args.output} (family {st.family}, strength {st.strength:.6g}{drawn}), "
-          f"seed {args.seed}")
-    print(f"  gaussians : {len(scene):,} in, {len(out):,} kept, {len(scene) - len(out):,} pruned")
-    print(f"  operations: {', '.join(f'{k} {v:.6g}' for k, v in st.values().items()) or 'none'}")
-    print(f"  config    : {json.dumps(st.to_dict())}")
+    print(f"  operations: {ops or 'none'}")
+    print(f"  config    : {config_text}")
     return 0
