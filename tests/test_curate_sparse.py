@@ -11,6 +11,7 @@ import pytest
 from PIL import Image
 
 import morphgs
+from morphgs import MorphgsWarning
 from fit_helpers import make_dataset
 from morphgs.curation import curate, load_manifest, parse_config
 
@@ -112,7 +113,51 @@ def test_a_fit_run_folder_fits_the_photos_of_its_capture(tmp_path: Path) -> None
         fitted = np.asarray(Image.open(out / info["dir"] / "data" / "images" / f"view_{k:05d}.png"))
         np.testing.assert_array_equal(fitted, np.asarray(Image.open(root / "images" / f"frame_{view:05d}.png")))
     shutil.move(root, tmp_path / "moved")
-    s2 = curate([res.run_dir], tmp_path / "data2", **kw)  # type: ignore[arg-type]
+    with pytest.warns(MorphgsWarning, match=r"views\.json: the capture it names, .*room.*, cannot be read.*"
+                      r"trains on renders"):
+        s2 = curate([res.run_dir], tmp_path / "data2", **kw)  # type: ignore[arg-type]
     assert s2.ok, s2.failed
     (rec2,) = load_manifest(tmp_path / "data2").values()
     assert rec2["fit"]["images"] == "renders"
+    (res.run_dir / "views.json").write_text('{"source": ', encoding="utf-8")  # damaged
+    with pytest.warns(MorphgsWarning, match=r"views\.json: unreadable .*trains on renders"):
+        s3 = curate([res.run_dir], tmp_path / "data3", **kw)  # type: ignore[arg-type]
+    assert s3.ok and load_manifest(tmp_path / "data3").popitem()[1]["fit"]["images"] == "renders"
+
+
+def test_an_inria_output_folder_fits_the_photos_its_cfg_args_names(tmp_path: Path) -> None:
+    """The INRIA trainer's output folder (cameras.json, cfg_args, point_cloud/iteration_N/): the
+    sparse fit trains on the photos of the COLMAP/transforms capture that cfg_args'
+    `source_path` names (relative to where the trainer ran, as INRIA's train.py writes it), and says so when one is missing."""
+    import shutil
+
+    from fit_helpers import small_config
+    from morphgs.fit import fit
+
+    root, _, _ = make_dataset(tmp_path / "scenes" / "room", views=12, size=(64, 48), gaussians=3000)
+    for p in sorted((root / "images").iterdir()):
+        Image.fromarray(255 - np.asarray(Image.open(p))).save(p)
+    res = fit(root, tmp_path / "run", config=small_config(20), progress=False)
+    model = tmp_path / "output" / "3f2a9c1d-0"
+    (model / "point_cloud" / "iteration_20").mkdir(parents=True)
+    shutil.copy(next(res.run_dir.glob("point_cloud/iteration_*/point_cloud.ply")),
+                model / "point_cloud" / "iteration_20" / "point_cloud.ply")
+    shutil.copy(res.run_dir / "cameras.json", model / "cameras.json")
+    (model / "cfg_args").write_text(
+        "Namespace(data_device='cuda', eval=False, images='images', model_path='./output/3f2a9c1d-0', "
+        "resolution=-1, sh_degree=3, source_path='scenes/room', white_background=False)", encoding="utf-8")
+    kw = dict(configs=["sparse-n:3@30"], pairs_per_scene=1, frames=3, resolution=(64, 48), progress=False,
+              log=lambda m: None)
+    s = curate([model], tmp_path / "data", **kw)  # type: ignore[arg-type]
+    assert s.ok, s.failed
+    (rec,) = load_manifest(tmp_path / "data").values()
+    info = rec["fit"]
+    assert info["images"] == "images" and info["capture_views"] == 12
+    for k, view in enumerate(info["train_views"]):
+        fitted = np.asarray(Image.open(tmp_path / "data" / info["dir"] / "data" / "images" / f"view_{k:05d}.png"))
+        np.testing.assert_array_equal(fitted, np.asarray(Image.open(root / "images" / f"frame_{view:05d}.png")))
+    (root / "images" / "frame_00004.png").unlink()
+    with pytest.warns(MorphgsWarning, match=r"cfg_args: the capture it names, .*room.*, (has no photo for 1 of its 12|"
+                                            r"cannot be read).*trains on renders"):
+        s2 = curate([model], tmp_path / "data2", **kw)  # type: ignore[arg-type]
+    assert s2.ok and load_manifest(tmp_path / "data2").popitem()[1]["fit"]["images"] == "renders"

@@ -28,10 +28,12 @@ fit, so several pairs and workers reuse one reconstruction.
 
 from __future__ import annotations
 
+import ast
 import fcntl
 import hashlib
 import json
 import os
+import re
 import sys
 import warnings
 from pathlib import Path
@@ -111,24 +113,82 @@ def _real_images(source: Any, count: int) -> tuple[Any, list[int]] | None:
     return posed, list(range(count))
 
 
+def _capture_of_run(run: Path) -> tuple[Path, Path] | None:
+    """(the file that names it, the capture folder) a model folder was fitted from: `morphgs
+    fit`'s views.json `source`, or the INRIA trainer's cfg_args `source_path` (its
+    `Namespace(...)` line; a relative one is taken from the folder the trainer ran in, which its
+    relative `model_path` gives, else from the model folder's parent or the working directory). None when neither file is there; ValueError when one is but names no
+    capture."""
+    views = run / "views.json"
+    if views.is_file():
+        try:
+            return views, Path(str(json.loads(views.read_text(encoding="utf-8"))["source"]))
+        except (ValueError, KeyError, TypeError) as e:
+            raise ValueError(f"{views}: unreadable ({one_line(e)})") from e
+    cfg = run / "cfg_args"
+    if not cfg.is_file():
+        return None
+    text = cfg.read_text(encoding="utf-8", errors="replace")
+    src = _namespace_str(text, "source_path")
+    if src is None:
+        raise ValueError(f"{cfg}: no source_path='...' in it")
+    if src.is_absolute():
+        return cfg, src
+    # the trainer ran in the folder that its (relative) model_path leads from to this folder
+    bases = [run.parent, Path.cwd()]
+    model_path = _namespace_str(text, "model_path")
+    if model_path is not None and not model_path.is_absolute():
+        parts = [p for p in model_path.parts if p != "."]
+        here = run.resolve()
+        if parts and here.parts[len(here.parts) - len(parts):] == tuple(parts):
+            bases.insert(0, Path(*here.parts[:len(here.parts) - len(parts)]))
+    return cfg, next((b / src for b in bases if (b / src).is_dir()), bases[0] / src)
+
+
+def _namespace_str(text: str, key: str) -> Path | None:
+    """The string `key='...'` of a Python `Namespace(...)` repr, as a path, or None."""
+    m = re.search(rf"""\b{key}=('(?:[^'\\]|\\.)*'|"(?:[^"\\]|\\.)*")""", text)
+    return None if m is None else Path(str(ast.literal_eval(m.group(1))))
+
+
 def _fit_run_images(cameras_json: Path, count: int) -> tuple[Any, list[int]] | None:
-    """(photos, order) of the capture a `morphgs fit` run was made from (see `_real_images`)."""
+    """(photos, order) of the capture a model folder was fitted from (`morphgs fit`'s run folder
+    or the INRIA trainer's output, see `_capture_of_run`), matched to cameras.json by image name.
+    None when the folder names no capture, and then silently; None with a MorphgsWarning saying
+    why when it names one that cannot be used (damaged file, capture moved, a photo missing)."""
     from morphgs.fit import load_posed_images
 
     try:
-        views = json.loads((cameras_json.parent / "views.json").read_text(encoding="utf-8"))
+        found = _capture_of_run(cameras_json.parent)
+    except (OSError, ValueError) as e:
+        _warn_renders(str(e))
+        return None
+    if found is None:
+        return None
+    named_in, capture = found
+    try:
         names = sorted(str(c["img_name"]) for c in json.loads(cameras_json.read_text(encoding="utf-8")))
-        posed = load_posed_images(Path(str(views["source"])))
-    except (OSError, ValueError, KeyError, TypeError):
+        posed = load_posed_images(capture)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        _warn_renders(f"{named_in}: the capture it names, {capture}, cannot be read ({one_line(e)})")
         return None
     by_stem: dict[str, int] = {}
     for i, path in enumerate(posed.paths):
         by_stem.setdefault(Path(path).stem, i)
         by_stem.setdefault(Path(path).name, i)
     order = [by_stem.get(n, -1) for n in names]
-    if len(order) != count or -1 in order or not all(posed.paths[i].is_file() for i in order):
+    missing = [n for n, i in zip(names, order) if i < 0 or not posed.paths[i].is_file()]
+    if len(order) != count or missing:
+        what = (f"no photo for {len(missing)} of its {len(names)} cameras (first: {missing[0]})" if missing
+                else f"{len(names)} cameras in {cameras_json.name}, {count} expected")
+        _warn_renders(f"{named_in}: the capture it names, {capture}, has {what}")
         return None
     return posed, order
+
+
+def _warn_renders(problem: str) -> None:
+    warnings.warn(f"{problem}; the sparse fit trains on renders of the scene instead of the capture's photos",
+                  MorphgsWarning, stacklevel=5)
 
 
 def fit_view(img: np.ndarray, cam: Any, width: int, height: int) -> tuple[np.ndarray, Any]:
