@@ -132,6 +132,12 @@ def test_cli_end_to_end_config_used_by_curate(hidden_strength: Path, tmp_path: P
     assert "morphological / hidden: reachable" in out and "radiometric / hidden" in out
     doc = json.loads((calib / "calibration.json").read_text())
     assert [r["family"] for r in doc["results"]] == ["morphological", "radiometric"]
+    # the family that made the stand-in pairs is named the closest to them, in the JSON, the report
+    # and the last line the user sees
+    assert [e["family"] for e in doc["ranking"]["hidden"]] == ["morphological", "radiometric"]
+    assert "closest to the real hidden pairs: morphological (AUC" in out and out.rstrip().endswith("then radiometric")
+    report = (calib / "report.md").read_text()
+    assert "| 1 | morphological |" in report and "| 2 | radiometric |" in report
     cfg = calib / "configs" / "morphological-hidden.json"
     table = json.loads(cfg.read_text())["quantiles"]
     data = tmp_path / "data"
@@ -140,6 +146,24 @@ def test_cli_end_to_end_config_used_by_curate(hidden_strength: Path, tmp_path: P
     assert len(recs) == 6 and all(r["config_name"] == "morphological-hidden" for r in recs)
     assert all(table["strength"][0] <= r["strength"] <= table["strength"][-1] for r in recs)
     assert {"timings.json", "report.md", "calibration.json", "configs"} <= {p.name for p in calib.iterdir()}
+
+
+def test_family_all_and_the_ranking_order() -> None:
+    from morphgs.calibration.run import expand_families, rank_families
+
+    assert expand_families(["all"]) == ["spatial", "radiometric", "morphological", "naive", "blur2d"]
+    assert expand_families(["mine.json", "all", "spatial"]) == ["mine.json", "spatial", "radiometric",
+                                                                "morphological", "naive", "blur2d", "spatial"]
+
+    def result(family: str, auc: float, excess: float, matched: bool = False) -> dict:
+        return {"family": family, "regime": "sparse:20", "goodness": {
+            "classifier": {"auc": auc}, "furthest": "spectrum_3", "furthest_excess": excess, "matched": matched}}
+
+    ranked = rank_families([result("morphological", 1.0, 32.0), result("spatial", 0.88, 1.7),
+                            result("naive", float("nan"), 1.0), result("blur2d", 1.0, 20.0),
+                            result("radiometric", 0.95, 40.0, matched=True)])
+    # matched first; then AUC; a tie in AUC goes to the smaller excess; a NaN AUC last
+    assert [e["family"] for e in ranked["sparse:20"]] == ["radiometric", "spatial", "blur2d", "morphological", "naive"]
 
 
 def test_sparse_regime_cached_and_deterministic(tmp_path: Path) -> None:

@@ -87,6 +87,23 @@ def _mix_lines(doc: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _ranking_lines(doc: dict[str, Any]) -> list[str]:
+    """The families of each regime with two or more, from the most to the least like the real
+    pairs (calibration.json's `ranking`)."""
+    lines: list[str] = []
+    for regime, entries in doc.get("ranking", {}).items():
+        if len(entries) < 2:
+            continue
+        lines += [f"**Closest to the real {regime} pairs first** (matched ones, then by AUC, then by the "
+                  "furthest statistic's distance beyond its floor):", "",
+                  "| rank | family | AUC | furthest off (IQR beyond its floor) | matched |", "|---|---|---|---|---|"]
+        for i, e in enumerate(entries, 1):
+            lines.append(f"| {i} | {e['family']} | {_f(e['auc'])} | `{e['furthest']}` ({_f(e['furthest_excess'])}) | "
+                         f"{'yes' if e['matched'] else 'no'} |")
+        lines.append("")
+    return lines
+
+
 def write_report(out: Path, doc: dict[str, Any], plot_data: Sequence[dict[str, Any]], *, plots: bool = True) -> None:
     """Write out/report.md (and out/plots/*.png when `plots`)."""
     lines = ["# morphgs calibrate report", "",
@@ -135,6 +152,7 @@ def write_report(out: Path, doc: dict[str, Any], plot_data: Sequence[dict[str, A
               "regression on every statistic (0.5 = indistinguishable), 95% bootstrap interval. Floor: the same "
               "between two halves of the real pairs (by scene). \"matched\" only within that floor: every distance at most "
               "its floor + 0.5 and the AUC interval reaching the floor's.", ""]
+    lines += _ranking_lines(doc)
     for r in doc["results"]:
         g = r["goodness"]
         where = (f"held-out scene(s) {', '.join(g['scenes'])}" if g["held_out"]

@@ -4,10 +4,11 @@ pairs) to calibrated strength distributions, config files, calibration.json and 
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -104,6 +105,44 @@ def _family(spec: str) -> tuple[str, Strength | Blur2d]:
         raise CalibrationError(f"--family {spec}: unknown family; valid families: {', '.join(FAMILIES)}, "
                                f"{Blur2d.family} (or a JSON file {{\"family\", \"ops\"}})")
     return spec, Strength(spec)
+
+
+#: What `--family all` stands for: every strength family and the 2D blur.
+ALL_FAMILIES: tuple[str, ...] = (*FAMILIES, Blur2d.family)
+
+
+def expand_families(families: Sequence[str]) -> list[str]:
+    """`families` with "all" replaced by `ALL_FAMILIES` (those not already named), order kept."""
+    out: list[str] = []
+    for f in families:
+        for g in (ALL_FAMILIES if f == "all" else (f,)):
+            if g not in out or f != "all":
+                out.append(g)
+    return out
+
+
+def rank_families(results: Sequence[Mapping[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+    """Per regime, the families ordered from the most to the least like the real pairs on the
+    held-out scenes: matched ones first, then by the classifier's AUC (0.5 = indistinguishable),
+    then by how far the furthest statistic lies beyond its real-vs-real floor, then by name (so
+    the order is the same on every run). Each entry: family, auc, furthest, furthest_excess,
+    matched."""
+    by_regime: dict[str, list[dict[str, Any]]] = {}
+    for r in results:
+        g = r["goodness"]
+        auc = g["classifier"]["auc"]
+        by_regime.setdefault(r["regime"], []).append({
+            "family": r["family"], "auc": auc, "furthest": g["furthest"],
+            "furthest_excess": g["furthest_excess"], "matched": bool(g["matched"])})
+
+    def finite(v: Any) -> tuple[bool, float]:  # missing or NaN values sort last
+        ok = isinstance(v, (int, float)) and math.isfinite(v)
+        return (not ok, float(v) if ok else 0.0)
+
+    def key(e: dict[str, Any]) -> tuple[Any, ...]:
+        return (not e["matched"], *finite(e["auc"]), *finite(e["furthest_excess"]), e["family"])
+
+    return {k: sorted(v, key=key) for k, v in by_regime.items()}
 
 
 def _search_mix(label: str, base: Strength, pairs: list[RealPair], bench: Bench, real_psnr: np.ndarray,
@@ -264,6 +303,7 @@ def calibrate(
 
         say = log or (lambda m: print(m, file=sys.stderr))
         t_wall, t_cpu = time.perf_counter(), _cpu_seconds()
+        families = expand_families(families)
         bases = [_family(f) for f in families]
         if len({lbl for lbl, _ in bases}) != len(bases):
             raise CalibrationError(f"--family: the families must have distinct names, got {[lbl for lbl, _ in bases]}")
@@ -334,6 +374,7 @@ def calibrate(
                "frames": sorted({len(p.clean) for ps in groups.values() for p in ps}),
                "resolution": [int(v) for v in next(iter(sizes))[::-1]],
                "results": [{k: v for k, v in r.items() if k != "_plot"} for r in results]}
+        doc["ranking"] = rank_families(results)
         from morphgs.calibration.report import write_report
 
         write_report(out_dir, doc, [r["_plot"] for r in results], plots=plots)

@@ -37,7 +37,9 @@ def register(sub: Any) -> None:
     p.add_argument("--family", action="append", dest="families", default=[], metavar="FAMILY",
                    help="spatial, radiometric, morphological or naive (ops in the preset's proportions), "
                         "blur2d (the 2D render blur, strength = sigma in pixels), or a JSON file {\"family\": ..., "
-                        "\"ops\": {op: base value}} fixing the ops; repeatable (default: morphological)")
+                        "\"ops\": {op: base value}} fixing the ops, or all (every family and blur2d); repeatable (default: "
+                        "morphological). With several, report.md and the last lines rank them by how closely their "
+                        "pairs resemble the real ones")
     p.add_argument("--search-mix", action="store_true",
                    help="also search each family's op mix (a simplex grid of the ops' weights, each mix matched to "
                         "the real PSNR) and keep the mix whose SSIM, coverage, spectrum, colour shift and temporal "
@@ -87,4 +89,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"{r['family']} / {r['regime']}: {state}, real median {s['target_median_psnr']:.2f} dB, "
               f"median strength {s['median_strength'] if s['median_strength'] is not None else 'n/a'}, "
               f"{'matched' if r['goodness']['matched'] else 'not matched'} -> {args.out}/{r['config_file']}")
+    for regime, entries in doc["ranking"].items():
+        if len(entries) > 1:
+            top = entries[0]
+            print(f"closest to the real {regime} pairs: {top['family']} (AUC {_num(top['auc'])}; furthest off "
+                  f"{top['furthest']}, {_num(top['furthest_excess'])} IQR beyond its floor); then "
+                  + ", ".join(x["family"] for x in entries[1:]))
     return 0
+
+
+def _num(v: object) -> str:
+    return f"{v:.2f}" if isinstance(v, (int, float)) and v == v else "n/a"
