@@ -269,14 +269,33 @@ def _run_level(todo: list[Job], workers: int, backend: str, done: Callable[[Job,
             done(j, *_run_job(j))
     else:
         ctx = __import__("multiprocessing").get_context("spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
-                                 initargs=(threads,)) as pool:
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
+                                   initargs=(threads,))
+        try:
             futs = {pool.submit(_run_job, j): j for j in todo}
             pending = set(futs)
             while pending:
                 finished, pending = wait(pending, return_when=FIRST_COMPLETED)
                 for f in finished:
                     done(futs[f], *f.result())
+        except KeyboardInterrupt:  # Ctrl-C or SIGTERM (Preempted): stop now
+            _stop_workers(pool)
+            raise
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Terminate the pool's workers: a stop (Ctrl-C, or SIGTERM sent to this process alone, as
+    Kubernetes and `kill PID` do) must not wait for the jobs in flight, which can run for many
+    minutes (a failed job still lets the others finish and keep their outputs). Their outputs are written atomically under
+    temporary names, so the rerun makes them again; nothing finished is lost."""
+    procs = getattr(pool, "_processes", None) or {}  # the executor's own pid -> Process map
+    for proc in list(procs.values()):
+        if proc.is_alive():
+            proc.terminate()
+    for proc in list(procs.values()):
+        proc.join(timeout=10)
 
 
 def run_study(study: Study, root: Path, *, workers: int = 1, recompute: bool = False, backend: str = "local",

@@ -13,6 +13,7 @@ seed stream (`morphgs.training.train` on the condition's training set), then the
 from __future__ import annotations
 
 import json
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -75,7 +76,10 @@ def cka_curve(run_dir: Path, probe: np.ndarray, *, max_rows: int) -> dict[str, A
     ref = features(initial)
     steps = [0]
     per = {name: [1.0] for name in ref}
+    every, last = cfg.run.checkpoint_every, cfg.optim.max_steps
     for step, ckpt in list_checkpoints(run_dir):
+        if every and step % every and step != last:
+            continue  # a stop's checkpoint (SIGTERM), kept to resume from, is not a probe point
         feats = features(load_run(run_dir, checkpoint=ckpt, device="cpu").model)
         steps.append(int(step))
         for name in ref:
@@ -102,6 +106,15 @@ def make(work: Path, *, data: str, model: str, model_config: str, overrides: dic
         shutil.rmtree(run)
     result = train(data, out=run, model=model, config=model_config or None, overrides=overrides, resume=resume,
                    progress=False, log=lambda m: None)
+    if result.stopped_early:
+        # SIGTERM / Ctrl-C reached the training loop, which checkpointed and returned: stop the
+        # study here, so that this half-trained run is never taken for a finished stage (the work
+        # folder keeps its checkpoint and the rerun continues from it)
+        from morphgs.reliability import Preempted
+
+        if result.preempted == "SIGTERM":
+            raise Preempted(signal.SIGTERM)
+        raise KeyboardInterrupt(f"training stopped early at step {result.steps} ({result.preempted or 'time limit'})")
     (work / "train.json").write_text(json.dumps({"steps": result.steps, "resumed": resume}, indent=1) + "\n",
                                      encoding="utf-8")
     d = overrides["data"]
