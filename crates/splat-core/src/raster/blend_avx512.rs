@@ -12,10 +12,10 @@ use super::project::{Splat, ALPHA_THRESHOLD};
 /// - phase 1, branch-free per splat: the contour test of all 16 rows at once (one mask of the
 ///   rows it reaches), and the per-row (b dy, 0.5 c dy^2) and per-lane (dx, 0.5 a dx^2) terms
 ///   of its exponent, kept in `slots`;
-/// - phase 2, row by row: the row's transmittance, colour and depth stay in registers while the
-///   batch's splats that reach the row (one mask test over the 16 row masks) are blended in
-///   list order, with masked accumulations. Lanes that stop are dropped from the row's `live`
-///   mask; a row with none left is done.
+/// - phase 2, two rows at a time in lockstep: each row's transmittance, colour and depth stay
+///   in registers while the batch's splats that reach the row (one mask test over the 16 row
+///   masks) are blended in list order, with masked accumulations. Lanes that stop are dropped
+///   from the row's `live` mask; a row with none left takes no more splats and is done.
 ///
 /// Keeping a row in registers takes the store-to-load round trip out of the per-splat
 /// dependency chain on T, which (with the opacity folded into the exponential) is what lifts
