@@ -24,7 +24,6 @@ const BATCH: usize = 32;
 /// Keeping a row in registers takes the store-to-load round trip out of the per-splat
 /// dependency chain on T, which (with the opacity folded into the exponential) is what lifts
 /// the kernel from about 1.6 to about 2.9 G evaluations/s on 2 Zen 4 cores.
-
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
 pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
