@@ -183,8 +183,10 @@ pub(super) struct Slot {
     pub splat: Splat,
 }
 
-/// How many list entries ahead to prefetch splats (the lists jump through the sorted array).
-pub(super) const PREFETCH_AHEAD: usize = 8;
+/// How many list entries ahead to prefetch splats (the lists jump through the sorted array):
+/// one batch of the explicit kernels, so a splat's load is asked for a whole phase 2 before
+/// its phase 1 (16 measured 1.8% less frame CPU than 8 on garden, 1 thread).
+pub(super) const PREFETCH_AHEAD: usize = 16;
 
 /// Hint the CPU to load splat `i` (both cache lines it may span) into L1.
 #[inline(always)]

@@ -3,8 +3,8 @@
 //! and lane masks held in vectors instead of mask registers. Same formulas and operation order
 //! as `blend_tile_impl::<true>`, so the same image bits (tested).
 use super::blend::{
-    prefetch, row_mask, BlendParams, Counts, Slot, TileOut, CHUNK, EXP2_16THS, EXP_C_HI, EXP_C_LO,
-    EXP_K16, EXP_MAGIC, LANES, PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
+    prefetch, BlendParams, Counts, Slot, TileOut, CHUNK, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16,
+    EXP_MAGIC, LANES, PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
 };
 use super::project::{Splat, ALPHA_THRESHOLD};
 
@@ -52,6 +52,8 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
         _mm256_add_ps(_mm256_add_ps(y0v, lane_f), half),
         _mm256_add_ps(_mm256_add_ps(y0v, _mm256_add_ps(lane_f, eight)), half),
     ];
+    // tile row indices of both halves
+    let row_f = [lane_f, _mm256_add_ps(lane_f, eight)];
     let (xl, xh) = ((x0 as f32) + 0.5, ((x0 + LANES as u32 - 1) as f32) + 0.5);
     let (v_xl, v_xh) = (_mm256_set1_ps(xl), _mm256_set1_ps(xh));
     let zero = _mm256_setzero_ps();
@@ -94,7 +96,10 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                 let (mx, my) = (s.xy[0], s.xy[1]);
                 let [ca, cb, cc] = s.conic;
                 let ey = s.half_height;
-                let range = row_mask(my, ey, y0f);
+                // rows r of `row_span`: ceil(my - ey - 0.5 - y0) <= r <= floor(my + ey - 0.5 -
+                // y0), i.e. (r an integer, the splat finite) the two bounds compared with r
+                let lo = _mm256_set1_ps(my - ey - 0.5 - y0f);
+                let hi = _mm256_set1_ps(my + ey - 0.5 - y0f);
                 let v_mx = _mm256_set1_ps(mx);
                 let slot = &mut slots[k];
                 slot.splat = *s;
@@ -112,8 +117,12 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                     let inv_a = _mm256_set1_ps(s.inv_a);
                     let left = _mm256_sub_ps(v_mx, _mm256_mul_ps(_mm256_sub_ps(sq, bdy), inv_a));
                     let right = _mm256_add_ps(v_mx, _mm256_mul_ps(_mm256_add_ps(sq, bdy), inv_a));
+                    let in_span = _mm256_and_ps(
+                        _mm256_cmp_ps::<_CMP_GE_OQ>(row_f[h], lo),
+                        _mm256_cmp_ps::<_CMP_LE_OQ>(row_f[h], hi),
+                    );
                     let m = _mm256_and_ps(
-                        _mm256_cmp_ps::<_CMP_GE_OQ>(disc, zero),
+                        _mm256_and_ps(in_span, _mm256_cmp_ps::<_CMP_GE_OQ>(disc, zero)),
                         _mm256_and_ps(
                             _mm256_cmp_ps::<_CMP_NGT_UQ>(left, v_xh),
                             _mm256_cmp_ps::<_CMP_NLT_UQ>(right, v_xl),
@@ -132,7 +141,7 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                         _mm256_store_ps(slot.adx2.as_mut_ptr().add(h * HALF), adx2);
                     }
                 }
-                masks[k] = range & alive & ok;
+                masks[k] = alive & ok;
             }
             // phase 2, row by row and half by half, state in registers
             // SAFETY: `masks` holds CHUNK = 16 u32.
@@ -246,6 +255,10 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                         // valid lanes that do not contribute stop
                         lv = _mm256_or_ps(_mm256_andnot_ps(valid, lv), contrib);
                         lv_any = _mm256_movemask_ps(lv) != 0;
+                        // a half whose lanes all stopped takes no more splats
+                        if !lv_any {
+                            break;
+                        }
                     }
                     // SAFETY: see above
                     unsafe {

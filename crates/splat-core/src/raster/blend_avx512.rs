@@ -1,21 +1,25 @@
 //! The AVX-512 blend kernel, written with `core::arch` intrinsics (see `blend.rs` for the
 //! generic kernel it mirrors operation for operation, so both give the same bits).
 use super::blend::{
-    prefetch, row_mask, BlendParams, Counts, Slot, TileOut, CHUNK, EXP2_16THS, EXP_C_HI, EXP_C_LO,
-    EXP_K16, EXP_MAGIC, LANES, PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
+    prefetch, BlendParams, Counts, Slot, TileOut, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16,
+    EXP_MAGIC, LANES, PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
 };
 use super::project::{Splat, ALPHA_THRESHOLD};
 
+/// Splats per batch of this kernel (twice the AVX2 kernel's `CHUNK`): a row's state is loaded
+/// and stored once per batch, so longer batches amortise that over more splats.
+const BATCH: usize = 32;
+
 /// Explicit AVX-512 kernel: the same formulas and operation order as `blend_tile_impl::<true>`,
 /// so the same image bits, organised for the CPU rather than per splat. The tile's list is taken
-/// in batches of `CHUNK` splats:
+/// in batches of `BATCH` splats:
 /// - phase 1, branch-free per splat: the contour test of all 16 rows at once (one mask of the
 ///   rows it reaches), and the per-row (b dy, 0.5 c dy^2) and per-lane (dx, 0.5 a dx^2) terms
 ///   of its exponent, kept in `slots`;
-/// - phase 2, row by row: the row's transmittance, colour and depth stay in registers while the
-///   batch's splats that reach the row (one mask test over the 16 row masks) are blended in
-///   list order, with masked accumulations. Lanes that stop are dropped from the row's `live`
-///   mask; a row with none left is done.
+/// - phase 2, two rows at a time in lockstep: each row's transmittance, colour and depth stay
+///   in registers while the batch's splats that reach the row (one mask test over the 16 row
+///   masks) are blended in list order, with masked accumulations. Lanes that stop are dropped
+///   from the row's `live` mask; a row with none left takes no more splats and is done.
 ///
 /// Keeping a row in registers takes the store-to-load round trip out of the per-splat
 /// dependency chain on T, which (with the opacity folded into the exponential) is what lifts
@@ -73,29 +77,125 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
     let (sixth, half) = (_mm512_set1_ps(-1.0 / 6.0), _mm512_set1_ps(0.5));
     let minus_one = _mm512_set1_ps(-1.0);
     // SAFETY: the table holds 16 u32.
-    let table = unsafe { _mm512_loadu_si512(EXP2_16THS.as_ptr() as *const _) };
+    let table = unsafe { _mm512_loadu_ps(EXP2_16THS.as_ptr() as *const f32) };
+    let sixteenth = _mm512_set1_ps(1.0 / 16.0);
     let mut evals = 0u64;
     let mut useful = 0u64;
-    let mut slots = [Slot::default(); CHUNK];
+    let mut slots = [Slot::default(); BATCH];
     let t_ptr = out.t.as_mut_ptr() as *mut f32;
     let c0_ptr = out.c[0].as_mut_ptr() as *mut f32;
     let c1_ptr = out.c[1].as_mut_ptr() as *mut f32;
     let c2_ptr = out.c[2].as_mut_ptr() as *mut f32;
     let d_ptr = out.d.as_mut_ptr() as *mut f32;
+    // a row's state in registers: transmittance, colour and depth sums, live lanes
+    struct Row {
+        t: __m512,
+        c0: __m512,
+        c1: __m512,
+        c2: __m512,
+        d: __m512,
+        lv: u16,
+    }
+    macro_rules! load_row {
+        ($r:expr) => {{
+            let o = $r * LANES;
+            // SAFETY: r < 16, so o..o + 16 lies inside each 256-float array of `out`.
+            unsafe {
+                Row {
+                    t: _mm512_loadu_ps(t_ptr.add(o)),
+                    c0: _mm512_loadu_ps(c0_ptr.add(o)),
+                    c1: _mm512_loadu_ps(c1_ptr.add(o)),
+                    c2: _mm512_loadu_ps(c2_ptr.add(o)),
+                    d: _mm512_loadu_ps(d_ptr.add(o)),
+                    lv: live[$r],
+                }
+            }
+        }};
+    }
+    macro_rules! store_row {
+        ($row:ident, $r:expr) => {{
+            let o = $r * LANES;
+            // SAFETY: as in `load_row`
+            unsafe {
+                _mm512_storeu_ps(t_ptr.add(o), $row.t);
+                _mm512_storeu_ps(c0_ptr.add(o), $row.c0);
+                _mm512_storeu_ps(c1_ptr.add(o), $row.c1);
+                _mm512_storeu_ps(c2_ptr.add(o), $row.c2);
+                _mm512_storeu_ps(d_ptr.add(o), $row.d);
+            }
+            live[$r] = $row.lv;
+            if $row.lv == 0 {
+                alive &= !(1 << $r);
+            }
+        }};
+    }
+    // blend batch splat k into row r
+    macro_rules! step {
+        ($row:ident, $r:expr, $k:expr) => {{
+            let slot = &slots[$k];
+            let s = &slot.splat;
+            // SAFETY: both arrays hold 16 aligned floats.
+            let (dx, adx2) = unsafe {
+                (
+                    _mm512_load_ps(slot.dx.as_ptr()),
+                    _mm512_load_ps(slot.adx2.as_ptr()),
+                )
+            };
+            let sigma = _mm512_add_ps(
+                _mm512_fmadd_ps(_mm512_set1_ps(slot.bdy[$r]), dx, adx2),
+                _mm512_set1_ps(slot.cdy2[$r]),
+            );
+            // alpha = exp(ln_op - sigma), exactly as blend::opacity_exp::<true>
+            let sg = _mm512_castsi512_ps(_mm512_min_epu32(_mm512_castps_si512(sigma), clamp));
+            let u = _mm512_sub_ps(sg, _mm512_set1_ps(s.ln_opacity));
+            let tk = _mm512_fnmadd_ps(u, k16, magic);
+            let kf = _mm512_sub_ps(tk, magic);
+            let rr = _mm512_fmadd_ps(kf, c_hi, u);
+            let rr = _mm512_fmadd_ps(kf, c_lo, rr);
+            let y = _mm512_fmadd_ps(rr, sixth, half);
+            let y = _mm512_fmadd_ps(y, rr, minus_one);
+            let y = _mm512_fmadd_ps(y, rr, one);
+            // y 2^(k/16) = (y table[k mod 16]) 2^floor(k / 16): scalef takes the floor of
+            // k / 16 (exact in float) itself, and scaling by a power of two rounds as the
+            // generic kernel's exponent-bits add does (the result stays normal: u < 86)
+            let tab = _mm512_permutexvar_ps(_mm512_castps_si512(tk), table);
+            let ev = _mm512_scalef_ps(_mm512_mul_ps(y, tab), _mm512_mul_ps(kf, sixteenth));
+            let alpha = _mm512_min_ps(ev, max_alpha);
+            let valid = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>($row.lv, alpha, thr);
+            if COUNT {
+                useful += valid.count_ones() as u64;
+            }
+            let w = _mm512_mul_ps(alpha, $row.t);
+            let tn = _mm512_sub_ps($row.t, w);
+            let contrib = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(valid, tn, t_min);
+            $row.c0 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[0]), $row.c0, contrib);
+            $row.c1 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[1]), $row.c1, contrib);
+            $row.c2 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[2]), $row.c2, contrib);
+            $row.d = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.depth), $row.d, contrib);
+            $row.t = _mm512_mask_mov_ps($row.t, contrib, tn);
+            // valid lanes that do not contribute stop
+            $row.lv = _kor_mask16(_kandn_mask16(valid, $row.lv), contrib);
+        }};
+    }
     for list in lists {
-        for (c, chunk) in list.chunks(CHUNK).enumerate() {
+        for (c, chunk) in list.chunks(BATCH).enumerate() {
             // phase 1, branch-free per splat: which rows of the tile it reaches, and the
             // per-row and per-lane terms of its exponent
-            let mut masks = [0u32; CHUNK];
+            let mut masks = [0u32; BATCH];
             for (k, &gi) in chunk.iter().enumerate() {
-                if let Some(&ahead) = list.get(c * CHUNK + k + PREFETCH_AHEAD) {
+                if let Some(&ahead) = list.get(c * BATCH + k + PREFETCH_AHEAD) {
                     prefetch(splats, ahead as usize);
                 }
                 let s = &splats[gi as usize];
                 let (mx, my) = (s.xy[0], s.xy[1]);
                 let [ca, cb, cc] = s.conic;
                 let ey = s.half_height;
-                let range = row_mask(my, ey, y0f);
+                // rows r of `row_span`: ceil(my - ey - 0.5 - y0) <= r <= floor(my + ey - 0.5 -
+                // y0), i.e. (r an integer, the splat finite) the two bounds compared with r
+                let lo = _mm512_set1_ps(my - ey - 0.5 - y0f);
+                let hi = _mm512_set1_ps(my + ey - 0.5 - y0f);
+                let range = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(alive as u16, lane_f, lo);
+                let range = _mm512_mask_cmp_ps_mask::<_CMP_LE_OQ>(range, lane_f, hi);
                 // the contour test of every row at once: disc = 2 a level - dy^2 det >= 0 and
                 // the contour's dx range [(-b dy - sq) / a, (-b dy + sq) / a] reaches the tile
                 let v_mx = _mm512_set1_ps(mx);
@@ -106,14 +206,14 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
                     _mm512_set1_ps(s.two_a_level),
                     _mm512_mul_ps(dy2, _mm512_set1_ps(s.conic_det)),
                 );
-                let ok = _mm512_cmp_ps_mask::<_CMP_GE_OQ>(disc, zero);
+                let ok = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(range, disc, zero);
                 let sq = _mm512_sqrt_ps(disc);
                 let inv_a = _mm512_set1_ps(s.inv_a);
                 let left = _mm512_sub_ps(v_mx, _mm512_mul_ps(_mm512_sub_ps(sq, bdy), inv_a));
                 let right = _mm512_add_ps(v_mx, _mm512_mul_ps(_mm512_add_ps(sq, bdy), inv_a));
                 let ok = _mm512_mask_cmp_ps_mask::<_CMP_NGT_UQ>(ok, left, v_xh);
                 let ok = _mm512_mask_cmp_ps_mask::<_CMP_NLT_UQ>(ok, right, v_xl);
-                let rows = range & alive & ok as u32;
+                let rows = ok as u32;
                 let cdy2 = _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(0.5 * cc), dy), dy);
                 // per-lane terms shared by every row: dx and 0.5 a dx^2
                 let dx = _mm512_sub_ps(v_mx, px);
@@ -129,100 +229,77 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
                     _mm512_store_ps(slot.adx2.as_mut_ptr(), adx2);
                 }
             }
-            // phase 2, row by row: the row's transmittance, colour and depth stay in registers
-            // while the batch's splats that reach it are blended in list order
-            // SAFETY: `masks` holds CHUNK = 16 u32.
-            let m = unsafe { _mm512_loadu_si512(masks.as_ptr() as *const _) };
-            let mut todo = _mm512_reduce_or_epi32(m) as u32;
-            while todo != 0 {
-                let r = todo.trailing_zeros() as usize;
-                todo &= todo - 1;
-                let mut ks = _mm512_test_epi32_mask(m, _mm512_set1_epi32(1 << r)) as u32;
-                let o = r * LANES;
-                // SAFETY: r < 16, so o..o + 16 lies inside each 256-float array of `out`.
-                let (tp, c0p, c1p, c2p, dp) = unsafe {
-                    (
-                        t_ptr.add(o),
-                        c0_ptr.add(o),
-                        c1_ptr.add(o),
-                        c2_ptr.add(o),
-                        d_ptr.add(o),
-                    )
-                };
-                // SAFETY: see above
-                let (mut t, mut c0, mut c1, mut c2, mut d) = unsafe {
-                    (
-                        _mm512_loadu_ps(tp),
-                        _mm512_loadu_ps(c0p),
-                        _mm512_loadu_ps(c1p),
-                        _mm512_loadu_ps(c2p),
-                        _mm512_loadu_ps(dp),
-                    )
-                };
-                let mut lv = live[r];
-                while ks != 0 {
-                    let k = ks.trailing_zeros() as usize;
-                    ks &= ks - 1;
-                    let slot = &slots[k];
-                    let s = &slot.splat;
-                    // SAFETY: both arrays hold 16 aligned floats.
-                    let (dx, adx2) = unsafe {
-                        (
-                            _mm512_load_ps(slot.dx.as_ptr()),
-                            _mm512_load_ps(slot.adx2.as_ptr()),
-                        )
-                    };
-                    let sigma = _mm512_add_ps(
-                        _mm512_fmadd_ps(_mm512_set1_ps(slot.bdy[r]), dx, adx2),
-                        _mm512_set1_ps(slot.cdy2[r]),
-                    );
-                    // alpha = exp(ln_op - sigma), exactly as blend::opacity_exp::<true>
-                    let sg =
-                        _mm512_castsi512_ps(_mm512_min_epu32(_mm512_castps_si512(sigma), clamp));
-                    let u = _mm512_sub_ps(sg, _mm512_set1_ps(s.ln_opacity));
-                    let tk = _mm512_fnmadd_ps(u, k16, magic);
-                    let kf = _mm512_sub_ps(tk, magic);
-                    let rr = _mm512_fmadd_ps(kf, c_hi, u);
-                    let rr = _mm512_fmadd_ps(kf, c_lo, rr);
-                    let y = _mm512_fmadd_ps(rr, sixth, half);
-                    let y = _mm512_fmadd_ps(y, rr, minus_one);
-                    let y = _mm512_fmadd_ps(y, rr, one);
-                    let ti = _mm512_castps_si512(tk);
-                    let scale = _mm512_add_epi32(
-                        _mm512_permutexvar_epi32(ti, table),
-                        _mm512_slli_epi32::<23>(_mm512_srli_epi32::<4>(ti)),
-                    );
-                    let ev = _mm512_mul_ps(y, _mm512_castsi512_ps(scale));
-                    let alpha = _mm512_min_ps(ev, max_alpha);
-                    let valid = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(lv, alpha, thr);
-                    if COUNT {
-                        useful += valid.count_ones() as u64;
-                    }
-                    let w = _mm512_mul_ps(alpha, t);
-                    let tn = _mm512_sub_ps(t, w);
-                    let contrib = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(valid, tn, t_min);
-                    c0 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[0]), c0, contrib);
-                    c1 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[1]), c1, contrib);
-                    c2 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[2]), c2, contrib);
-                    d = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.depth), d, contrib);
-                    t = _mm512_mask_mov_ps(t, contrib, tn);
-                    // a row counts while alive; valid lanes that do not contribute stop
-                    evals += LANES as u64 * (lv != 0) as u64;
-                    lv = (lv & !valid) | contrib;
-                }
-                // SAFETY: see above
-                unsafe {
-                    _mm512_storeu_ps(tp, t);
-                    _mm512_storeu_ps(c0p, c0);
-                    _mm512_storeu_ps(c1p, c1);
-                    _mm512_storeu_ps(c2p, c2);
-                    _mm512_storeu_ps(dp, d);
-                }
-                live[r] = lv;
-                if lv == 0 {
-                    alive &= !(1 << r);
-                }
+            // phase 2, rows two at a time: each row's transmittance, colour and depth stay in
+            // registers while the batch's splats that reach it are blended in list order; the
+            // two rows are independent, so their dependency chains on T overlap
+            // SAFETY: `masks` holds BATCH = 32 u32.
+            let (m0, m1) = unsafe {
+                (
+                    _mm512_loadu_si512(masks.as_ptr() as *const _),
+                    _mm512_loadu_si512(masks.as_ptr().add(16) as *const _),
+                )
+            };
+            let mut todo = _mm512_reduce_or_epi32(_mm512_or_si512(m0, m1)) as u32;
+            // the batch's splats that reach row r, as bits of their batch index
+            macro_rules! row_splats {
+                ($r:expr) => {{
+                    let bit = _mm512_set1_epi32(1 << $r);
+                    _mm512_test_epi32_mask(m0, bit) as u32
+                        | (_mm512_test_epi32_mask(m1, bit) as u32) << 16
+                }};
             }
+            let mut steps = 0u64;
+            while todo != 0 {
+                let ra = todo.trailing_zeros() as usize;
+                todo &= todo - 1;
+                let mut ksa = row_splats!(ra);
+                let mut a = load_row!(ra);
+                if todo != 0 {
+                    let rb = todo.trailing_zeros() as usize;
+                    todo &= todo - 1;
+                    let mut ksb = row_splats!(rb);
+                    let mut b = load_row!(rb);
+                    // both rows in lockstep while both have splats and live lanes
+                    while ksa != 0 && ksb != 0 {
+                        let ka = ksa.trailing_zeros() as usize;
+                        ksa &= ksa - 1;
+                        let kb = ksb.trailing_zeros() as usize;
+                        ksb &= ksb - 1;
+                        step!(a, ra, ka);
+                        step!(b, rb, kb);
+                        steps += 2;
+                        // a row whose lanes all stopped takes no more splats
+                        if a.lv == 0 {
+                            ksa = 0;
+                        }
+                        if b.lv == 0 {
+                            ksb = 0;
+                        }
+                    }
+                    while ksb != 0 {
+                        let k = ksb.trailing_zeros() as usize;
+                        ksb &= ksb - 1;
+                        step!(b, rb, k);
+                        steps += 1;
+                        if b.lv == 0 {
+                            break;
+                        }
+                    }
+                    store_row!(b, rb);
+                }
+                while ksa != 0 {
+                    let k = ksa.trailing_zeros() as usize;
+                    ksa &= ksa - 1;
+                    step!(a, ra, k);
+                    steps += 1;
+                    if a.lv == 0 {
+                        break;
+                    }
+                }
+                store_row!(a, ra);
+            }
+            // every step ran on a row with live lanes: 16 evaluations each
+            evals += LANES as u64 * steps;
             if alive == 0 {
                 return Counts { evals, useful };
             }
