@@ -810,7 +810,11 @@ impl Workspace {
                 let base = c * TileBins::CHUNK;
                 let items = bins.chunk_items(c, t0, t1);
                 let run = &slots[band_base[c]..band_base[c] + items.len()];
-                for (&p, s) in items.iter().zip(run) {
+                for (k, (&p, s)) in items.iter().zip(run).enumerate() {
+                    // the sums are a random access (L2 at best): fetch them ahead
+                    if let Some(&ahead) = items.get(k + REDUCE_PREFETCH) {
+                        prefetch_slot(accs, ahead as usize - base);
+                    }
                     let acc = &mut accs[p as usize - base];
                     for (a, v) in acc.iter_mut().zip(s) {
                         *a += v;
@@ -819,6 +823,9 @@ impl Workspace {
             });
     }
 }
+
+/// How many slots ahead the slot sums prefetch the running sums they add to.
+const REDUCE_PREFETCH: usize = 16;
 
 /// How many Gaussians ahead the per-Gaussian pass prefetches its slot sums.
 const ACC_PREFETCH: usize = 12;
