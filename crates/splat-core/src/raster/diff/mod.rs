@@ -284,6 +284,8 @@ pub struct Workspace {
     slots: Vec<[f32; slot::LEN]>,
     /// Summed slots per sorted splat.
     acc: Vec<[f32; slot::LEN]>,
+    /// exp(log_scales) for the per-Gaussian pass.
+    scales: Vec<f32>,
 }
 
 impl Workspace {
@@ -519,7 +521,9 @@ impl Workspace {
         // ---- per Gaussian: projection, SH and activations
         let t0 = Instant::now();
         let proj = Projector::new(&sv.cam, &sv.opts.render, sv.degree);
+        gauss_bwd::scales_into(scene.log_scales, &mut self.scales);
         let ctx = gauss_bwd::GaussCtx {
+            scales: &self.scales,
             proj: &proj,
             scene,
             degree: sv.degree,
@@ -636,6 +640,7 @@ impl Workspace {
             + self.bins.bytes()
             + v(self.tiles.capacity(), size_of::<TileOut>())
             + v(self.slots.capacity() + self.acc.capacity(), SLOT_BYTES)
+            + v(self.scales.capacity(), 4)
     }
 
     /// Every contributing (pixel, Gaussian) pair of the last forward, in blend order per pixel:
