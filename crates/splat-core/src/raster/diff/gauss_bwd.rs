@@ -54,7 +54,27 @@ pub(crate) struct GaussCtx<'a> {
     pub colors: Option<&'a [f32]>,
     /// Also compute [`GaussGrad::pose`].
     pub pose: bool,
+    /// exp(log_scales) of every Gaussian (N,3), from [`scales_into`].
+    pub scales: &'a [f32],
 }
+
+/// exp of every log-scale into `out`, in one pass the compiler vectorises (the same
+/// `fastmath::exp` per value, so the same bits as computing each in the per-Gaussian pass,
+/// where the exp's latency chains of one Gaussian did not overlap).
+pub(crate) fn scales_into(log_scales: &[f32], out: &mut Vec<f32>) {
+    use rayon::prelude::*;
+    out.resize(log_scales.len(), 0.0);
+    out.par_chunks_mut(SCALE_CHUNK)
+        .zip(log_scales.par_chunks(SCALE_CHUNK))
+        .for_each(|(o, l)| {
+            for (o, &l) in o.iter_mut().zip(l) {
+                *o = fastmath::exp(l);
+            }
+        });
+}
+
+/// Values per task of [`scales_into`].
+const SCALE_CHUNK: usize = 3 << 12;
 
 /// Backward of Gaussian `i`, whose depth-sorted splat is `s`, from its summed blend slot.
 pub(crate) fn gauss_backward(
@@ -116,12 +136,11 @@ pub(crate) fn gauss_backward(
     let qn = (qv[0] * qv[0] + qv[1] * qv[1] + qv[2] * qv[2] + qv[3] * qv[3]).sqrt();
     let [qw, qx, qy, qz] = qv.map(|v| v / qn);
     let rq = crate::raster::project::quat_rotation(qw, qx, qy, qz);
-    let ls = [
-        sc.log_scales[i * 3],
-        sc.log_scales[i * 3 + 1],
-        sc.log_scales[i * 3 + 2],
+    let scale = [
+        ctx.scales[i * 3],
+        ctx.scales[i * 3 + 1],
+        ctx.scales[i * 3 + 2],
     ];
-    let scale = ls.map(fastmath::exp);
     let w = &p.rot32;
     // Mq = W Rq; T = Mq diag(s)
     let mut mq = [[0.0f32; 3]; 3];

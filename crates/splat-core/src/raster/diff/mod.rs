@@ -284,6 +284,8 @@ pub struct Workspace {
     slots: Vec<[f32; slot::LEN]>,
     /// Summed slots per sorted splat.
     acc: Vec<[f32; slot::LEN]>,
+    /// exp(log_scales) for the per-Gaussian pass.
+    scales: Vec<f32>,
 }
 
 impl Workspace {
@@ -519,7 +521,9 @@ impl Workspace {
         // ---- per Gaussian: projection, SH and activations
         let t0 = Instant::now();
         let proj = Projector::new(&sv.cam, &sv.opts.render, sv.degree);
+        gauss_bwd::scales_into(scene.log_scales, &mut self.scales);
         let ctx = gauss_bwd::GaussCtx {
+            scales: &self.scales,
             proj: &proj,
             scene,
             degree: sv.degree,
@@ -636,6 +640,7 @@ impl Workspace {
             + self.bins.bytes()
             + v(self.tiles.capacity(), size_of::<TileOut>())
             + v(self.slots.capacity() + self.acc.capacity(), SLOT_BYTES)
+            + v(self.scales.capacity(), 4)
     }
 
     /// Every contributing (pixel, Gaussian) pair of the last forward, in blend order per pixel:
@@ -810,7 +815,11 @@ impl Workspace {
                 let base = c * TileBins::CHUNK;
                 let items = bins.chunk_items(c, t0, t1);
                 let run = &slots[band_base[c]..band_base[c] + items.len()];
-                for (&p, s) in items.iter().zip(run) {
+                for (k, (&p, s)) in items.iter().zip(run).enumerate() {
+                    // the sums are a random access (L2 at best): fetch them ahead
+                    if let Some(&ahead) = items.get(k + REDUCE_PREFETCH) {
+                        prefetch_slot(accs, ahead as usize - base);
+                    }
                     let acc = &mut accs[p as usize - base];
                     for (a, v) in acc.iter_mut().zip(s) {
                         *a += v;
@@ -819,6 +828,9 @@ impl Workspace {
             });
     }
 }
+
+/// How many slots ahead the slot sums prefetch the running sums they add to.
+const REDUCE_PREFETCH: usize = 16;
 
 /// How many Gaussians ahead the per-Gaussian pass prefetches its slot sums.
 const ACC_PREFETCH: usize = 12;
