@@ -4,11 +4,11 @@
 //! The rendered colours are compared as they come out of the rasterizer (no clamp), as INRIA and
 //! gsplat train; evaluation clamps the render to [0, 1] first, as both evaluate. L1 is the mean
 //! over H x W x 3, whose gradient is sign(x - y) / (3 H W) (zero where they are equal, like
-//! torch). Sums are taken per row in f64 and added in row order: the same bits for any thread
-//! count.
+//! torch). Sums are taken per row in f64 lanes and added in row order: the same bits for any
+//! thread count.
 use rayon::prelude::*;
 
-use super::ssim::SsimWorkspace;
+use super::ssim::{l1_term, SsimWorkspace};
 
 /// One image's loss terms.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -65,32 +65,7 @@ impl LossWorkspace {
         };
         let gl1 = (1.0 - ssim_lambda) / n as f32;
         let row = width * 3;
-        self.rows.clear();
-        grad.par_chunks_mut(row)
-            .zip(pred.par_chunks(row))
-            .zip(target.par_chunks(row))
-            .map(|((g, p), t)| {
-                let (mut l1, mut se) = (0.0f64, 0.0f64);
-                for ((g, &p), &t) in g.iter_mut().zip(p).zip(t) {
-                    let d = p - t;
-                    l1 += d.abs() as f64;
-                    se += (d * d) as f64;
-                    let s = if d > 0.0 {
-                        1.0
-                    } else if d < 0.0 {
-                        -1.0
-                    } else {
-                        0.0
-                    };
-                    *g += gl1 * s;
-                }
-                (l1, se)
-            })
-            .collect_into_vec(&mut self.rows);
-        let (l1, se) = self
-            .rows
-            .iter()
-            .fold((0.0, 0.0), |a, r| (a.0 + r.0, a.1 + r.1));
+        let (l1, se) = l1_term(self.ssim.simd, grad, pred, target, row, gl1, &mut self.rows);
         let l1 = l1 / n as f64;
         let lam = ssim_lambda as f64;
         LossTerms {

@@ -8,6 +8,8 @@
 //! data, initial scene and seed, and a run restored from a checkpoint continues bit for bit.
 use std::time::Instant;
 
+use rayon::prelude::*;
+
 use crate::camera::Camera;
 use crate::error::{Error, Result};
 use crate::raster::diff::{DensifyStats, DepthKind, DiffOptions, Gradients, ImageGrads, Workspace};
@@ -354,9 +356,14 @@ impl Trainer {
             &mut self.alpha,
         )?;
         let t1 = Instant::now();
-        for (t, &p) in self.target.iter_mut().zip(&view.image) {
-            *t = p as f32 * (1.0 / 255.0);
-        }
+        self.target
+            .par_chunks_mut((w * 3).max(1))
+            .zip(view.image.par_chunks((w * 3).max(1)))
+            .for_each(|(t, p)| {
+                for (t, &p) in t.iter_mut().zip(p) {
+                    *t = p as f32 * (1.0 / 255.0);
+                }
+            });
         if let Some(m) = &view.mask {
             apply_mask(m, &mut [&mut self.rgb, &mut self.target]);
         }
