@@ -594,40 +594,48 @@ pub(crate) const PROJECT_CHUNK_BITS: u32 = 13;
 /// The visible splats of one view, per projection chunk, each in Gaussian-index order.
 #[cfg(test)]
 pub(crate) fn project_visible(scene: &SceneView<'_>, proj: &Projector) -> Vec<Vec<Splat>> {
-    project_visible_sharing(scene, proj, FrameColours::Off)
+    let mut parts = Vec::new();
+    let n = project_visible_into(scene, proj, FrameColours::Off, &mut parts);
+    parts.truncate(n);
+    parts
 }
 
-/// [`project_visible`] recording or reusing the frame's shared colours (see
-/// [`super::share`]); the splats are the same bits either way. A recording buffer holds at
-/// least one slot per Gaussian.
-pub(crate) fn project_visible_sharing(
+/// [`project_visible`] into reused buffers, recording or reusing the frame's shared colours
+/// (see [`super::share`]; the splats are the same bits either way): chunk c's visible splats go
+/// to `parts[c]`, for the returned number of chunks (`parts` may hold more, left from a larger
+/// scene, so their capacity survives too). A recording buffer holds at least one slot per
+/// Gaussian.
+pub(crate) fn project_visible_into(
     scene: &SceneView<'_>,
     proj: &Projector,
     colours: FrameColours<'_>,
-) -> Vec<Vec<Splat>> {
+    parts: &mut Vec<Vec<Splat>>,
+) -> usize {
     let n = scene.len();
-    let run = |c: usize, mut cc: ChunkColours<'_>| {
+    let chunks = n.div_ceil(PROJECT_CHUNK);
+    if parts.len() < chunks {
+        parts.resize_with(chunks, Vec::new);
+    }
+    let run = |c: usize, out: &mut Vec<Splat>, mut cc: ChunkColours<'_>| {
         let lo = c * PROJECT_CHUNK;
         let hi = (lo + PROJECT_CHUNK).min(n);
-        let mut out = Vec::new();
-        proj.project_range_sharing(scene, lo, hi, &mut out, None, &mut cc);
-        out
+        out.clear();
+        proj.project_range_sharing(scene, lo, hi, out, None, &mut cc);
     };
+    let parts = parts[..chunks].par_iter_mut().enumerate();
     match colours {
         FrameColours::Record(slots, stamp) => slots[..n]
             .par_chunks_mut(PROJECT_CHUNK)
-            .enumerate()
-            .map(|(c, part)| run(c, ChunkColours::Record(part, c * PROJECT_CHUNK, stamp)))
-            .collect(),
-        FrameColours::Reuse(map, slots, stamp) => (0..n.div_ceil(PROJECT_CHUNK))
-            .into_par_iter()
-            .map(|c| run(c, ChunkColours::Reuse(map, slots, stamp)))
-            .collect(),
-        FrameColours::Off => (0..n.div_ceil(PROJECT_CHUNK))
-            .into_par_iter()
-            .map(|c| run(c, ChunkColours::Off))
-            .collect(),
+            .zip(parts)
+            .for_each(|(part, (c, out))| {
+                run(c, out, ChunkColours::Record(part, c * PROJECT_CHUNK, stamp))
+            }),
+        FrameColours::Reuse(map, slots, stamp) => {
+            parts.for_each(|(c, out)| run(c, out, ChunkColours::Reuse(map, slots, stamp)))
+        }
+        FrameColours::Off => parts.for_each(|(c, out)| run(c, out, ChunkColours::Off)),
     }
+    chunks
 }
 
 /// [`project_visible`] into reused buffers, with the Gaussian index of every splat:

@@ -21,16 +21,27 @@ const RADIX: usize = 1 << RADIX_BITS;
 /// Sort splats front to back by depth; equal depths keep Gaussian-index order. `parts` are the
 /// projection chunks in order (chunk c, local position j: payload c << PROJECT_CHUNK_BITS | j,
 /// which orders like the Gaussian index), so no concatenated copy is needed.
+#[cfg(test)]
 pub(crate) fn sort_by_depth(parts: &[Vec<Splat>]) -> Vec<Splat> {
-    let (mut keys, mut tmp) = (Vec::new(), Vec::new());
-    sorted_keys(parts, &mut keys, &mut tmp);
-    drop(tmp);
-    let mut sorted = sorted_buffer();
+    let (mut keys, mut tmp, mut sorted) = (Vec::new(), Vec::new(), Vec::new());
+    sort_by_depth_into(parts, &mut keys, &mut tmp, &mut sorted);
+    sorted
+}
+
+/// [`sort_by_depth`] into reused buffers (`keys` and `tmp` are scratch): a renderer keeps them
+/// from frame to frame, so a frame writes into memory already mapped instead of paying a page
+/// fault per 4 KiB (on the test VMs the faults on a fresh buffer cost more than filling it).
+pub(crate) fn sort_by_depth_into(
+    parts: &[Vec<Splat>],
+    keys: &mut Vec<(u32, u32)>,
+    tmp: &mut Vec<(u32, u32)>,
+    sorted: &mut Vec<Splat>,
+) {
+    sorted_keys(parts, keys, tmp);
     keys.par_iter()
         .with_min_len(BIN_CHUNK)
         .map(|&(_, i)| part_item(parts, i))
-        .collect_into_vec(&mut sorted);
-    sorted
+        .collect_into_vec(sorted);
 }
 
 /// [`sort_by_depth`] into reused buffers, also gathering each splat's Gaussian index from
@@ -65,7 +76,9 @@ fn part_item<T: Copy>(parts: &[Vec<T>], payload: u32) -> T {
 fn sorted_keys(parts: &[Vec<Splat>], keys: &mut Vec<(u32, u32)>, tmp: &mut Vec<(u32, u32)>) {
     let n: usize = parts.iter().map(Vec::len).sum();
     let passes = 32u32.div_ceil(RADIX_BITS) as usize;
-    keys.clear();
+    // every key is written below and every pass writes all of `tmp`: only the part of a buffer
+    // beyond what an earlier frame left needs initialising
+    keys.truncate(n);
     keys.resize(n, (0, 0));
     // each part's keys go straight to their place; (depth bits, payload), positive floats
     // ordering like their bit patterns, and the histograms of every digit, in one parallel pass
@@ -99,7 +112,7 @@ fn sorted_keys(parts: &[Vec<Splat>], keys: &mut Vec<(u32, u32)>, tmp: &mut Vec<(
             *a += b as usize;
         }
     }
-    tmp.clear();
+    tmp.truncate(n);
     tmp.resize(n, (0, 0));
     for (pass, h) in hist.chunks_exact_mut(RADIX).enumerate() {
         // a digit all keys share needs no pass (the exponent bits of depths of one scale)
@@ -119,38 +132,6 @@ fn sorted_keys(parts: &[Vec<Splat>], keys: &mut Vec<(u32, u32)>, tmp: &mut Vec<(
             h[b] += 1;
         }
         std::mem::swap(keys, tmp);
-    }
-}
-
-/// Sorted-splat buffers kept between frames, in bytes of capacity (2M splats).
-const KEEP_BYTES: usize = 128 << 20;
-
-/// Sorted-splat buffers of finished frames, reused by the next ones so a frame writes into
-/// memory already mapped instead of paying a page fault per 4 KiB (on the test VMs the faults
-/// on a fresh buffer cost more than filling it). Only ever `try_lock`ed: a busy or poisoned
-/// lock, or one a `fork` left locked in a child, just means a fresh buffer.
-static SORTED_POOL: std::sync::Mutex<Vec<Vec<Splat>>> = std::sync::Mutex::new(Vec::new());
-
-/// An empty buffer for a frame's sorted splats, from the pool when it has one.
-fn sorted_buffer() -> Vec<Splat> {
-    let mut v = match SORTED_POOL.try_lock() {
-        Ok(mut pool) => pool.pop().unwrap_or_default(),
-        Err(_) => Vec::new(),
-    };
-    v.clear();
-    v
-}
-
-/// Hand a frame's sorted splats back to the pool (kept while the pool holds at most
-/// `KEEP_BYTES` of capacity).
-pub(crate) fn recycle(sorted: Vec<Splat>) {
-    if let Ok(mut pool) = SORTED_POOL.try_lock() {
-        let held: usize = pool.iter().map(Vec::capacity).sum();
-        if (held + sorted.capacity()) * std::mem::size_of::<Splat>() <= KEEP_BYTES {
-            // largest last: the next frame most likely needs as many
-            pool.push(sorted);
-            pool.sort_by_key(Vec::capacity);
-        }
     }
 }
 
@@ -198,6 +179,7 @@ pub(crate) struct TileBins {
 
 impl TileBins {
     /// Bucket depth-sorted splats by tile.
+    #[cfg(test)]
     pub(crate) fn build(sorted: &[Splat], tiles_x: u32, tiles_y: u32) -> Result<Self> {
         let mut bins = TileBins::default();
         bins.rebuild(sorted, tiles_x, tiles_y)?;
@@ -304,6 +286,16 @@ impl TileBins {
             .map(move |c| &c.items[c.offsets[t] as usize..c.offsets[t + 1] as usize])
     }
 
+    /// Bytes of every buffer (capacities), the tile ranges included.
+    pub(crate) fn capacity_bytes(&self) -> usize {
+        self.bytes()
+            + self
+                .chunks
+                .iter()
+                .map(|c| c.ranges.capacity() * 8)
+                .sum::<usize>()
+    }
+
     /// Bytes of the lists (capacities).
     pub(crate) fn bytes(&self) -> usize {
         self.chunks
@@ -378,7 +370,6 @@ mod tests {
             for (g, &(_, c, j)) in got.iter().zip(&want) {
                 assert_eq!(g, &parts[c][j]);
             }
-            recycle(got);
         }
     }
 
