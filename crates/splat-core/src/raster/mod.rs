@@ -256,10 +256,18 @@ fn render_into_sharing(
     let visible = &s.parts[..chunks];
     stats.visible = visible.iter().map(|p| p.len() as u64).sum();
     let t1 = Instant::now();
-    sort::sort_by_depth_into(visible, &mut s.keys, &mut s.tmp, &mut s.sorted);
-    let t2 = Instant::now();
     let (tiles_x, tiles_y) = cam.tiles();
-    s.bins.rebuild(&s.sorted, tiles_x, tiles_y)?;
+    let (keys, tmp) = (&mut s.keys, &mut s.tmp);
+    sort::sort_by_depth_into(
+        visible,
+        keys,
+        tmp,
+        &mut s.sorted,
+        &mut s.ranges,
+        cam.tiles(),
+    );
+    let t2 = Instant::now();
+    s.bins.rebuild_from_ranges(&s.ranges, tiles_x, tiles_y)?;
     stats.intersections = s.bins.intersections();
     let t3 = Instant::now();
     let params = blend::BlendParams {

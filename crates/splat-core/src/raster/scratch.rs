@@ -23,8 +23,9 @@ pub(crate) struct FrameScratch {
     /// The sort's (depth bits, payload) keys and their scratch.
     pub(crate) keys: Vec<(u32, u32)>,
     pub(crate) tmp: Vec<(u32, u32)>,
-    /// The splats in depth order.
+    /// The splats in depth order, and their tile ranges.
     pub(crate) sorted: Vec<Splat>,
+    pub(crate) ranges: Vec<[u16; 4]>,
     pub(crate) bins: TileBins,
 }
 
@@ -34,7 +35,7 @@ impl FrameScratch {
         let splat = std::mem::size_of::<Splat>();
         let parts: usize = self.parts.iter().map(Vec::capacity).sum();
         (parts + self.sorted.capacity()) * splat
-            + (self.keys.capacity() + self.tmp.capacity()) * 8
+            + (self.keys.capacity() + self.tmp.capacity() + self.ranges.capacity()) * 8
             + self.bins.capacity_bytes()
     }
 }
