@@ -238,7 +238,18 @@ impl Projector {
             }
             i0 += n;
         }
+        let k = scene.sh_rest_k() * 3;
         for block in survivors.chunks(BLOCK) {
+            // stage 3 reads each survivor's SH (180 bytes at degree 3, the first touch of
+            // them) or its shared colour at random: ask for them before stage 2's arithmetic
+            for &i in block {
+                if !colours.prefetch(i) && k > 0 {
+                    let rest = &scene.sh_rest[i * k..i * k + k];
+                    for j in (0..k).step_by(16).chain([k - 1]) {
+                        crate::mem::prefetch(&rest[j]);
+                    }
+                }
+            }
             let mut g = Lanes::default();
             for (l, &i) in block.iter().enumerate() {
                 g.set(l, scene, i);

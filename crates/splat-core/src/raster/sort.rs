@@ -59,7 +59,7 @@ pub(crate) fn sort_by_depth_into(
         .for_each(|((dst, rdst), k)| {
             for (j, ((d, r), &(_, p))) in dst.iter_mut().zip(rdst).zip(k).enumerate() {
                 if let Some(&(_, ahead)) = k.get(j + PREFETCH_AHEAD) {
-                    prefetch(part_ref(parts, ahead));
+                    crate::mem::prefetch(part_ref(parts, ahead));
                 }
                 let s = part_item(parts, p);
                 let (x0, x1, y0, y1) = tile_range(&s, tiles_x, tiles_y);
@@ -73,20 +73,6 @@ pub(crate) fn sort_by_depth_into(
         sorted.set_len(n);
         ranges.set_len(n);
     }
-}
-
-/// Ask for the cache line holding `v` (a hint: no effect on any value).
-#[inline(always)]
-fn prefetch<T>(v: &T) {
-    #[cfg(target_arch = "x86_64")]
-    // SAFETY: prefetching reads nothing architecturally and never faults; `v` is a valid
-    // reference anyway.
-    unsafe {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        _mm_prefetch::<_MM_HINT_T0>((v as *const T).cast());
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = v;
 }
 
 /// [`sort_by_depth`] into reused buffers, also gathering each splat's Gaussian index from
