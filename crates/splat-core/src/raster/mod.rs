@@ -23,6 +23,7 @@ mod blend_avx2;
 mod blend_avx512;
 pub mod diff;
 pub mod project;
+mod scratch;
 pub mod sh;
 mod share;
 pub mod sort;
@@ -203,10 +204,12 @@ pub fn render_into(
         depth,
         alpha,
         share::FrameColours::Off,
+        &scratch::GLOBAL,
     )
 }
 
-/// [`render_into`] recording or reusing the frame's shared colours ([`share`]).
+/// [`render_into`] recording or reusing the frame's shared colours ([`share`]), with working
+/// buffers from `pool`.
 fn render_into_sharing(
     scene: &SceneView<'_>,
     cam: &Camera,
@@ -215,6 +218,7 @@ fn render_into_sharing(
     depth: &mut [f32],
     alpha: &mut [f32],
     colours: share::FrameColours<'_>,
+    pool: &scratch::Pool,
 ) -> Result<RenderStats> {
     cam.validate()?;
     opts.validate()?;
@@ -244,17 +248,27 @@ fn render_into_sharing(
         ..Default::default()
     };
 
+    let mut scratch = pool.take();
+    let s = &mut scratch;
     let t0 = Instant::now();
     let proj = project::Projector::new(cam, opts, degree);
-    let visible = project::project_visible_sharing(scene, &proj, colours);
+    let chunks = project::project_visible_into(scene, &proj, colours, &mut s.parts);
+    let visible = &s.parts[..chunks];
     stats.visible = visible.iter().map(|p| p.len() as u64).sum();
     let t1 = Instant::now();
-    let sorted = sort::sort_by_depth(&visible);
-    drop(visible);
-    let t2 = Instant::now();
     let (tiles_x, tiles_y) = cam.tiles();
-    let bins = sort::TileBins::build(&sorted, tiles_x, tiles_y)?;
-    stats.intersections = bins.intersections();
+    let (keys, tmp) = (&mut s.keys, &mut s.tmp);
+    sort::sort_by_depth_into(
+        visible,
+        keys,
+        tmp,
+        &mut s.sorted,
+        &mut s.ranges,
+        cam.tiles(),
+    );
+    let t2 = Instant::now();
+    s.bins.rebuild_from_ranges(&s.ranges, tiles_x, tiles_y)?;
+    stats.intersections = s.bins.intersections();
     let t3 = Instant::now();
     let params = blend::BlendParams {
         width: cam.width,
@@ -264,10 +278,10 @@ fn render_into_sharing(
         simd: opts.simd.resolve(),
         count_useful: opts.count_useful,
     };
-    let counts = blend::blend_frame(&sorted, &bins, &params, rgb, depth, alpha);
+    let counts = blend::blend_frame(&s.sorted, &s.bins, &params, rgb, depth, alpha);
     stats.evaluations = counts.evals;
     stats.useful = counts.useful;
-    sort::recycle(sorted);
+    pool.give(scratch);
     let t4 = Instant::now();
     stats.project_s = (t1 - t0).as_secs_f64();
     stats.sort_s = (t2 - t1).as_secs_f64();
@@ -329,12 +343,17 @@ pub fn render_batch(
                 first.width, first.height
             ))
         })?;
-    let mut rgb = vec![0.0f32; total];
-    let mut depth = vec![0.0f32; npix * units];
-    let mut alpha = vec![0.0f32; npix * units];
+    // huge pages: the blend writes every pixel, so a 4 KiB page fault per 1024 values would
+    // cost more than the writes (the 49-frame 832x480 pair's images are 780 MB)
+    let mut rgb = crate::mem::zeroed_f32(total);
+    let mut depth = crate::mem::zeroed_f32(npix * units);
+    let mut alpha = crate::mem::zeroed_f32(npix * units);
     let maps = colour_maps(scenes, cams.len(), opts)?;
+    let pool = scratch::Pool::for_batch();
     let per_unit: Vec<RenderStats> = if let Some(maps) = maps {
-        render_frames_sharing(scenes, cams, opts, &maps, &mut rgb, &mut depth, &mut alpha)?
+        render_frames_sharing(
+            scenes, cams, opts, &maps, &pool, &mut rgb, &mut depth, &mut alpha,
+        )?
     } else {
         rgb.par_chunks_mut(npix * 3)
             .zip(depth.par_chunks_mut(npix))
@@ -343,10 +362,12 @@ pub fn render_batch(
             .map(|(u, ((rgb, depth), alpha))| {
                 let scene = &scenes[u / cams.len()];
                 let cam = &cams[u % cams.len()];
-                render_into(scene, cam, opts, rgb, depth, alpha)
+                let colours = share::FrameColours::Off;
+                render_into_sharing(scene, cam, opts, rgb, depth, alpha, colours, &pool)
             })
             .collect::<Result<_>>()?
     };
+    pool.retire();
     let mut stats = RenderStats::default();
     for s in &per_unit {
         stats.add(s);
@@ -399,6 +420,7 @@ fn render_frames_sharing(
     cams: &[Camera],
     opts: &RenderOptions,
     maps: &[Option<Vec<u32>>],
+    pool: &scratch::Pool,
     rgb: &mut [f32],
     depth: &mut [f32],
     alpha: &mut [f32],
@@ -419,12 +441,12 @@ fn render_frames_sharing(
     let n0 = scenes[0].len();
     // slot buffers of finished frames, reused by the next ones (one per frame in flight, so
     // each buffer's pages are faulted in once)
-    let pool = std::sync::Mutex::new(Vec::new());
+    let slot_pool = std::sync::Mutex::new(Vec::new());
     let per_frame: Vec<Vec<RenderStats>> = frames
         .into_par_iter()
         .enumerate()
         .map(|(k, units)| {
-            let popped = pool.lock().ok().and_then(|mut p| p.pop());
+            let popped = slot_pool.lock().ok().and_then(|mut p| p.pop());
             let mut slots = popped.unwrap_or_else(|| share::slots(n0));
             // frame k's stamp: slots left by an earlier frame of this buffer never match
             let stamp = k as u32 + 1;
@@ -437,11 +459,11 @@ fn render_frames_sharing(
                         None => share::FrameColours::Off,
                     },
                 };
-                let st =
-                    render_into_sharing(&scenes[s], &cams[k], opts, rgb, depth, alpha, colours)?;
+                let (scene, cam) = (&scenes[s], &cams[k]);
+                let st = render_into_sharing(scene, cam, opts, rgb, depth, alpha, colours, pool)?;
                 stats.push(st);
             }
-            if let Ok(mut p) = pool.lock() {
+            if let Ok(mut p) = slot_pool.lock() {
                 p.push(slots);
             }
             Ok(stats)

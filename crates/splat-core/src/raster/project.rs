@@ -222,15 +222,34 @@ impl Projector {
         let mut i0 = lo;
         while i0 < hi {
             let n = BLOCK.min(hi - i0);
+            // stage 1 reads only the means and scales (24 of a Gaussian's 56 bytes outside
+            // the SH): most Gaussians of a large scene are culled here
+            // the scales only for a block with a mean between the near and far planes
             let mut g = Lanes::default();
             for l in 0..n {
-                g.set(l, scene, i0 + l);
+                g.set_mean(l, scene, i0 + l);
             }
-            let sc = self.screen(&g);
-            survivors.extend((0..n).filter(|&l| sc.ok[l]).map(|l| i0 + l));
+            if self.any_in_depth(&g) {
+                for l in 0..n {
+                    g.set_scales(l, scene, i0 + l);
+                }
+                let sc = self.screen(&g);
+                survivors.extend((0..n).filter(|&l| sc.ok[l]).map(|l| i0 + l));
+            }
             i0 += n;
         }
+        let k = scene.sh_rest_k() * 3;
         for block in survivors.chunks(BLOCK) {
+            // stage 3 reads each survivor's SH (180 bytes at degree 3, the first touch of
+            // them) or its shared colour at random: ask for them before stage 2's arithmetic
+            for &i in block {
+                if !colours.prefetch(i) && k > 0 {
+                    let rest = &scene.sh_rest[i * k..i * k + k];
+                    for j in (0..k).step_by(16).chain([k - 1]) {
+                        crate::mem::prefetch(&rest[j]);
+                    }
+                }
+            }
             let mut g = Lanes::default();
             for (l, &i) in block.iter().enumerate() {
                 g.set(l, scene, i);
@@ -248,6 +267,23 @@ impl Projector {
                 }
             }
         }
+    }
+
+    /// Whether any lane's camera-space z lies between the near and far planes, computed as
+    /// [`Projector::screen`] computes it (the same bits): a block of Gaussians all behind the
+    /// camera or beyond the far plane needs nothing but its means read.
+    #[inline(always)]
+    fn any_in_depth(&self, g: &Lanes) -> bool {
+        let (rot, tr) = (&self.rot[2], self.trans[2]);
+        let mut any = false;
+        for l in 0..BLOCK {
+            let z = rot[0] * g.mean[0][l] as f64
+                + rot[1] * g.mean[1][l] as f64
+                + rot[2] * g.mean[2][l] as f64
+                + tr;
+            any |= (z > self.near) & (z < self.far);
+        }
+        any
     }
 
     /// Stage 1 for a block: camera space (float64, so far-from-origin scenes keep their
@@ -281,9 +317,7 @@ impl Projector {
             o.z[l] = pc[2][l] as f32;
         }
         for l in 0..BLOCK {
-            let fin = |v: f32| v.to_bits() & 0x7FFF_FFFF < 0x7F80_0000;
             o.ok[l] &= fin(g.ls[0][l]) & fin(g.ls[1][l]) & fin(g.ls[2][l]);
-            o.ok[l] &= fin(g.sh0[0][l]) & fin(g.sh0[1][l]) & fin(g.sh0[2][l]);
         }
         let (fx, fy) = (self.fx, self.fy);
         for l in 0..BLOCK {
@@ -325,7 +359,13 @@ impl Projector {
         for l in 0..BLOCK {
             let v = [g.q[0][l], g.q[1][l], g.q[2][l], g.q[3][l]];
             let qn = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2] + v[3] * v[3]).sqrt();
-            o.ok[l] = sc.ok[l] & (qn > 0.0) & qn.is_finite();
+            // (the DC colour's test is here rather than in stage 1, which does not read it)
+            o.ok[l] = sc.ok[l]
+                & (qn > 0.0)
+                & qn.is_finite()
+                & fin(g.sh0[0][l])
+                & fin(g.sh0[1][l])
+                & fin(g.sh0[2][l]);
             for c in 0..4 {
                 q[c][l] = v[c] / qn;
             }
@@ -462,6 +502,12 @@ impl Projector {
     }
 }
 
+/// Whether a float is finite (a bit test that vectorises).
+#[inline(always)]
+fn fin(v: f32) -> bool {
+    v.to_bits() & 0x7FFF_FFFF < 0x7F80_0000
+}
+
 /// Gaussians per vectorised block of the projection.
 const BLOCK: usize = 16;
 
@@ -477,6 +523,22 @@ struct Lanes {
 }
 
 impl Lanes {
+    /// Load Gaussian `i`'s mean into lane `l`.
+    #[inline(always)]
+    fn set_mean(&mut self, l: usize, scene: &SceneView<'_>, i: usize) {
+        for c in 0..3 {
+            self.mean[c][l] = scene.means[i * 3 + c];
+        }
+    }
+
+    /// Load Gaussian `i`'s log-scales into lane `l` (with its mean, all that stage 1 reads).
+    #[inline(always)]
+    fn set_scales(&mut self, l: usize, scene: &SceneView<'_>, i: usize) {
+        for c in 0..3 {
+            self.ls[c][l] = scene.log_scales[i * 3 + c];
+        }
+    }
+
     /// Load Gaussian `i` into lane `l`.
     #[inline(always)]
     fn set(&mut self, l: usize, scene: &SceneView<'_>, i: usize) {
@@ -594,40 +656,48 @@ pub(crate) const PROJECT_CHUNK_BITS: u32 = 13;
 /// The visible splats of one view, per projection chunk, each in Gaussian-index order.
 #[cfg(test)]
 pub(crate) fn project_visible(scene: &SceneView<'_>, proj: &Projector) -> Vec<Vec<Splat>> {
-    project_visible_sharing(scene, proj, FrameColours::Off)
+    let mut parts = Vec::new();
+    let n = project_visible_into(scene, proj, FrameColours::Off, &mut parts);
+    parts.truncate(n);
+    parts
 }
 
-/// [`project_visible`] recording or reusing the frame's shared colours (see
-/// [`super::share`]); the splats are the same bits either way. A recording buffer holds at
-/// least one slot per Gaussian.
-pub(crate) fn project_visible_sharing(
+/// [`project_visible`] into reused buffers, recording or reusing the frame's shared colours
+/// (see [`super::share`]; the splats are the same bits either way): chunk c's visible splats go
+/// to `parts[c]`, for the returned number of chunks (`parts` may hold more, left from a larger
+/// scene, so their capacity survives too). A recording buffer holds at least one slot per
+/// Gaussian.
+pub(crate) fn project_visible_into(
     scene: &SceneView<'_>,
     proj: &Projector,
     colours: FrameColours<'_>,
-) -> Vec<Vec<Splat>> {
+    parts: &mut Vec<Vec<Splat>>,
+) -> usize {
     let n = scene.len();
-    let run = |c: usize, mut cc: ChunkColours<'_>| {
+    let chunks = n.div_ceil(PROJECT_CHUNK);
+    if parts.len() < chunks {
+        parts.resize_with(chunks, Vec::new);
+    }
+    let run = |c: usize, out: &mut Vec<Splat>, mut cc: ChunkColours<'_>| {
         let lo = c * PROJECT_CHUNK;
         let hi = (lo + PROJECT_CHUNK).min(n);
-        let mut out = Vec::new();
-        proj.project_range_sharing(scene, lo, hi, &mut out, None, &mut cc);
-        out
+        out.clear();
+        proj.project_range_sharing(scene, lo, hi, out, None, &mut cc);
     };
+    let parts = parts[..chunks].par_iter_mut().enumerate();
     match colours {
         FrameColours::Record(slots, stamp) => slots[..n]
             .par_chunks_mut(PROJECT_CHUNK)
-            .enumerate()
-            .map(|(c, part)| run(c, ChunkColours::Record(part, c * PROJECT_CHUNK, stamp)))
-            .collect(),
-        FrameColours::Reuse(map, slots, stamp) => (0..n.div_ceil(PROJECT_CHUNK))
-            .into_par_iter()
-            .map(|c| run(c, ChunkColours::Reuse(map, slots, stamp)))
-            .collect(),
-        FrameColours::Off => (0..n.div_ceil(PROJECT_CHUNK))
-            .into_par_iter()
-            .map(|c| run(c, ChunkColours::Off))
-            .collect(),
+            .zip(parts)
+            .for_each(|(part, (c, out))| {
+                run(c, out, ChunkColours::Record(part, c * PROJECT_CHUNK, stamp))
+            }),
+        FrameColours::Reuse(map, slots, stamp) => {
+            parts.for_each(|(c, out)| run(c, out, ChunkColours::Reuse(map, slots, stamp)))
+        }
+        FrameColours::Off => parts.for_each(|(c, out)| run(c, out, ChunkColours::Off)),
     }
+    chunks
 }
 
 /// [`project_visible`] into reused buffers, with the Gaussian index of every splat:

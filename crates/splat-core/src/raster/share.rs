@@ -128,6 +128,19 @@ impl ChunkColours<'_> {
         }
     }
 
+    /// Prefetch what [`ChunkColours::lookup`] will read for Gaussian `i`; false when the
+    /// colour will not come from another scene (so its SH will be read).
+    #[inline(always)]
+    pub(crate) fn prefetch(&self, i: usize) -> bool {
+        match self {
+            ChunkColours::Reuse(map, slots, _) if map[i] != NO_MATCH => {
+                crate::mem::prefetch(&slots[map[i] as usize]);
+                true
+            }
+            _ => false,
+        }
+    }
+
     /// Record Gaussian `i`'s colour (a no-op unless this is the recording scene).
     #[inline(always)]
     pub(crate) fn record(&mut self, i: usize, rgb: [f32; 3]) {

@@ -21,16 +21,58 @@ const RADIX: usize = 1 << RADIX_BITS;
 /// Sort splats front to back by depth; equal depths keep Gaussian-index order. `parts` are the
 /// projection chunks in order (chunk c, local position j: payload c << PROJECT_CHUNK_BITS | j,
 /// which orders like the Gaussian index), so no concatenated copy is needed.
+#[cfg(test)]
 pub(crate) fn sort_by_depth(parts: &[Vec<Splat>]) -> Vec<Splat> {
-    let (mut keys, mut tmp) = (Vec::new(), Vec::new());
-    sorted_keys(parts, &mut keys, &mut tmp);
-    drop(tmp);
-    let mut sorted = sorted_buffer();
-    keys.par_iter()
-        .with_min_len(BIN_CHUNK)
-        .map(|&(_, i)| part_item(parts, i))
-        .collect_into_vec(&mut sorted);
+    let (mut keys, mut tmp, mut sorted, mut ranges) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    sort_by_depth_into(parts, &mut keys, &mut tmp, &mut sorted, &mut ranges, (1, 1));
     sorted
+}
+
+/// Sorted splats gathered ahead of the one being copied (the gather reads splats at random).
+const PREFETCH_AHEAD: usize = 16;
+
+/// [`sort_by_depth`] into reused buffers (`keys` and `tmp` are scratch), also writing each
+/// sorted splat's tile range for a `tiles.0` x `tiles.1` grid to `ranges` (as
+/// [`TileBins::rebuild_from_ranges`] takes them): the gather has the splat at hand, so binning
+/// need not read the sorted splats again. A renderer keeps the buffers from frame to frame, so a
+/// frame writes into memory already mapped.
+pub(crate) fn sort_by_depth_into(
+    parts: &[Vec<Splat>],
+    keys: &mut Vec<(u32, u32)>,
+    tmp: &mut Vec<(u32, u32)>,
+    sorted: &mut Vec<Splat>,
+    ranges: &mut Vec<[u16; 4]>,
+    tiles: (u32, u32),
+) {
+    sorted_keys(parts, keys, tmp);
+    let n = keys.len();
+    sorted.clear();
+    sorted.reserve(n);
+    ranges.clear();
+    ranges.reserve(n);
+    let (tiles_x, tiles_y) = tiles;
+    sorted.spare_capacity_mut()[..n]
+        .par_chunks_mut(BIN_CHUNK)
+        .zip(ranges.spare_capacity_mut()[..n].par_chunks_mut(BIN_CHUNK))
+        .zip(keys.par_chunks(BIN_CHUNK))
+        .for_each(|((dst, rdst), k)| {
+            for (j, ((d, r), &(_, p))) in dst.iter_mut().zip(rdst).zip(k).enumerate() {
+                if let Some(&(_, ahead)) = k.get(j + PREFETCH_AHEAD) {
+                    crate::mem::prefetch(part_ref(parts, ahead));
+                }
+                let s = part_item(parts, p);
+                let (x0, x1, y0, y1) = tile_range(&s, tiles_x, tiles_y);
+                r.write([x0, x1, y0, y1].map(|v| v as u16));
+                d.write(s);
+            }
+        });
+    // SAFETY: the chunks above cover [0, n) of both buffers' spare capacity (reserved above),
+    // and every element of every chunk was written.
+    unsafe {
+        sorted.set_len(n);
+        ranges.set_len(n);
+    }
 }
 
 /// [`sort_by_depth`] into reused buffers, also gathering each splat's Gaussian index from
@@ -56,7 +98,12 @@ pub(crate) fn sort_by_depth_with_ids(
 
 #[inline]
 fn part_item<T: Copy>(parts: &[Vec<T>], payload: u32) -> T {
-    parts[(payload >> PROJECT_CHUNK_BITS) as usize]
+    *part_ref(parts, payload)
+}
+
+#[inline]
+fn part_ref<T>(parts: &[Vec<T>], payload: u32) -> &T {
+    &parts[(payload >> PROJECT_CHUNK_BITS) as usize]
         [(payload & ((1 << PROJECT_CHUNK_BITS) - 1)) as usize]
 }
 
@@ -65,7 +112,9 @@ fn part_item<T: Copy>(parts: &[Vec<T>], payload: u32) -> T {
 fn sorted_keys(parts: &[Vec<Splat>], keys: &mut Vec<(u32, u32)>, tmp: &mut Vec<(u32, u32)>) {
     let n: usize = parts.iter().map(Vec::len).sum();
     let passes = 32u32.div_ceil(RADIX_BITS) as usize;
-    keys.clear();
+    // every key is written below and every pass writes all of `tmp`: only the part of a buffer
+    // beyond what an earlier frame left needs initialising
+    keys.truncate(n);
     keys.resize(n, (0, 0));
     // each part's keys go straight to their place; (depth bits, payload), positive floats
     // ordering like their bit patterns, and the histograms of every digit, in one parallel pass
@@ -99,7 +148,7 @@ fn sorted_keys(parts: &[Vec<Splat>], keys: &mut Vec<(u32, u32)>, tmp: &mut Vec<(
             *a += b as usize;
         }
     }
-    tmp.clear();
+    tmp.truncate(n);
     tmp.resize(n, (0, 0));
     for (pass, h) in hist.chunks_exact_mut(RADIX).enumerate() {
         // a digit all keys share needs no pass (the exponent bits of depths of one scale)
@@ -119,38 +168,6 @@ fn sorted_keys(parts: &[Vec<Splat>], keys: &mut Vec<(u32, u32)>, tmp: &mut Vec<(
             h[b] += 1;
         }
         std::mem::swap(keys, tmp);
-    }
-}
-
-/// Sorted-splat buffers kept between frames, in bytes of capacity (2M splats).
-const KEEP_BYTES: usize = 128 << 20;
-
-/// Sorted-splat buffers of finished frames, reused by the next ones so a frame writes into
-/// memory already mapped instead of paying a page fault per 4 KiB (on the test VMs the faults
-/// on a fresh buffer cost more than filling it). Only ever `try_lock`ed: a busy or poisoned
-/// lock, or one a `fork` left locked in a child, just means a fresh buffer.
-static SORTED_POOL: std::sync::Mutex<Vec<Vec<Splat>>> = std::sync::Mutex::new(Vec::new());
-
-/// An empty buffer for a frame's sorted splats, from the pool when it has one.
-fn sorted_buffer() -> Vec<Splat> {
-    let mut v = match SORTED_POOL.try_lock() {
-        Ok(mut pool) => pool.pop().unwrap_or_default(),
-        Err(_) => Vec::new(),
-    };
-    v.clear();
-    v
-}
-
-/// Hand a frame's sorted splats back to the pool (kept while the pool holds at most
-/// `KEEP_BYTES` of capacity).
-pub(crate) fn recycle(sorted: Vec<Splat>) {
-    if let Ok(mut pool) = SORTED_POOL.try_lock() {
-        let held: usize = pool.iter().map(Vec::capacity).sum();
-        if (held + sorted.capacity()) * std::mem::size_of::<Splat>() <= KEEP_BYTES {
-            // largest last: the next frame most likely needs as many
-            pool.push(sorted);
-            pool.sort_by_key(Vec::capacity);
-        }
     }
 }
 
@@ -183,9 +200,58 @@ struct BinChunk {
     offsets: Vec<u32>,
     /// Positions in the sorted splat array.
     items: Vec<u32>,
-    /// Each splat's tile range (x0, x1, y0, y1) from the counting pass, so the filling pass
-    /// reads 8 bytes per splat instead of the splat's 64 again.
+    /// Each splat's tile range (x0, x1, y0, y1) when [`TileBins::rebuild`] computes them, so the
+    /// filling pass reads 8 bytes per splat instead of the splat's 64 again.
     ranges: Vec<[u16; 4]>,
+}
+
+impl BinChunk {
+    /// Bucket the sorted splats `base..base + ranges.len()`, whose tile ranges are `ranges`,
+    /// by tile (a counting sort, so each bucket keeps the depth order).
+    fn fill(&mut self, base: usize, ranges: &[[u16; 4]], tiles_x: u32, tiles_y: u32) -> Result<()> {
+        let n_tiles = (tiles_x * tiles_y) as usize;
+        // counts per tile in offsets[1..], then their exclusive prefix sums
+        let offsets = &mut self.offsets;
+        offsets.clear();
+        offsets.resize(n_tiles + 1, 0);
+        let mut total = 0u64;
+        for r in ranges {
+            let [x0, x1, y0, y1] = r.map(u32::from);
+            total += (x1 - x0) as u64 * (y1 - y0) as u64;
+            if total > u32::MAX as u64 {
+                return Err(Error::InvalidArgument(format!(
+                    "too many Gaussian-tile intersections (over {}): Gaussians cover \
+                     unreasonably large screen areas",
+                    u32::MAX
+                )));
+            }
+            for ty in y0..y1 {
+                let row = (ty * tiles_x) as usize + 1;
+                for tx in x0..x1 {
+                    offsets[row + tx as usize] += 1;
+                }
+            }
+        }
+        for t in 0..n_tiles {
+            offsets[t + 1] += offsets[t];
+        }
+        let mut cursor: Vec<u32> = offsets[..n_tiles].to_vec();
+        let items = &mut self.items;
+        items.clear();
+        items.resize(total as usize, 0);
+        for (j, r) in ranges.iter().enumerate() {
+            let [x0, x1, y0, y1] = r.map(u32::from);
+            for ty in y0..y1 {
+                let row = (ty * tiles_x) as usize;
+                for tx in x0..x1 {
+                    let cur = &mut cursor[row + tx as usize];
+                    items[*cur as usize] = (base + j) as u32;
+                    *cur += 1;
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 /// Per-tile lists of sorted splat positions.
@@ -198,6 +264,7 @@ pub(crate) struct TileBins {
 
 impl TileBins {
     /// Bucket depth-sorted splats by tile.
+    #[cfg(test)]
     pub(crate) fn build(sorted: &[Splat], tiles_x: u32, tiles_y: u32) -> Result<Self> {
         let mut bins = TileBins::default();
         bins.rebuild(sorted, tiles_x, tiles_y)?;
@@ -206,7 +273,6 @@ impl TileBins {
 
     /// [`TileBins::build`] reusing this value's buffers (an optimiser loop bins every step).
     pub(crate) fn rebuild(&mut self, sorted: &[Splat], tiles_x: u32, tiles_y: u32) -> Result<()> {
-        let n_tiles = (tiles_x * tiles_y) as usize;
         self.tiles_x = tiles_x;
         self.tiles_y = tiles_y;
         self.chunks
@@ -216,53 +282,35 @@ impl TileBins {
             .zip(sorted.par_chunks(BIN_CHUNK))
             .enumerate()
             .try_for_each(|(c, (chunk, part))| {
-                let base = c * BIN_CHUNK;
-                // counts per tile in offsets[1..], then their exclusive prefix sums
-                let offsets = &mut chunk.offsets;
-                offsets.clear();
-                offsets.resize(n_tiles + 1, 0);
-                let mut total = 0u64;
-                let ranges = &mut chunk.ranges;
+                let mut ranges = std::mem::take(&mut chunk.ranges);
                 ranges.clear();
-                ranges.reserve(part.len());
-                for s in part {
+                ranges.extend(part.iter().map(|s| {
                     let (x0, x1, y0, y1) = tile_range(s, tiles_x, tiles_y);
-                    ranges.push([x0, x1, y0, y1].map(|v| v as u16));
-                    total += (x1 - x0) as u64 * (y1 - y0) as u64;
-                    if total > u32::MAX as u64 {
-                        return Err(Error::InvalidArgument(format!(
-                            "too many Gaussian-tile intersections (over {}): Gaussians cover \
-                             unreasonably large screen areas",
-                            u32::MAX
-                        )));
-                    }
-                    for ty in y0..y1 {
-                        let row = (ty * tiles_x) as usize + 1;
-                        for tx in x0..x1 {
-                            offsets[row + tx as usize] += 1;
-                        }
-                    }
-                }
-                for t in 0..n_tiles {
-                    offsets[t + 1] += offsets[t];
-                }
-                let mut cursor: Vec<u32> = offsets[..n_tiles].to_vec();
-                let items = &mut chunk.items;
-                items.clear();
-                items.resize(total as usize, 0);
-                for (j, r) in ranges.iter().enumerate() {
-                    let [x0, x1, y0, y1] = r.map(u32::from);
-                    for ty in y0..y1 {
-                        let row = (ty * tiles_x) as usize;
-                        for tx in x0..x1 {
-                            let cur = &mut cursor[row + tx as usize];
-                            items[*cur as usize] = (base + j) as u32;
-                            *cur += 1;
-                        }
-                    }
-                }
-                Ok(())
+                    [x0, x1, y0, y1].map(|v| v as u16)
+                }));
+                let r = chunk.fill(c * BIN_CHUNK, &ranges, tiles_x, tiles_y);
+                chunk.ranges = ranges;
+                r
             })
+    }
+
+    /// [`TileBins::rebuild`] from the sorted splats' tile ranges (as [`sort_by_depth_into`]
+    /// writes them): the same lists without reading the splats.
+    pub(crate) fn rebuild_from_ranges(
+        &mut self,
+        ranges: &[[u16; 4]],
+        tiles_x: u32,
+        tiles_y: u32,
+    ) -> Result<()> {
+        self.tiles_x = tiles_x;
+        self.tiles_y = tiles_y;
+        self.chunks
+            .resize_with(ranges.len().div_ceil(BIN_CHUNK), BinChunk::default);
+        self.chunks
+            .par_iter_mut()
+            .zip(ranges.par_chunks(BIN_CHUNK))
+            .enumerate()
+            .try_for_each(|(c, (chunk, part))| chunk.fill(c * BIN_CHUNK, part, tiles_x, tiles_y))
     }
 
     /// Sorted splats per binning chunk: splat p is binned by chunk p / BIN_CHUNK.
@@ -302,6 +350,16 @@ impl TileBins {
         self.chunks
             .iter()
             .map(move |c| &c.items[c.offsets[t] as usize..c.offsets[t + 1] as usize])
+    }
+
+    /// Bytes of every buffer (capacities), the tile ranges included.
+    pub(crate) fn capacity_bytes(&self) -> usize {
+        self.bytes()
+            + self
+                .chunks
+                .iter()
+                .map(|c| c.ranges.capacity() * 8)
+                .sum::<usize>()
     }
 
     /// Bytes of the lists (capacities).
@@ -378,7 +436,6 @@ mod tests {
             for (g, &(_, c, j)) in got.iter().zip(&want) {
                 assert_eq!(g, &parts[c][j]);
             }
-            recycle(got);
         }
     }
 
@@ -394,5 +451,63 @@ mod tests {
         assert_eq!(list(2), Vec::<u32>::new());
         assert_eq!(list(5), [0]);
         assert_eq!(bins.intersections(), 4 + 1);
+    }
+
+    /// The gather's tile ranges are `tile_range` of each sorted splat, and binning from them
+    /// gives the lists binning the splats gives, over several binning chunks and with buffers
+    /// reused from a larger frame.
+    #[test]
+    fn binning_from_the_gathers_ranges_gives_the_same_lists() {
+        let mut h = 11u64;
+        let mut next = || {
+            h = h.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+            (h >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let (tx, ty) = (13, 9);
+        let (mut keys, mut tmp, mut sorted, mut ranges) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let mut reused = TileBins::default();
+        for n in [3 * BIN_CHUNK + 77, 1000] {
+            // projection chunks hold at most 1 << PROJECT_CHUNK_BITS splats
+            let full = 1 << PROJECT_CHUNK_BITS;
+            let mut sizes = vec![full; n / full];
+            sizes.insert(1.min(sizes.len()), 0);
+            sizes.push(n % full);
+            let parts: Vec<Vec<Splat>> = sizes
+                .iter()
+                .map(|&m| {
+                    (0..m)
+                        .map(|_| {
+                            let mut s = splat(1.0 + next() * 8.0, next() * 240.0 - 20.0, 0.0);
+                            s.xy[1] = next() * 170.0 - 15.0;
+                            s.radius = [(next() * 40.0).ceil(), (next() * 30.0).ceil()];
+                            s
+                        })
+                        .collect()
+                })
+                .collect();
+            sort_by_depth_into(
+                &parts,
+                &mut keys,
+                &mut tmp,
+                &mut sorted,
+                &mut ranges,
+                (tx, ty),
+            );
+            assert_eq!(sorted, sort_by_depth(&parts));
+            for (s, r) in sorted.iter().zip(&ranges) {
+                let (x0, x1, y0, y1) = tile_range(s, tx, ty);
+                assert_eq!(*r, [x0, x1, y0, y1].map(|v| v as u16));
+            }
+            let want = TileBins::build(&sorted, tx, ty).expect("bins");
+            reused.rebuild_from_ranges(&ranges, tx, ty).expect("bins");
+            assert_eq!(reused.n_chunks(), want.n_chunks());
+            assert_eq!(reused.intersections(), want.intersections());
+            assert!(want.intersections() > n as u64);
+            for t in 0..(tx * ty) as usize {
+                let list = |b: &TileBins| b.lists(t).flatten().copied().collect::<Vec<u32>>();
+                assert_eq!(list(&reused), list(&want), "tile {t}");
+            }
+        }
     }
 }
