@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -102,9 +103,9 @@ def test_a_fit_run_folder_fits_the_photos_of_its_capture(tmp_path: Path) -> None
         Image.fromarray(255 - np.asarray(Image.open(p))).save(p)
     res = fit(root, tmp_path / "run", config=small_config(20), progress=False)
     out = tmp_path / "data"
-    kw = dict(configs=["sparse-n:4@40"], pairs_per_scene=1, frames=4, resolution=(64, 48), progress=False,
+    kw: dict[str, Any] = dict(configs=["sparse-n:4@40"], pairs_per_scene=1, frames=4, resolution=(64, 48), progress=False,
               log=lambda m: None)
-    s = curate([res.run_dir], out, **kw)  # type: ignore[arg-type]
+    s = curate([res.run_dir], out, **kw)
     assert s.ok, s.failed
     (rec,) = load_manifest(out).values()
     info = rec["fit"]
@@ -115,13 +116,13 @@ def test_a_fit_run_folder_fits_the_photos_of_its_capture(tmp_path: Path) -> None
     shutil.move(root, tmp_path / "moved")
     with pytest.warns(MorphgsWarning, match=r"views\.json: the capture it names, .*room.*, cannot be read.*"
                       r"trains on renders"):
-        s2 = curate([res.run_dir], tmp_path / "data2", **kw)  # type: ignore[arg-type]
+        s2 = curate([res.run_dir], tmp_path / "data2", **kw)
     assert s2.ok, s2.failed
     (rec2,) = load_manifest(tmp_path / "data2").values()
     assert rec2["fit"]["images"] == "renders"
     (res.run_dir / "views.json").write_text('{"source": ', encoding="utf-8")  # damaged
     with pytest.warns(MorphgsWarning, match=r"views\.json: unreadable .*trains on renders"):
-        s3 = curate([res.run_dir], tmp_path / "data3", **kw)  # type: ignore[arg-type]
+        s3 = curate([res.run_dir], tmp_path / "data3", **kw)
     assert s3.ok and load_manifest(tmp_path / "data3").popitem()[1]["fit"]["images"] == "renders"
 
 
@@ -146,9 +147,9 @@ def test_an_inria_output_folder_fits_the_photos_its_cfg_args_names(tmp_path: Pat
     (model / "cfg_args").write_text(
         "Namespace(data_device='cuda', eval=False, images='images', model_path='./output/3f2a9c1d-0', "
         "resolution=-1, sh_degree=3, source_path='scenes/room', white_background=False)", encoding="utf-8")
-    kw = dict(configs=["sparse-n:3@30"], pairs_per_scene=1, frames=3, resolution=(64, 48), progress=False,
+    kw: dict[str, Any] = dict(configs=["sparse-n:3@30"], pairs_per_scene=1, frames=3, resolution=(64, 48), progress=False,
               log=lambda m: None)
-    s = curate([model], tmp_path / "data", **kw)  # type: ignore[arg-type]
+    s = curate([model], tmp_path / "data", **kw)
     assert s.ok, s.failed
     (rec,) = load_manifest(tmp_path / "data").values()
     info = rec["fit"]
@@ -159,5 +160,5 @@ def test_an_inria_output_folder_fits_the_photos_its_cfg_args_names(tmp_path: Pat
     (root / "images" / "frame_00004.png").unlink()
     with pytest.warns(MorphgsWarning, match=r"cfg_args: the capture it names, .*room.*, (has no photo for 1 of its 12|"
                                             r"cannot be read).*trains on renders"):
-        s2 = curate([model], tmp_path / "data2", **kw)  # type: ignore[arg-type]
+        s2 = curate([model], tmp_path / "data2", **kw)
     assert s2.ok and load_manifest(tmp_path / "data2").popitem()[1]["fit"]["images"] == "renders"

@@ -303,10 +303,12 @@ def calibrate(
 
         say = log or (lambda m: print(m, file=sys.stderr))
         t_wall, t_cpu = time.perf_counter(), _cpu_seconds()
+        given_all = "all" in families
         families = expand_families(families)
         bases = [_family(f) for f in families]
         if len({lbl for lbl, _ in bases}) != len(bases):
-            raise CalibrationError(f"--family: the families must have distinct names, got {[lbl for lbl, _ in bases]}")
+            raise CalibrationError(f"--family: the families must have distinct names, got {[lbl for lbl, _ in bases]}"
+                                   + (f" (--family all already names {', '.join(ALL_FAMILIES)})" if given_all else ""))
         if not families:
             raise CalibrationError("at least one --family is needed")
         if not regimes and real is None:
