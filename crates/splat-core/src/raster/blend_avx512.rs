@@ -2,13 +2,18 @@
 //! generic kernel it mirrors operation for operation, so both give the same bits).
 use super::blend::{
     prefetch, BlendParams, Counts, Slot, TileOut, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16,
-    EXP_MAGIC, LANES, PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
+    EXP_MAGIC, LANES, SIGMA_CLAMP, T_MIN,
 };
 use super::project::{Splat, ALPHA_THRESHOLD};
 
 /// Splats per batch of this kernel (twice the AVX2 kernel's `CHUNK`): a block's state is
 /// loaded and stored once per batch, so longer batches amortise that over more splats.
 const BATCH: usize = 32;
+
+/// How many list entries ahead this kernel prefetches splats: one batch, so each splat's load
+/// is asked for a whole phase 2 before its phase 1 (the generic `PREFETCH_AHEAD` is 16, half a
+/// batch here, which left the second half of each batch waiting for its splats on grid-5).
+const PREFETCH: usize = BATCH;
 
 /// The tile's state in block order: `t[b][i]` is the pixel of lane i of block b, at tile row
 /// 4 (b / 4) + i / 4 and column 4 (b % 4) + i % 4 (see [`block_pixel`]).
@@ -22,7 +27,7 @@ struct Blocks {
 /// Tile (row, column) of lane `i` of 4x4 block `b`: blocks are numbered row by row over the
 /// tile (b = 4 block-row + block-column), lanes row by row inside a block.
 #[inline(always)]
-pub(super) const fn block_pixel(b: usize, i: usize) -> (usize, usize) {
+const fn block_pixel(b: usize, i: usize) -> (usize, usize) {
     (4 * (b / 4) + i / 4, 4 * (b % 4) + i % 4)
 }
 
@@ -242,7 +247,7 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
             // per-row and per-column terms of its exponent
             let mut masks = [0u32; BATCH];
             for (k, &gi) in chunk.iter().enumerate() {
-                if let Some(&ahead) = list.get(c * BATCH + k + PREFETCH_AHEAD) {
+                if let Some(&ahead) = list.get(c * BATCH + k + PREFETCH) {
                     prefetch(splats, ahead as usize);
                 }
                 let s = &splats[gi as usize];
@@ -376,89 +381,4 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
     }
     st.write_rows(out);
     Counts { evals, useful }
-}
-
-/// What [`blend_tile_avx512`] must count, from a plain per-pixel model: the generic kernel's
-/// per-pixel blend (`blend_tile_impl::<true>`'s arithmetic, its per-row contour test) with the
-/// kernel's 4x4 blocks laid over it. A block takes a step (16 evaluations) for a splat when the
-/// hull of the splat's contour ranges over the block's 4 rows meets the block's columns and
-/// the block still has a pixel that has not stopped; useful evaluations as the generic kernel.
-#[cfg(test)]
-pub(super) fn block_model<'a>(
-    x0: u32,
-    y0: u32,
-    p: &BlendParams,
-    splats: &[Splat],
-    lists: impl Iterator<Item = &'a [u32]>,
-) -> Counts {
-    use super::blend::{opacity_exp, row_span};
-    let mut t = [[1.0f32; LANES]; LANES];
-    let mut live = [[false; LANES]; LANES];
-    for (r, row) in live.iter_mut().enumerate() {
-        for (c, v) in row.iter_mut().enumerate() {
-            *v = x0 + (c as u32) < p.width && y0 + (r as u32) < p.height;
-        }
-    }
-    let y0f = y0 as f32;
-    let px: Vec<f32> = (0..LANES).map(|c| (x0 + c as u32) as f32 + 0.5).collect();
-    let mut n = Counts::default();
-    for &gi in lists.flatten() {
-        let s = &splats[gi as usize];
-        let (mx, my) = (s.xy[0], s.xy[1]);
-        let [ca, cb, cc] = s.conic;
-        let (lo, hi) = row_span(my, s.half_height, y0f);
-        // each reached row's contour range [left, right] (empty: +inf, -inf)
-        let mut range = [(f32::INFINITY, f32::NEG_INFINITY); LANES];
-        for r in lo as usize..hi as usize {
-            let dy = my - (y0f + r as f32 + 0.5);
-            let bdy = cb * dy;
-            let disc = s.two_a_level - dy * dy * s.conic_det;
-            if disc >= 0.0 {
-                let sq = disc.sqrt();
-                range[r] = (mx - (sq - bdy) * s.inv_a, mx + (sq + bdy) * s.inv_a);
-            }
-        }
-        for b in 0..LANES {
-            let (r0, c0) = block_pixel(b, 0);
-            let band = &range[r0..r0 + 4];
-            let l = band.iter().map(|v| v.0).fold(f32::INFINITY, f32::min);
-            let r = band.iter().map(|v| v.1).fold(f32::NEG_INFINITY, f32::max);
-            let any_live = (0..LANES).any(|i| {
-                let (r, c) = block_pixel(b, i);
-                live[r][c]
-            });
-            if any_live && l <= px[c0 + 3] && r >= px[c0] {
-                n.evals += LANES as u64;
-            }
-        }
-        // the per-pixel blend of the generic kernel, on the rows its own test keeps
-        for (r, &(left, right)) in range.iter().enumerate() {
-            if left > px[LANES - 1] || right < px[0] {
-                continue;
-            }
-            let dy = my - (y0f + r as f32 + 0.5);
-            let (bdy, cdy2) = (cb * dy, 0.5 * cc * dy * dy);
-            for (c, &x) in px.iter().enumerate() {
-                if !live[r][c] {
-                    continue;
-                }
-                let dx = mx - x;
-                let sigma = bdy.mul_add(dx, 0.5 * ca * dx * dx) + cdy2;
-                let alpha = opacity_exp::<true>(sigma, s.ln_opacity).min(p.max_alpha);
-                if alpha >= ALPHA_THRESHOLD {
-                    n.useful += 1;
-                    let tn = t[r][c] - alpha * t[r][c];
-                    if tn > T_MIN {
-                        t[r][c] = tn;
-                    } else {
-                        live[r][c] = false;
-                    }
-                }
-            }
-        }
-        if !live.iter().flatten().any(|&v| v) {
-            break;
-        }
-    }
-    n
 }
