@@ -35,9 +35,11 @@ impl Default for TileOut {
     }
 }
 
-/// What a tile's blend did: Gaussian-pixel evaluations (16 per row evaluated) and, of those,
-/// the useful ones: alpha >= 1/255 on a pixel that had not stopped yet, the only ones that can
-/// change (or stop) a pixel. Their ratio is the blend's efficiency.
+/// What a tile's blend did: Gaussian-pixel evaluations (the lanes of each work unit evaluated:
+/// 16 per row for the plain kernel, 8 per half row for AVX2, 16 per 4x4 block for AVX-512) and,
+/// of those, the useful ones: alpha >= 1/255 on a pixel that had not stopped yet, the only ones
+/// that can change (or stop) a pixel, the same for every kernel. Their ratio is the blend's
+/// efficiency.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub(crate) struct Counts {
     pub evals: u64,
@@ -184,8 +186,9 @@ pub(super) struct Slot {
 }
 
 /// How many list entries ahead to prefetch splats (the lists jump through the sorted array):
-/// one batch of the explicit kernels, so a splat's load is asked for a whole phase 2 before
-/// its phase 1 (16 measured 1.8% less frame CPU than 8 on garden, 1 thread).
+/// one batch of the AVX2 kernel, so a splat's load is asked for a whole phase 2 before its
+/// phase 1 (16 measured 1.8% less frame CPU than 8 on garden, 1 thread). The AVX-512 kernel,
+/// whose batches are 32 splats, prefetches 32 ahead (its own `PREFETCH`).
 pub(super) const PREFETCH_AHEAD: usize = 16;
 
 /// Hint the CPU to load splat `i` (both cache lines it may span) into L1.
