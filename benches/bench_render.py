@@ -1,6 +1,8 @@
 """Rasterizer benchmark: garden scene (gsplat's profiling setup) and the grid-5 scene.
 
-Prints per-frame wall and CPU times, stage times, the blend's evaluations beside the useful ones
+Prints per-frame wall and CPU times, stage times, the blend's evaluations (the lanes of the
+kernel's work units: 4x4-pixel blocks for AVX-512, 8-pixel half rows for AVX2, 16-pixel rows for
+the plain kernel) beside the useful ones
 (alpha >= 1/255 before the pixel stops: the limit a lossless blend could reach) and their ratio,
 blend throughput (Gaussian-pixel evaluations per second), the 1 -> N thread speed-up and the
 ratio against gsplat's torch reference on CPU (its projection plus the float64 reference blend of tests/render_reference.py).
@@ -130,7 +132,9 @@ def main() -> None:
     else:
         configs.append(("garden grid-5 1920x1080", 5, 1920, 1080))
     print(f"morphgs {morphgs.__version__}; {ncpu} CPUs; times per frame; cpu = median process "
-          f"CPU ms; stage columns in ms from the best run; useful = evaluations with alpha >= "
+          f"CPU ms; stage columns in ms from the best run; evals = lanes of the kernel's work "
+          f"units evaluated (AVX-512: 4x4-pixel blocks, AVX2: 8-pixel half rows, plain: "
+          f"16-pixel rows); useful = evaluations with alpha >= "
           f"1/255 on a pixel not yet stopped (the ones that can change it), eff% = useful / "
           f"evals (the blend's efficiency); G/s = blend evaluations per blend second")
     print(f"{'scene':<26} {'thr':>3} {'median ms':>9} {'best ms':>9} {'cpu ms':>7} {'proj':>7} "

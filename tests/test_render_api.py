@@ -68,11 +68,14 @@ def test_morphgs_simd_picks_the_blend_kernel_and_the_fast_kernels_agree_bit_for_
     for level in ["avx2", "avx512"]:
         if results[level].stats["simd"] == "scalar":
             continue
-        # the explicit AVX2 and AVX-512 kernels give the same bits and count the same work
+        # the explicit AVX2 and AVX-512 kernels give the same bits (they blend different work
+        # units, 8x1 and 4x4 pixels, so their evaluation counts differ; the Rust tests hold
+        # each count to a model of its unit)
         for field in ("rgb", "depth", "alpha"):
             np.testing.assert_array_equal(getattr(results[level], field),
                                           getattr(results["auto"], field))
-        assert results[level].stats["evaluations"] == results["auto"].stats["evaluations"]
+        # the explicit kernels skip the lanes of a 16-pixel row a footprint misses
+        assert results[level].stats["evaluations"] <= results["scalar"].stats["evaluations"]
     # the plain kernel rounds without FMA: last-bit differences only
     np.testing.assert_allclose(results["scalar"].rgb, results["auto"].rgb, atol=1e-5)
     monkeypatch.setenv("MORPHGS_SIMD", "sse9")

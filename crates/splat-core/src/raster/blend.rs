@@ -35,9 +35,11 @@ impl Default for TileOut {
     }
 }
 
-/// What a tile's blend did: Gaussian-pixel evaluations (16 per row evaluated) and, of those,
-/// the useful ones: alpha >= 1/255 on a pixel that had not stopped yet, the only ones that can
-/// change (or stop) a pixel. Their ratio is the blend's efficiency.
+/// What a tile's blend did: Gaussian-pixel evaluations (the lanes of each work unit evaluated:
+/// 16 per row for the plain kernel, 8 per half row for AVX2, 16 per 4x4 block for AVX-512) and,
+/// of those, the useful ones: alpha >= 1/255 on a pixel that had not stopped yet, the only ones
+/// that can change (or stop) a pixel, the same for every kernel. Their ratio is the blend's
+/// efficiency.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub(crate) struct Counts {
     pub evals: u64,
@@ -184,8 +186,9 @@ pub(super) struct Slot {
 }
 
 /// How many list entries ahead to prefetch splats (the lists jump through the sorted array):
-/// one batch of the explicit kernels, so a splat's load is asked for a whole phase 2 before
-/// its phase 1 (16 measured 1.8% less frame CPU than 8 on garden, 1 thread).
+/// one batch of the AVX2 kernel, so a splat's load is asked for a whole phase 2 before its
+/// phase 1 (16 measured 1.8% less frame CPU than 8 on garden, 1 thread). The AVX-512 kernel,
+/// whose batches are 32 splats, prefetches 32 ahead (its own `PREFETCH`).
 pub(super) const PREFETCH_AHEAD: usize = 16;
 
 /// Hint the CPU to load splat `i` (both cache lines it may span) into L1.
@@ -385,6 +388,92 @@ fn blend_tile_counting<'a, const COUNT: bool>(
         },
         _ => blend_tile_scalar::<COUNT>(x0, y0, p, splats, lists, out),
     }
+}
+
+/// What an explicit kernel whose work unit is a block of `W` x `H` pixels must count, from a
+/// plain per-pixel model: the generic kernel's per-pixel blend (`blend_tile_impl::<true>`'s
+/// arithmetic, its per-row contour test) with the blocks laid over the tile. A block takes a
+/// step (W H evaluations) for a splat when the hull of the splat's contour ranges over the
+/// block's rows meets the block's columns and the block still has a pixel that has not
+/// stopped; useful evaluations as the generic kernel. The AVX-512 kernel's unit is 4 x 4, the
+/// AVX2 kernel's 8 x 1.
+#[cfg(test)]
+pub(super) fn unit_model<'a, const W: usize, const H: usize>(
+    x0: u32,
+    y0: u32,
+    p: &BlendParams,
+    splats: &[Splat],
+    lists: impl Iterator<Item = &'a [u32]>,
+) -> Counts {
+    let mut t = [[1.0f32; LANES]; LANES];
+    let mut live = [[false; LANES]; LANES];
+    for (r, row) in live.iter_mut().enumerate() {
+        for (c, v) in row.iter_mut().enumerate() {
+            *v = x0 + (c as u32) < p.width && y0 + (r as u32) < p.height;
+        }
+    }
+    let y0f = y0 as f32;
+    let px: Vec<f32> = (0..LANES).map(|c| (x0 + c as u32) as f32 + 0.5).collect();
+    let mut n = Counts::default();
+    for &gi in lists.flatten() {
+        let s = &splats[gi as usize];
+        let (mx, my) = (s.xy[0], s.xy[1]);
+        let [ca, cb, cc] = s.conic;
+        let (lo, hi) = row_span(my, s.half_height, y0f);
+        // each reached row's contour range [left, right] (empty: +inf, -inf)
+        let mut range = [(f32::INFINITY, f32::NEG_INFINITY); LANES];
+        for r in lo as usize..hi as usize {
+            let dy = my - (y0f + r as f32 + 0.5);
+            let bdy = cb * dy;
+            let disc = s.two_a_level - dy * dy * s.conic_det;
+            if disc >= 0.0 {
+                let sq = disc.sqrt();
+                range[r] = (mx - (sq - bdy) * s.inv_a, mx + (sq + bdy) * s.inv_a);
+            }
+        }
+        for r0 in (0..LANES).step_by(H) {
+            let band = &range[r0..r0 + H];
+            let l = band.iter().map(|v| v.0).fold(f32::INFINITY, f32::min);
+            let r = band.iter().map(|v| v.1).fold(f32::NEG_INFINITY, f32::max);
+            for c0 in (0..LANES).step_by(W) {
+                let any_live = live[r0..r0 + H]
+                    .iter()
+                    .any(|row| row[c0..c0 + W].contains(&true));
+                if any_live && l <= px[c0 + W - 1] && r >= px[c0] {
+                    n.evals += (W * H) as u64;
+                }
+            }
+        }
+        // the per-pixel blend of the generic kernel, on the rows its own test keeps
+        for (r, &(left, right)) in range.iter().enumerate() {
+            if left > px[LANES - 1] || right < px[0] {
+                continue;
+            }
+            let dy = my - (y0f + r as f32 + 0.5);
+            let (bdy, cdy2) = (cb * dy, 0.5 * cc * dy * dy);
+            for (c, &x) in px.iter().enumerate() {
+                if !live[r][c] {
+                    continue;
+                }
+                let dx = mx - x;
+                let sigma = bdy.mul_add(dx, 0.5 * ca * dx * dx) + cdy2;
+                let alpha = opacity_exp::<true>(sigma, s.ln_opacity).min(p.max_alpha);
+                if alpha >= ALPHA_THRESHOLD {
+                    n.useful += 1;
+                    let tn = t[r][c] - alpha * t[r][c];
+                    if tn > T_MIN {
+                        t[r][c] = tn;
+                    } else {
+                        live[r][c] = false;
+                    }
+                }
+            }
+        }
+        if !live.iter().flatten().any(|&v| v) {
+            break;
+        }
+    }
+    n
 }
 
 /// The frame's output buffers, written tile by tile from parallel tasks.

@@ -1,7 +1,9 @@
 //! The AVX2 + FMA blend kernel, written with `core::arch` intrinsics: the organisation of the
 //! AVX-512 kernel (see `blend_avx512.rs`) with each 16-pixel row handled as two 8-lane halves
-//! and lane masks held in vectors instead of mask registers. Same formulas and operation order
-//! as `blend_tile_impl::<true>`, so the same image bits (tested).
+//! and lane masks held in vectors instead of mask registers. The work unit is a half row (8x1
+//! pixels): phase 1 tests the splat's contour range on each row against each half's columns,
+//! so a half the footprint misses is skipped. Same formulas and operation order as
+//! `blend_tile_impl::<true>`, so the same image bits (tested).
 use super::blend::{
     prefetch, BlendParams, Counts, Slot, TileOut, CHUNK, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16,
     EXP_MAGIC, LANES, PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
@@ -11,8 +13,8 @@ use super::project::{Splat, ALPHA_THRESHOLD};
 /// Lanes of one AVX2 vector: a row is two halves.
 const HALF: usize = 8;
 
-/// Blend one tile with AVX2 and FMA; returns the number of Gaussian-pixel evaluations (16 per
-/// row evaluated while the row has live pixels, as the generic kernel counts them).
+/// Blend one tile with AVX2 and FMA; returns the number of Gaussian-pixel evaluations (8 per
+/// half row evaluated while the half has live pixels).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
@@ -54,8 +56,9 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
     ];
     // tile row indices of both halves
     let row_f = [lane_f, _mm256_add_ps(lane_f, eight)];
-    let (xl, xh) = ((x0 as f32) + 0.5, ((x0 + LANES as u32 - 1) as f32) + 0.5);
-    let (v_xl, v_xh) = (_mm256_set1_ps(xl), _mm256_set1_ps(xh));
+    // first and last pixel centres of each half of the columns (exact in float)
+    let v_xl = [0, HALF].map(|c| _mm256_set1_ps((x0 + c as u32) as f32 + 0.5));
+    let v_xh = [HALF - 1, LANES - 1].map(|c| _mm256_set1_ps((x0 + c as u32) as f32 + 0.5));
     let zero = _mm256_setzero_ps();
     let one = _mm256_set1_ps(1.0);
     let max_alpha = _mm256_set1_ps(p.max_alpha);
@@ -86,7 +89,8 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
     let d_ptr = out.d.as_mut_ptr() as *mut f32;
     for list in lists {
         for (c, chunk) in list.chunks(CHUNK).enumerate() {
-            // phase 1, branch-free per splat: the rows it reaches and its exponent's terms
+            // phase 1, branch-free per splat: the row halves it reaches (bit r: columns 0-7 of
+            // row r, bit 16 + r: columns 8-15) and its exponent's terms
             let mut masks = [0u32; CHUNK];
             for (k, &gi) in chunk.iter().enumerate() {
                 if let Some(&ahead) = list.get(c * CHUNK + k + PREFETCH_AHEAD) {
@@ -121,14 +125,18 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                         _mm256_cmp_ps::<_CMP_GE_OQ>(row_f[h], lo),
                         _mm256_cmp_ps::<_CMP_LE_OQ>(row_f[h], hi),
                     );
-                    let m = _mm256_and_ps(
-                        _mm256_and_ps(in_span, _mm256_cmp_ps::<_CMP_GE_OQ>(disc, zero)),
-                        _mm256_and_ps(
-                            _mm256_cmp_ps::<_CMP_NGT_UQ>(left, v_xh),
-                            _mm256_cmp_ps::<_CMP_NLT_UQ>(right, v_xl),
-                        ),
-                    );
-                    ok |= (_mm256_movemask_ps(m) as u32) << (h * HALF);
+                    let m = _mm256_and_ps(in_span, _mm256_cmp_ps::<_CMP_GE_OQ>(disc, zero));
+                    // the rows' contour ranges meet the columns of half 0 and of half 1
+                    for (c, (xl, xh)) in v_xl.iter().zip(&v_xh).enumerate() {
+                        let mc = _mm256_and_ps(
+                            m,
+                            _mm256_and_ps(
+                                _mm256_cmp_ps::<_CMP_NGT_UQ>(left, *xh),
+                                _mm256_cmp_ps::<_CMP_NLT_UQ>(right, *xl),
+                            ),
+                        );
+                        ok |= (_mm256_movemask_ps(mc) as u32) << (h * HALF + c * LANES);
+                    }
                     let cdy2 = _mm256_mul_ps(_mm256_mul_ps(_mm256_set1_ps(0.5 * cc), dy), dy);
                     // per-lane terms of this half of the columns
                     let dx = _mm256_sub_ps(v_mx, px[h]);
@@ -141,7 +149,7 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                         _mm256_store_ps(slot.adx2.as_mut_ptr().add(h * HALF), adx2);
                     }
                 }
-                masks[k] = alive & ok;
+                masks[k] = (alive | alive << LANES) & ok;
             }
             // phase 2, row by row and half by half, state in registers
             // SAFETY: `masks` holds CHUNK = 16 u32.
@@ -151,21 +159,26 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                     _mm256_loadu_si256(masks.as_ptr().add(HALF) as *const _),
                 )
             };
-            let mut todo = masks.iter().fold(0, |a, &m| a | m);
+            let todo = masks.iter().fold(0, |a, &m| a | m);
+            let mut todo = (todo | todo >> LANES) & 0xFFFF;
             while todo != 0 {
                 let r = todo.trailing_zeros() as usize;
                 todo &= todo - 1;
-                // the batch's splats that reach row r, as bits of their batch index
-                let bit = _mm256_set1_epi32(1 << r);
-                let hit = |m| {
-                    let z = _mm256_cmpeq_epi32(_mm256_and_si256(m, bit), _mm256_setzero_si256());
-                    !(_mm256_movemask_ps(_mm256_castsi256_ps(z)) as u32) & 0xFF
-                };
-                let ks_row = hit(m_lo) | hit(m_hi) << HALF;
-                // bits of the splats evaluated while each half had live lanes
-                let mut counted = 0u32;
                 let mut row_live = 0u32;
                 for h in 0..2 {
+                    // the batch's splats that reach half h of row r, as bits of their index
+                    let bit = _mm256_set1_epi32(1 << (r + h * LANES));
+                    let hit = |m| {
+                        let z =
+                            _mm256_cmpeq_epi32(_mm256_and_si256(m, bit), _mm256_setzero_si256());
+                        !(_mm256_movemask_ps(_mm256_castsi256_ps(z)) as u32) & 0xFF
+                    };
+                    let mut ks = hit(m_lo) | hit(m_hi) << HALF;
+                    let lbits = (live[r] >> (h * HALF)) & 0xFF;
+                    if ks == 0 || lbits == 0 {
+                        row_live |= lbits << (h * HALF);
+                        continue;
+                    }
                     let o = r * LANES + h * HALF;
                     // SAFETY: r < 16, h < 2: o..o + 8 lies inside each 256-float array.
                     let (tp, c0p, c1p, c2p, dp) = unsafe {
@@ -187,13 +200,10 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                             _mm256_loadu_ps(dp),
                         )
                     };
-                    let lbits = (live[r] >> (h * HALF)) & 0xFF;
                     let mut lv = _mm256_castsi256_ps(_mm256_cmpeq_epi32(
                         _mm256_and_si256(_mm256_set1_epi32(lbits as i32), lane_bits),
                         lane_bits,
                     ));
-                    let mut lv_any = lbits != 0;
-                    let mut ks = ks_row;
                     while ks != 0 {
                         let k = ks.trailing_zeros() as usize;
                         ks &= ks - 1;
@@ -251,12 +261,12 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                         c2 = _mm256_fmadd_ps(wc, _mm256_set1_ps(s.rgb[2]), c2);
                         d = _mm256_fmadd_ps(wc, _mm256_set1_ps(s.depth), d);
                         t = _mm256_blendv_ps(t, tn, contrib);
-                        counted |= (lv_any as u32) << k;
+                        // every step runs on a half with live lanes: 8 evaluations each
+                        evals += HALF as u64;
                         // valid lanes that do not contribute stop
                         lv = _mm256_or_ps(_mm256_andnot_ps(valid, lv), contrib);
-                        lv_any = _mm256_movemask_ps(lv) != 0;
                         // a half whose lanes all stopped takes no more splats
-                        if !lv_any {
+                        if _mm256_movemask_ps(lv) == 0 {
                             break;
                         }
                     }
@@ -270,7 +280,6 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                     }
                     row_live |= (_mm256_movemask_ps(lv) as u32) << (h * HALF);
                 }
-                evals += LANES as u64 * counted.count_ones() as u64;
                 live[r] = row_live;
                 if row_live == 0 {
                     alive &= !(1 << r);

@@ -2,28 +2,70 @@
 //! generic kernel it mirrors operation for operation, so both give the same bits).
 use super::blend::{
     prefetch, BlendParams, Counts, Slot, TileOut, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16,
-    EXP_MAGIC, LANES, PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
+    EXP_MAGIC, LANES, SIGMA_CLAMP, T_MIN,
 };
 use super::project::{Splat, ALPHA_THRESHOLD};
 
-/// Splats per batch of this kernel (twice the AVX2 kernel's `CHUNK`): a row's state is loaded
-/// and stored once per batch, so longer batches amortise that over more splats.
+/// Splats per batch of this kernel (twice the AVX2 kernel's `CHUNK`): a block's state is
+/// loaded and stored once per batch, so longer batches amortise that over more splats.
 const BATCH: usize = 32;
 
-/// Explicit AVX-512 kernel: the same formulas and operation order as `blend_tile_impl::<true>`,
-/// so the same image bits, organised for the CPU rather than per splat. The tile's list is taken
-/// in batches of `BATCH` splats:
-/// - phase 1, branch-free per splat: the contour test of all 16 rows at once (one mask of the
-///   rows it reaches), and the per-row (b dy, 0.5 c dy^2) and per-lane (dx, 0.5 a dx^2) terms
-///   of its exponent, kept in `slots`;
-/// - phase 2, two rows at a time in lockstep: each row's transmittance, colour and depth stay
-///   in registers while the batch's splats that reach the row (one mask test over the 16 row
-///   masks) are blended in list order, with masked accumulations. Lanes that stop are dropped
-///   from the row's `live` mask; a row with none left takes no more splats and is done.
+/// How many list entries ahead this kernel prefetches splats: one batch, so each splat's load
+/// is asked for a whole phase 2 before its phase 1 (the generic `PREFETCH_AHEAD` is 16, half a
+/// batch here, which left the second half of each batch waiting for its splats on grid-5).
+const PREFETCH: usize = BATCH;
+
+/// The tile's state in block order: `t[b][i]` is the pixel of lane i of block b, at tile row
+/// 4 (b / 4) + i / 4 and column 4 (b % 4) + i % 4 (see [`block_pixel`]).
+#[repr(C, align(64))]
+struct Blocks {
+    t: [[f32; LANES]; LANES],
+    c: [[[f32; LANES]; LANES]; 3],
+    d: [[f32; LANES]; LANES],
+}
+
+/// Tile (row, column) of lane `i` of 4x4 block `b`: blocks are numbered row by row over the
+/// tile (b = 4 block-row + block-column), lanes row by row inside a block.
+#[inline(always)]
+const fn block_pixel(b: usize, i: usize) -> (usize, usize) {
+    (4 * (b / 4) + i / 4, 4 * (b % 4) + i % 4)
+}
+
+impl Blocks {
+    /// Copy the state into `out`'s row order.
+    fn write_rows(&self, out: &mut TileOut) {
+        for b in 0..LANES {
+            for q in 0..4 {
+                let (r, c) = block_pixel(b, 4 * q);
+                let lanes = 4 * q..4 * q + 4;
+                out.t[r][c..c + 4].copy_from_slice(&self.t[b][lanes.clone()]);
+                for ch in 0..3 {
+                    out.c[ch][r][c..c + 4].copy_from_slice(&self.c[ch][b][lanes.clone()]);
+                }
+                out.d[r][c..c + 4].copy_from_slice(&self.d[b][lanes]);
+            }
+        }
+    }
+}
+
+/// Explicit AVX-512 kernel: per pixel the same formulas and operation order as
+/// `blend_tile_impl::<true>`, so the same image bits, organised for the CPU rather than per
+/// splat. The work unit is a 4x4-pixel block (one 16-lane vector): a splat's footprint of about
+/// 9 pixels costs about 4 blocks of a tile where it cost about 9 rows of 16 pixels, most of
+/// whose lanes lay outside it. The tile's list is taken in batches of `BATCH` splats:
+/// - phase 1, branch-free per splat: the contour's x-range on each of the 16 rows (the rows
+///   test of the generic kernel), its hull over each 4-row band, and from it one mask of the
+///   blocks whose pixel centres it can reach; and the per-row (b dy, 0.5 c dy^2) and per-column
+///   (dx, 0.5 a dx^2) terms of its exponent, kept in `slots`;
+/// - phase 2, two blocks at a time in lockstep: each block's transmittance, colour and depth
+///   stay in registers while the batch's splats that reach the block are blended in list order,
+///   with masked accumulations; the block's lanes take their row terms by a permute and their
+///   column terms by a 4-lane broadcast, the same values the generic kernel uses. Lanes that
+///   stop are dropped from the block's `live` mask; a block with none left takes no more splats.
 ///
-/// Keeping a row in registers takes the store-to-load round trip out of the per-splat
-/// dependency chain on T, which (with the opacity folded into the exponential) is what lifts
-/// the kernel from about 1.6 to about 2.9 G evaluations/s on 2 Zen 4 cores.
+/// A skipped block, like a skipped row of the generic kernel, has every pixel outside the
+/// splat's 1/255 contour (alpha below the threshold), so blending it would change nothing; a
+/// block's lanes outside the contour are masked by the alpha test as a row's are.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
 pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
@@ -36,18 +78,22 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
 ) -> Counts {
     use std::arch::x86_64::*;
 
-    // lanes and rows outside the image start done: `live` holds each row's lanes that may still
-    // take splats (the generic kernel marks done lanes with a negative T instead; both write
-    // |T| out, so the images agree)
+    // lanes outside the image start done: `live` holds each block's lanes that may still take
+    // splats (the generic kernel marks done lanes with a negative T instead; both write |T|
+    // out, so the images agree); `alive` the blocks with live lanes
     let mut live = [0u16; LANES];
-    let mut alive: u32 = 0;
-    let cols = p.width.saturating_sub(x0).min(LANES as u32);
-    for (r, row) in live.iter_mut().enumerate() {
-        if y0 + (r as u32) < p.height {
-            *row = ((1u32 << cols) - 1) as u16;
-            if cols > 0 {
-                alive |= 1 << r;
+    let mut alive: u16 = 0;
+    let cols = p.width.saturating_sub(x0).min(LANES as u32) as usize;
+    let rows = p.height.saturating_sub(y0).min(LANES as u32) as usize;
+    for (b, lv) in live.iter_mut().enumerate() {
+        for i in 0..LANES {
+            let (r, c) = block_pixel(b, i);
+            if r < rows && c < cols {
+                *lv |= 1 << i;
             }
+        }
+        if *lv != 0 {
+            alive |= 1 << b;
         }
     }
     let lane_f = _mm512_setr_ps(
@@ -63,8 +109,22 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
         _mm512_add_ps(_mm512_set1_ps(y0f), lane_f),
         _mm512_set1_ps(0.5),
     );
-    let (xl, xh) = ((x0 as f32) + 0.5, ((x0 + LANES as u32 - 1) as f32) + 0.5);
-    let (v_xl, v_xh) = (_mm512_set1_ps(xl), _mm512_set1_ps(xh));
+    // lane 4 br + bc: the first and last pixel centres of block column bc (exact in float)
+    let col_f = _mm512_setr_ps(
+        0.0, 4.0, 8.0, 12.0, 0.0, 4.0, 8.0, 12.0, 0.0, 4.0, 8.0, 12.0, 0.0, 4.0, 8.0, 12.0,
+    );
+    let v_bxl = _mm512_add_ps(
+        _mm512_add_ps(_mm512_set1_ps(x0 as f32), col_f),
+        _mm512_set1_ps(0.5),
+    );
+    let v_bxh = _mm512_add_ps(
+        _mm512_add_ps(_mm512_set1_ps(x0 as f32), col_f),
+        _mm512_set1_ps(3.5),
+    );
+    // lane i of a block takes the row terms of its row 4 br + i / 4
+    let quarter = _mm512_setr_epi32(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3);
+    let inf = _mm512_set1_ps(f32::INFINITY);
+    let neg_inf = _mm512_set1_ps(f32::NEG_INFINITY);
     let zero = _mm512_setzero_ps();
     let one = _mm512_set1_ps(1.0);
     let max_alpha = _mm512_set1_ps(p.max_alpha);
@@ -82,69 +142,73 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
     let mut evals = 0u64;
     let mut useful = 0u64;
     let mut slots = [Slot::default(); BATCH];
-    let t_ptr = out.t.as_mut_ptr() as *mut f32;
-    let c0_ptr = out.c[0].as_mut_ptr() as *mut f32;
-    let c1_ptr = out.c[1].as_mut_ptr() as *mut f32;
-    let c2_ptr = out.c[2].as_mut_ptr() as *mut f32;
-    let d_ptr = out.d.as_mut_ptr() as *mut f32;
-    // a row's state in registers: transmittance, colour and depth sums, live lanes
-    struct Row {
+    let mut st = Blocks {
+        t: [[1.0; LANES]; LANES],
+        c: [[[0.0; LANES]; LANES]; 3],
+        d: [[0.0; LANES]; LANES],
+    };
+    // a block's state in registers: transmittance, colour and depth sums, live lanes, and
+    // where its lanes find their row terms (permute indices) and column terms (offset)
+    struct Blk {
         t: __m512,
         c0: __m512,
         c1: __m512,
         c2: __m512,
         d: __m512,
         lv: u16,
+        idx: __m512i,
+        col: usize,
     }
-    macro_rules! load_row {
-        ($r:expr) => {{
-            let o = $r * LANES;
-            // SAFETY: r < 16, so o..o + 16 lies inside each 256-float array of `out`.
+    macro_rules! load_blk {
+        ($b:expr) => {{
+            let b: usize = $b;
+            // SAFETY: b < 16: each array of `st` holds 16 aligned rows of 16 floats.
             unsafe {
-                Row {
-                    t: _mm512_loadu_ps(t_ptr.add(o)),
-                    c0: _mm512_loadu_ps(c0_ptr.add(o)),
-                    c1: _mm512_loadu_ps(c1_ptr.add(o)),
-                    c2: _mm512_loadu_ps(c2_ptr.add(o)),
-                    d: _mm512_loadu_ps(d_ptr.add(o)),
-                    lv: live[$r],
+                Blk {
+                    t: _mm512_load_ps(st.t[b].as_ptr()),
+                    c0: _mm512_load_ps(st.c[0][b].as_ptr()),
+                    c1: _mm512_load_ps(st.c[1][b].as_ptr()),
+                    c2: _mm512_load_ps(st.c[2][b].as_ptr()),
+                    d: _mm512_load_ps(st.d[b].as_ptr()),
+                    lv: live[b],
+                    idx: _mm512_add_epi32(quarter, _mm512_set1_epi32(4 * (b / 4) as i32)),
+                    col: 4 * (b % 4),
                 }
             }
         }};
     }
-    macro_rules! store_row {
-        ($row:ident, $r:expr) => {{
-            let o = $r * LANES;
-            // SAFETY: as in `load_row`
+    macro_rules! store_blk {
+        ($blk:ident, $b:expr) => {{
+            let b: usize = $b;
+            // SAFETY: as in `load_blk`
             unsafe {
-                _mm512_storeu_ps(t_ptr.add(o), $row.t);
-                _mm512_storeu_ps(c0_ptr.add(o), $row.c0);
-                _mm512_storeu_ps(c1_ptr.add(o), $row.c1);
-                _mm512_storeu_ps(c2_ptr.add(o), $row.c2);
-                _mm512_storeu_ps(d_ptr.add(o), $row.d);
+                _mm512_store_ps(st.t[b].as_mut_ptr(), $blk.t);
+                _mm512_store_ps(st.c[0][b].as_mut_ptr(), $blk.c0);
+                _mm512_store_ps(st.c[1][b].as_mut_ptr(), $blk.c1);
+                _mm512_store_ps(st.c[2][b].as_mut_ptr(), $blk.c2);
+                _mm512_store_ps(st.d[b].as_mut_ptr(), $blk.d);
             }
-            live[$r] = $row.lv;
-            if $row.lv == 0 {
-                alive &= !(1 << $r);
+            live[b] = $blk.lv;
+            if $blk.lv == 0 {
+                alive &= !(1 << b);
             }
         }};
     }
-    // blend batch splat k into row r
+    // blend batch splat k into a block
     macro_rules! step {
-        ($row:ident, $r:expr, $k:expr) => {{
+        ($blk:ident, $k:expr) => {{
             let slot = &slots[$k];
             let s = &slot.splat;
-            // SAFETY: both arrays hold 16 aligned floats.
-            let (dx, adx2) = unsafe {
+            // SAFETY: each array holds 16 aligned floats and col + 4 <= 16.
+            let (dx, adx2, bdy, cdy2) = unsafe {
                 (
-                    _mm512_load_ps(slot.dx.as_ptr()),
-                    _mm512_load_ps(slot.adx2.as_ptr()),
+                    _mm512_broadcast_f32x4(_mm_load_ps(slot.dx.as_ptr().add($blk.col))),
+                    _mm512_broadcast_f32x4(_mm_load_ps(slot.adx2.as_ptr().add($blk.col))),
+                    _mm512_permutexvar_ps($blk.idx, _mm512_load_ps(slot.bdy.as_ptr())),
+                    _mm512_permutexvar_ps($blk.idx, _mm512_load_ps(slot.cdy2.as_ptr())),
                 )
             };
-            let sigma = _mm512_add_ps(
-                _mm512_fmadd_ps(_mm512_set1_ps(slot.bdy[$r]), dx, adx2),
-                _mm512_set1_ps(slot.cdy2[$r]),
-            );
+            let sigma = _mm512_add_ps(_mm512_fmadd_ps(bdy, dx, adx2), cdy2);
             // alpha = exp(ln_op - sigma), exactly as blend::opacity_exp::<true>
             let sg = _mm512_castsi512_ps(_mm512_min_epu32(_mm512_castps_si512(sigma), clamp));
             let u = _mm512_sub_ps(sg, _mm512_set1_ps(s.ln_opacity));
@@ -161,29 +225,29 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
             let tab = _mm512_permutexvar_ps(_mm512_castps_si512(tk), table);
             let ev = _mm512_scalef_ps(_mm512_mul_ps(y, tab), _mm512_mul_ps(kf, sixteenth));
             let alpha = _mm512_min_ps(ev, max_alpha);
-            let valid = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>($row.lv, alpha, thr);
+            let valid = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>($blk.lv, alpha, thr);
             if COUNT {
                 useful += valid.count_ones() as u64;
             }
-            let w = _mm512_mul_ps(alpha, $row.t);
-            let tn = _mm512_sub_ps($row.t, w);
+            let w = _mm512_mul_ps(alpha, $blk.t);
+            let tn = _mm512_sub_ps($blk.t, w);
             let contrib = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(valid, tn, t_min);
-            $row.c0 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[0]), $row.c0, contrib);
-            $row.c1 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[1]), $row.c1, contrib);
-            $row.c2 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[2]), $row.c2, contrib);
-            $row.d = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.depth), $row.d, contrib);
-            $row.t = _mm512_mask_mov_ps($row.t, contrib, tn);
+            $blk.c0 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[0]), $blk.c0, contrib);
+            $blk.c1 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[1]), $blk.c1, contrib);
+            $blk.c2 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[2]), $blk.c2, contrib);
+            $blk.d = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.depth), $blk.d, contrib);
+            $blk.t = _mm512_mask_mov_ps($blk.t, contrib, tn);
             // valid lanes that do not contribute stop
-            $row.lv = _kor_mask16(_kandn_mask16(valid, $row.lv), contrib);
+            $blk.lv = _kor_mask16(_kandn_mask16(valid, $blk.lv), contrib);
         }};
     }
     for list in lists {
         for (c, chunk) in list.chunks(BATCH).enumerate() {
-            // phase 1, branch-free per splat: which rows of the tile it reaches, and the
-            // per-row and per-lane terms of its exponent
+            // phase 1, branch-free per splat: which blocks of the tile it reaches, and the
+            // per-row and per-column terms of its exponent
             let mut masks = [0u32; BATCH];
             for (k, &gi) in chunk.iter().enumerate() {
-                if let Some(&ahead) = list.get(c * BATCH + k + PREFETCH_AHEAD) {
+                if let Some(&ahead) = list.get(c * BATCH + k + PREFETCH) {
                     prefetch(splats, ahead as usize);
                 }
                 let s = &splats[gi as usize];
@@ -194,10 +258,10 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
                 // y0), i.e. (r an integer, the splat finite) the two bounds compared with r
                 let lo = _mm512_set1_ps(my - ey - 0.5 - y0f);
                 let hi = _mm512_set1_ps(my + ey - 0.5 - y0f);
-                let range = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(alive as u16, lane_f, lo);
+                let range = _mm512_cmp_ps_mask::<_CMP_GE_OQ>(lane_f, lo);
                 let range = _mm512_mask_cmp_ps_mask::<_CMP_LE_OQ>(range, lane_f, hi);
-                // the contour test of every row at once: disc = 2 a level - dy^2 det >= 0 and
-                // the contour's dx range [(-b dy - sq) / a, (-b dy + sq) / a] reaches the tile
+                // the contour on every row at once: disc = 2 a level - dy^2 det >= 0, and its
+                // dx range [(-b dy - sq) / a, (-b dy + sq) / a], pixels [left, right]
                 let v_mx = _mm512_set1_ps(mx);
                 let dy = _mm512_sub_ps(_mm512_set1_ps(my), py);
                 let bdy = _mm512_mul_ps(_mm512_set1_ps(cb), dy);
@@ -211,16 +275,25 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
                 let inv_a = _mm512_set1_ps(s.inv_a);
                 let left = _mm512_sub_ps(v_mx, _mm512_mul_ps(_mm512_sub_ps(sq, bdy), inv_a));
                 let right = _mm512_add_ps(v_mx, _mm512_mul_ps(_mm512_add_ps(sq, bdy), inv_a));
-                let ok = _mm512_mask_cmp_ps_mask::<_CMP_NGT_UQ>(ok, left, v_xh);
-                let ok = _mm512_mask_cmp_ps_mask::<_CMP_NLT_UQ>(ok, right, v_xl);
-                let rows = ok as u32;
+                // the hull of the reached rows' ranges over each band of 4 rows, in every lane
+                // of the band (rows not reached: an empty range)
+                let l = _mm512_mask_mov_ps(inf, ok, left);
+                let r = _mm512_mask_mov_ps(neg_inf, ok, right);
+                let l = _mm512_min_ps(l, _mm512_permute_ps::<0b10_11_00_01>(l));
+                let r = _mm512_max_ps(r, _mm512_permute_ps::<0b10_11_00_01>(r));
+                let l = _mm512_min_ps(l, _mm512_permute_ps::<0b01_00_11_10>(l));
+                let r = _mm512_max_ps(r, _mm512_permute_ps::<0b01_00_11_10>(r));
+                // lane 4 br + bc: block (br, bc) is reached when the band's hull meets the
+                // block's columns [x0 + 4 bc + 0.5, x0 + 4 bc + 3.5]
+                let blocks = _mm512_mask_cmp_ps_mask::<_CMP_LE_OQ>(alive, l, v_bxh);
+                let blocks = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(blocks, r, v_bxl);
                 let cdy2 = _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(0.5 * cc), dy), dy);
-                // per-lane terms shared by every row: dx and 0.5 a dx^2
+                // per-column terms: dx and 0.5 a dx^2
                 let dx = _mm512_sub_ps(v_mx, px);
                 let adx2 = _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(0.5 * ca), dx), dx);
                 let slot = &mut slots[k];
                 slot.splat = *s;
-                masks[k] = rows;
+                masks[k] = blocks as u32;
                 // SAFETY: each array holds 16 aligned floats.
                 unsafe {
                     _mm512_store_ps(slot.bdy.as_mut_ptr(), bdy);
@@ -229,9 +302,9 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
                     _mm512_store_ps(slot.adx2.as_mut_ptr(), adx2);
                 }
             }
-            // phase 2, rows two at a time: each row's transmittance, colour and depth stay in
-            // registers while the batch's splats that reach it are blended in list order; the
-            // two rows are independent, so their dependency chains on T overlap
+            // phase 2, blocks two at a time: each block's transmittance, colour and depth stay
+            // in registers while the batch's splats that reach it are blended in list order;
+            // the two blocks are independent, so their dependency chains on T overlap
             // SAFETY: `masks` holds BATCH = 32 u32.
             let (m0, m1) = unsafe {
                 (
@@ -240,35 +313,35 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
                 )
             };
             let mut todo = _mm512_reduce_or_epi32(_mm512_or_si512(m0, m1)) as u32;
-            // the batch's splats that reach row r, as bits of their batch index
-            macro_rules! row_splats {
-                ($r:expr) => {{
-                    let bit = _mm512_set1_epi32(1 << $r);
+            // the batch's splats that reach block b, as bits of their batch index
+            macro_rules! blk_splats {
+                ($b:expr) => {{
+                    let bit = _mm512_set1_epi32(1 << $b);
                     _mm512_test_epi32_mask(m0, bit) as u32
                         | (_mm512_test_epi32_mask(m1, bit) as u32) << 16
                 }};
             }
             let mut steps = 0u64;
             while todo != 0 {
-                let ra = todo.trailing_zeros() as usize;
+                let ba = todo.trailing_zeros() as usize;
                 todo &= todo - 1;
-                let mut ksa = row_splats!(ra);
-                let mut a = load_row!(ra);
+                let mut ksa = blk_splats!(ba);
+                let mut a = load_blk!(ba);
                 if todo != 0 {
-                    let rb = todo.trailing_zeros() as usize;
+                    let bb = todo.trailing_zeros() as usize;
                     todo &= todo - 1;
-                    let mut ksb = row_splats!(rb);
-                    let mut b = load_row!(rb);
-                    // both rows in lockstep while both have splats and live lanes
+                    let mut ksb = blk_splats!(bb);
+                    let mut b = load_blk!(bb);
+                    // both blocks in lockstep while both have splats and live lanes
                     while ksa != 0 && ksb != 0 {
                         let ka = ksa.trailing_zeros() as usize;
                         ksa &= ksa - 1;
                         let kb = ksb.trailing_zeros() as usize;
                         ksb &= ksb - 1;
-                        step!(a, ra, ka);
-                        step!(b, rb, kb);
+                        step!(a, ka);
+                        step!(b, kb);
                         steps += 2;
-                        // a row whose lanes all stopped takes no more splats
+                        // a block whose lanes all stopped takes no more splats
                         if a.lv == 0 {
                             ksa = 0;
                         }
@@ -279,31 +352,33 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
                     while ksb != 0 {
                         let k = ksb.trailing_zeros() as usize;
                         ksb &= ksb - 1;
-                        step!(b, rb, k);
+                        step!(b, k);
                         steps += 1;
                         if b.lv == 0 {
                             break;
                         }
                     }
-                    store_row!(b, rb);
+                    store_blk!(b, bb);
                 }
                 while ksa != 0 {
                     let k = ksa.trailing_zeros() as usize;
                     ksa &= ksa - 1;
-                    step!(a, ra, k);
+                    step!(a, k);
                     steps += 1;
                     if a.lv == 0 {
                         break;
                     }
                 }
-                store_row!(a, ra);
+                store_blk!(a, ba);
             }
-            // every step ran on a row with live lanes: 16 evaluations each
+            // every step ran on a block with live lanes: 16 evaluations each
             evals += LANES as u64 * steps;
             if alive == 0 {
+                st.write_rows(out);
                 return Counts { evals, useful };
             }
         }
     }
+    st.write_rows(out);
     Counts { evals, useful }
 }
