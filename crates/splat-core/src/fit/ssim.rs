@@ -56,22 +56,22 @@ pub fn window() -> [f32; TAPS] {
     w.map(|v| (v / s) as f32)
 }
 
-/// Scratch planes of the SSIM passes, reused. Layout "row-planar": image row y holds its three
-/// channel rows one after another, value (y, c, x) at (3 y + c) W + x, so every pass splits its
-/// outputs into disjoint per-row blocks.
+/// Buffers of the SSIM, reused across calls: one set of rings and row buffers per band (see
+/// `band_rows`), and the per-row sums.
 #[derive(Default)]
 pub struct SsimWorkspace {
-    /// The prediction and the target, split into channel rows.
-    x: Vec<f32>,
-    y: Vec<f32>,
-    /// Horizontal blurs of x, y, x^2, y^2, xy (pass 1).
-    h: [Vec<f32>; 5],
-    /// Horizontal blurs of the partials g dS/dmu_x, g dS/de_xx, g dS/de_xy (pass 2).
-    hp: [Vec<f32>; 3],
+    bands: Vec<Band>,
     row_sums: Vec<f64>,
+    l1_sums: Vec<(f64, f64)>,
+    /// Rows per band; 0 picks from the image height and the thread count (any value gives
+    /// the same bits).
+    pub band_rows: usize,
     /// Which row kernels run (all give the same bits).
     pub simd: Simd,
 }
+
+/// A ring slot that is outside the image (its rows are zeros).
+const NONE: usize = usize::MAX;
 
 /// `out[i] = sum_t k[t] src[i + t]`, summed in tap order in a register per output value.
 #[inline(always)]
@@ -109,35 +109,40 @@ fn hblur(src: &[f32], pad: &mut [f32], out: &mut [f32], k: &[f32; TAPS]) {
     taps(e, &mut out[w - RADIUS..w], k);
 }
 
-/// Vertical 11-tap blur of channel `c` at image row `y` of a row-planar buffer (rows outside
-/// the image are zeros), summed in tap order in a register per output value.
+/// Vertical 11-tap blur: `out[i] = sum_t k[t] rows[t][i]` (rows outside the image are zero
+/// rows), summed in tap order in a register per output value.
 #[inline(always)]
-fn vblur(
-    plane: &[f32],
-    w: usize,
-    h: usize,
-    c: usize,
-    y: usize,
-    zeros: &[f32],
-    out: &mut [f32],
-    k: &[f32; TAPS],
-) {
-    let rows: [&[f32]; TAPS] = std::array::from_fn(|t| {
-        let yy = y as isize + t as isize - RADIUS as isize;
-        if yy < 0 || yy >= h as isize {
-            &zeros[..w]
-        } else {
-            let at = (yy as usize * 3 + c) * w;
-            &plane[at..at + w]
-        }
-    });
-    for (i, o) in out[..w].iter_mut().enumerate() {
+fn vblur(rows: &[&[f32]; TAPS], out: &mut [f32], k: &[f32; TAPS]) {
+    let w = out.len();
+    let r: [&[f32]; TAPS] = std::array::from_fn(|t| &rows[t][..w]);
+    for (i, o) in out.iter_mut().enumerate() {
         let mut s = 0.0f32;
         for t in 0..TAPS {
-            s += k[t] * rows[t][i];
+            s += k[t] * r[t][i];
         }
         *o = s;
     }
+}
+
+/// The 11 rows of block `block` (of `blocks` blocks of W values a slot) around a ring's row:
+/// slot `slots[t]` of the ring, or the zero row where `slots[t]` is `NONE` (outside the image).
+#[inline(always)]
+fn ring_rows<'a>(
+    ring: &'a [f32],
+    slots: &[usize; TAPS],
+    blocks: usize,
+    block: usize,
+    zeros: &'a [f32],
+) -> [&'a [f32]; TAPS] {
+    let w = zeros.len();
+    std::array::from_fn(|t| {
+        if slots[t] == NONE {
+            zeros
+        } else {
+            let at = (slots[t] * blocks + block) * w;
+            &ring[at..at + w]
+        }
+    })
 }
 
 /// Row buffers of one task, reused across the rows it runs.
@@ -147,6 +152,9 @@ struct Scratch {
     v: [Vec<f32>; 5],
     p: [Vec<f32>; 3],
     zeros: Vec<f32>,
+    /// The row's prediction and target split into channel rows (3W each).
+    xr: Vec<f32>,
+    yr: Vec<f32>,
 }
 
 impl Scratch {
@@ -157,6 +165,8 @@ impl Scratch {
             v: std::array::from_fn(|_| vec![0.0; w]),
             p: std::array::from_fn(|_| vec![0.0; w]),
             zeros: vec![0.0; w],
+            xr: vec![0.0; 3 * w],
+            yr: vec![0.0; 3 * w],
         }
     }
 }
@@ -191,79 +201,90 @@ pub(crate) fn fold_lanes(mut acc: [f64; LANES]) -> f64 {
     acc[0]
 }
 
-/// Pass 1 for one image row: split the channels (clamping the prediction when asked) and blur
-/// x, y, x^2, y^2, xy horizontally. Slices are the row's blocks (3W values).
+/// Split one interleaved RGB row into channel rows (3W): value (c, i) at c W + i.
 #[inline(always)]
-fn pass1_row(
+fn split(src: &[f32], out: &mut [f32], w: usize) {
+    for c in 0..3 {
+        let o = &mut out[c * w..(c + 1) * w];
+        for i in 0..w {
+            o[i] = src[i * 3 + c];
+        }
+    }
+}
+
+/// Stage A for one image row: split the channels (clamping the prediction when asked) and blur
+/// x, y, x^2, y^2, xy horizontally into `slot` (5 quantities x 3 channels x W, quantity-major).
+#[inline(always)]
+fn stage_a_row(
     pred: &[f32],
     target: &[f32],
     clamp: bool,
-    xr: &mut [f32],
-    yr: &mut [f32],
-    h: [&mut [f32]; 5],
+    slot: &mut [f32],
     k: &[f32; TAPS],
     sc: &mut Scratch,
 ) {
     let w = pred.len() / 3;
-    let (pad, tmp) = (&mut sc.pad, &mut sc.tmp[..w]);
-    let [h0, h1, h2, h3, h4] = h;
+    let Scratch {
+        pad, tmp, xr, yr, ..
+    } = sc;
+    let tmp = &mut tmp[..w];
+    split(pred, xr, w);
+    split(target, yr, w);
+    if clamp {
+        for v in xr.iter_mut() {
+            *v = v.clamp(0.0, 1.0);
+        }
+    }
+    let block = |m: usize, c: usize| (m * 3 + c) * w..(m * 3 + c + 1) * w;
     for c in 0..3 {
         let r = c * w..(c + 1) * w;
-        let (xs, ys) = (&mut xr[r.clone()], &mut yr[r.clone()]);
-        for i in 0..w {
-            xs[i] = pred[i * 3 + c];
-            ys[i] = target[i * 3 + c];
-        }
-        if clamp {
-            for v in xs.iter_mut() {
-                *v = v.clamp(0.0, 1.0);
-            }
-        }
-        hblur(xs, pad, &mut h0[r.clone()], k);
-        hblur(ys, pad, &mut h1[r.clone()], k);
+        let (xs, ys) = (&xr[r.clone()], &yr[r]);
+        hblur(xs, pad, &mut slot[block(0, c)], k);
+        hblur(ys, pad, &mut slot[block(1, c)], k);
         for i in 0..w {
             tmp[i] = xs[i] * xs[i];
         }
-        hblur(tmp, pad, &mut h2[r.clone()], k);
+        hblur(tmp, pad, &mut slot[block(2, c)], k);
         for i in 0..w {
             tmp[i] = ys[i] * ys[i];
         }
-        hblur(tmp, pad, &mut h3[r.clone()], k);
+        hblur(tmp, pad, &mut slot[block(3, c)], k);
         for i in 0..w {
             tmp[i] = xs[i] * ys[i];
         }
-        hblur(tmp, pad, &mut h4[r], k);
+        hblur(tmp, pad, &mut slot[block(4, c)], k);
     }
 }
 
-/// Pass 2 for image row `y`: vertical blurs, the SSIM map (returns its row sum) and, with `gs`,
-/// the partials times gs, blurred horizontally into the row's blocks `hp`.
+/// Stage B for one image row: vertical blurs of stage A's ring rows `slots` (see
+/// `ring_rows`), the SSIM map (returns its row sum: per channel a lane sum, channels added in
+/// order) and, with `gs`, the partials times gs, blurred horizontally into `out` (3 partials x
+/// 3 channels x W, partial-major).
 #[inline(always)]
-fn pass2_row(
-    h: [&[f32]; 5],
-    wh: (usize, usize),
-    y: usize,
+fn stage_b_row(
+    ring: &[f32],
+    slots: &[usize; TAPS],
     gs: Option<f32>,
-    hp: [&mut [f32]; 3],
+    out: &mut [f32],
     k: &[f32; TAPS],
     sc: &mut Scratch,
 ) -> f64 {
-    let (w, hh) = wh;
-    let [ha, hb, hc] = hp;
+    let w = sc.zeros.len();
     let Scratch {
         pad,
         tmp,
         v,
         p,
         zeros,
+        ..
     } = sc;
     let [pa, pb, pc] = p;
     let (pa, pb, pc) = (&mut pa[..w], &mut pb[..w], &mut pc[..w]);
     let srow = &mut tmp[..w];
     let mut sum = 0.0f64;
     for c in 0..3 {
-        for (m, out) in v.iter_mut().enumerate() {
-            vblur(h[m], w, hh, c, y, zeros, out, k);
+        for (m, o) in v.iter_mut().enumerate() {
+            vblur(&ring_rows(ring, slots, 15, m * 3 + c, zeros), &mut o[..w], k);
         }
         let [v0, v1, v2, v3, v4] = &*v;
         let (v0, v1, v2, v3, v4) = (&v0[..w], &v1[..w], &v2[..w], &v3[..w], &v4[..w]);
@@ -286,10 +307,10 @@ fn pass2_row(
                     pb[i] = -(gi * s * b1);
                     pc[i] = 2.0 * gi * a1;
                 }
-                let r = c * w..(c + 1) * w;
-                hblur(pa, pad, &mut ha[r.clone()], k);
-                hblur(pb, pad, &mut hb[r.clone()], k);
-                hblur(pc, pad, &mut hc[r], k);
+                let block = |m: usize| (m * 3 + c) * w..(m * 3 + c + 1) * w;
+                hblur(pa, pad, &mut out[block(0)], k);
+                hblur(pb, pad, &mut out[block(1)], k);
+                hblur(pc, pad, &mut out[block(2)], k);
             }
             None => {
                 for i in 0..w {
@@ -307,27 +328,37 @@ fn pass2_row(
     sum
 }
 
-/// Pass 3 for image row `y`: vertical blurs of the blurred partials, combined with the row's x
-/// and y blocks into the gradient row (interleaved RGB).
+/// Stage C for one image row: vertical blurs of stage B's ring rows `slots`, combined with the
+/// row's prediction and target into the gradient row `out` (interleaved RGB); with `gl1`, the
+/// L1 term is added to it (`l1_row`) and its row sums returned.
 #[inline(always)]
-fn pass3_row(
-    hp: [&[f32]; 3],
-    x: &[f32],
-    yv: &[f32],
-    wh: (usize, usize),
-    y: usize,
+fn stage_c_row(
+    ring: &[f32],
+    slots: &[usize; TAPS],
+    pred: &[f32],
+    target: &[f32],
+    gl1: Option<f32>,
     out: &mut [f32],
     k: &[f32; TAPS],
     sc: &mut Scratch,
-) {
-    let (w, hh) = wh;
-    let (v, rows, zeros) = (&mut sc.v, &mut sc.p, &sc.zeros);
+) -> (f64, f64) {
+    let w = sc.zeros.len();
+    split(pred, &mut sc.xr, w);
+    split(target, &mut sc.yr, w);
+    let Scratch {
+        v,
+        p: rows,
+        zeros,
+        xr,
+        yr,
+        ..
+    } = sc;
     for (c, r) in rows.iter_mut().enumerate() {
         for (m, o) in v[..3].iter_mut().enumerate() {
-            vblur(hp[m], w, hh, c, y, zeros, o, k);
+            vblur(&ring_rows(ring, slots, 9, m * 3 + c, zeros), &mut o[..w], k);
         }
         let (v0, v1, v2) = (&v[0][..w], &v[1][..w], &v[2][..w]);
-        let (xc, yc) = (&x[c * w..(c + 1) * w], &yv[c * w..(c + 1) * w]);
+        let (xc, yc) = (&xr[c * w..(c + 1) * w], &yr[c * w..(c + 1) * w]);
         for i in 0..w {
             r[i] = v0[i] + 2.0 * xc[i] * v1[i] + yc[i] * v2[i];
         }
@@ -337,6 +368,10 @@ fn pass3_row(
         o[0] = r0[i];
         o[1] = r1[i];
         o[2] = r2[i];
+    }
+    match gl1 {
+        Some(g) => l1_row(out, pred, target, g),
+        None => (0.0, 0.0),
     }
 }
 
@@ -371,26 +406,132 @@ fn l1_row(g: &mut [f32], p: &[f32], t: &[f32], gl1: f32) -> (f64, f64) {
     (fold_lanes(l1), fold_lanes(se))
 }
 
-/// The row kernels compiled for one instruction set (the same source, so the same bits).
+/// What every band of one call computes.
+#[derive(Clone, Copy)]
+struct Job<'a> {
+    pred: &'a [f32],
+    target: &'a [f32],
+    w: usize,
+    h: usize,
+    clamp: bool,
+    /// The map's gradient scale (with it, stages B and C run for the gradient).
+    gs: Option<f32>,
+    /// The L1 term's gradient scale (with it, stage C adds the L1 term and its sums).
+    gl1: Option<f32>,
+}
+
+/// One band task's rings and row buffers, kept across calls.
+struct Band {
+    /// Stage A's ring: 11 slots of 5 quantities x 3 channels x W.
+    a: Vec<f32>,
+    /// Stage B's ring: 11 slots of 3 partials x 3 channels x W (gradient only).
+    b: Vec<f32>,
+    sc: Scratch,
+}
+
+impl Band {
+    fn new(w: usize, grad: bool) -> Self {
+        Band {
+            a: vec![0.0; TAPS * 15 * w],
+            b: vec![0.0; if grad { TAPS * 9 * w } else { 0 }],
+            sc: Scratch::new(w),
+        }
+    }
+}
+
+/// One band of image rows, y0 .. y0 + sums.len(), streamed top to bottom: stage A (horizontal
+/// blurs) runs 2 R rows ahead of stage C (the gradient rows), stage B (vertical blurs, the map,
+/// the partials' horizontal blurs) R rows ahead, each stage keeping its last 11 rows in a ring
+/// of slots (row r in slot r % 11), so the planes never leave the cache. Rows of the band's
+/// halo (R or 2 R rows each side) are computed again by the neighbouring band, with the same
+/// arithmetic, so every value has the bits of any other banding. Writes the map's row sums
+/// into `sums` and, with the gradient, the gradient rows into `grad.0` and the L1 row sums into
+/// `grad.1`.
+#[inline(always)]
+fn band_rows(
+    job: &Job,
+    y0: usize,
+    sums: &mut [f64],
+    mut grad: Option<(&mut [f32], &mut [(f64, f64)])>,
+    k: &[f32; TAPS],
+    band: &mut Band,
+) {
+    let (w, h) = (job.w, job.h);
+    let row = 3 * w;
+    let (y0, y1, hh) = (y0 as isize, (y0 + sums.len()) as isize, h as isize);
+    let r_ = RADIUS as isize;
+    let slot = |r: isize| {
+        if r >= 0 && r < hh {
+            r as usize % TAPS
+        } else {
+            NONE
+        }
+    };
+    let lag = if grad.is_some() { 2 * r_ } else { r_ };
+    let (b0, b1) = if grad.is_some() {
+        (y0 - r_, y1 + r_)
+    } else {
+        (y0, y1)
+    };
+    let Band { a, b, sc } = band;
+    for r in y0 - lag..y1 + lag {
+        if r >= 0 && r < hh {
+            let (ru, s) = (r as usize, r as usize % TAPS);
+            stage_a_row(
+                &job.pred[ru * row..(ru + 1) * row],
+                &job.target[ru * row..(ru + 1) * row],
+                job.clamp,
+                &mut a[s * 15 * w..(s + 1) * 15 * w],
+                k,
+                sc,
+            );
+        }
+        let yb = r - r_;
+        if yb >= b0.max(0) && yb < b1.min(hh) {
+            let slots: [usize; TAPS] = std::array::from_fn(|t| slot(yb - r_ + t as isize));
+            let s = yb as usize % TAPS;
+            let out: &mut [f32] = if job.gs.is_some() {
+                &mut b[s * 9 * w..(s + 1) * 9 * w]
+            } else {
+                &mut []
+            };
+            let sum = stage_b_row(a, &slots, job.gs, out, k, sc);
+            if yb >= y0 && yb < y1 {
+                sums[(yb - y0) as usize] = sum;
+            }
+        }
+        if let Some((out, l1)) = grad.as_mut() {
+            let yc = r - 2 * r_;
+            if yc >= y0 && yc < y1 {
+                let slots: [usize; TAPS] = std::array::from_fn(|t| slot(yc - r_ + t as isize));
+                let (j, at) = ((yc - y0) as usize, yc as usize * row);
+                l1[j] = stage_c_row(
+                    b,
+                    &slots,
+                    &job.pred[at..at + row],
+                    &job.target[at..at + row],
+                    job.gl1,
+                    &mut out[j * row..(j + 1) * row],
+                    k,
+                    sc,
+                );
+            }
+        }
+    }
+}
+
+/// The kernels compiled for one instruction set (the same source, so the same bits).
 macro_rules! kernels {
     ($name:ident $(, $feat:literal)?) => {
         mod $name {
             use super::*;
             $(#[target_feature(enable = $feat)])?
-            pub(super) unsafe fn pass1(pred: &[f32], target: &[f32], clamp: bool, xr: &mut [f32], yr: &mut [f32], h: [&mut [f32]; 5], k: &[f32; TAPS], sc: &mut Scratch) {
-                pass1_row(pred, target, clamp, xr, yr, h, k, sc)
-            }
-            $(#[target_feature(enable = $feat)])?
-            pub(super) unsafe fn pass2(h: [&[f32]; 5], wh: (usize, usize), y: usize, gs: Option<f32>, hp: [&mut [f32]; 3], k: &[f32; TAPS], sc: &mut Scratch) -> f64 {
-                pass2_row(h, wh, y, gs, hp, k, sc)
+            pub(super) unsafe fn band(job: &Job, y0: usize, sums: &mut [f64], grad: Option<(&mut [f32], &mut [(f64, f64)])>, k: &[f32; TAPS], b: &mut Band) {
+                band_rows(job, y0, sums, grad, k, b)
             }
             $(#[target_feature(enable = $feat)])?
             pub(super) unsafe fn l1(g: &mut [f32], p: &[f32], t: &[f32], gl1: f32) -> (f64, f64) {
                 l1_row(g, p, t, gl1)
-            }
-            $(#[target_feature(enable = $feat)])?
-            pub(super) unsafe fn pass3(hp: [&[f32]; 3], x: &[f32], yv: &[f32], wh: (usize, usize), y: usize, out: &mut [f32], k: &[f32; TAPS], sc: &mut Scratch) {
-                pass3_row(hp, x, yv, wh, y, out, k, sc)
             }
         }
     };
@@ -452,86 +593,113 @@ impl SsimWorkspace {
         clamp: bool,
         grad: Option<(&mut [f32], f32)>,
     ) -> f64 {
+        debug_assert!(!(clamp && grad.is_some()));
+        self.run(pred, target, width, height, clamp, grad, None).0
+    }
+
+    /// The loss's SSIM and L1 terms in one streaming pass: writes `scale` dSSIM_mean/d(pred) +
+    /// `gl1` sign(pred - target) into `grad` (H*W*3, the L1 part added to each value after
+    /// its SSIM part) and returns (mean SSIM, sum |pred - target|, sum (pred - target)^2), the
+    /// L1 sums per row in 16 float64 lanes and the rows added in order (`l1_term`'s bits).
+    pub fn ssim_l1(
+        &mut self,
+        pred: &[f32],
+        target: &[f32],
+        width: usize,
+        height: usize,
+        grad: &mut [f32],
+        scale: f32,
+        gl1: f32,
+    ) -> (f64, f64, f64) {
+        self.run(
+            pred,
+            target,
+            width,
+            height,
+            false,
+            Some((grad, scale)),
+            Some(gl1),
+        )
+    }
+
+    fn run(
+        &mut self,
+        pred: &[f32],
+        target: &[f32],
+        width: usize,
+        height: usize,
+        clamp: bool,
+        grad: Option<(&mut [f32], f32)>,
+        gl1: Option<f32>,
+    ) -> (f64, f64, f64) {
         let (w, h) = (width, height);
         let n = w * h;
         debug_assert_eq!(pred.len(), n * 3);
         debug_assert_eq!(target.len(), n * 3);
         if n == 0 {
-            return 1.0;
+            return (1.0, 0.0, 0.0);
         }
         let k = window();
         let level = self.simd.resolve();
         let row = 3 * w;
-        let scratch = || Scratch::new(w);
-        for v in [&mut self.x, &mut self.y]
-            .into_iter()
-            .chain(self.h.iter_mut())
-            .chain(self.hp.iter_mut())
-        {
-            v.resize(3 * n, 0.0);
+        let bh = match self.band_rows {
+            0 => h.div_ceil(2 * rayon::current_num_threads()).max(2 * TAPS),
+            b => b,
         }
-        // pass 1
-        {
-            let [h0, h1, h2, h3, h4] = &mut self.h;
-            (
-                pred.par_chunks(row),
-                target.par_chunks(row),
-                self.x.par_chunks_mut(row),
-                self.y.par_chunks_mut(row),
-                h0.par_chunks_mut(row),
-                h1.par_chunks_mut(row),
-                h2.par_chunks_mut(row),
-                h3.par_chunks_mut(row),
-                h4.par_chunks_mut(row),
-            )
-                .into_par_iter()
-                .with_min_len(4)
-                .for_each_init(scratch, |sc, (p, t, xr, yr, a, b, c, d, e)| {
-                    dispatch!(level, pass1(p, t, clamp, xr, yr, [a, b, c, d, e], &k, sc))
-                });
-        }
-        // pass 2 (the partials' planes are written only with a gradient)
+        .min(h);
+        let nb = h.div_ceil(bh);
         let g = 1.0 / (3.0 * n as f64);
         let gs = grad.as_ref().map(|(_, s)| (g * *s as f64) as f32);
-        {
-            let hv = [
-                &self.h[0][..],
-                &self.h[1][..],
-                &self.h[2][..],
-                &self.h[3][..],
-                &self.h[4][..],
-            ];
-            let [p0, p1, p2] = &mut self.hp;
-            (
-                p0.par_chunks_mut(row),
-                p1.par_chunks_mut(row),
-                p2.par_chunks_mut(row),
-            )
-                .into_par_iter()
-                .enumerate()
-                .with_min_len(4)
-                .map_init(scratch, |sc, (y, (a, b, c))| {
-                    dispatch!(level, pass2(hv, (w, h), y, gs, [a, b, c], &k, sc))
-                })
-                .collect_into_vec(&mut self.row_sums);
+        let job = Job {
+            pred,
+            target,
+            w,
+            h,
+            clamp,
+            gs,
+            gl1: gl1.filter(|_| grad.is_some()),
+        };
+        let fresh = self.bands.iter().any(|b| {
+            b.sc.zeros.len() != w || (gs.is_some() && b.b.len() != TAPS * 9 * w)
+        });
+        if fresh {
+            self.bands.clear();
+        }
+        self.bands
+            .resize_with(nb.max(self.bands.len()), || Band::new(w, gs.is_some()));
+        self.row_sums.resize(h, 0.0);
+        let bands = &mut self.bands[..nb];
+        match grad {
+            Some((out, _)) => {
+                self.l1_sums.resize(h, (0.0, 0.0));
+                (
+                    self.row_sums.par_chunks_mut(bh),
+                    out.par_chunks_mut(bh * row),
+                    self.l1_sums.par_chunks_mut(bh),
+                    bands.par_iter_mut(),
+                )
+                    .into_par_iter()
+                    .enumerate()
+                    .for_each(|(i, (s, o, l, b))| {
+                        dispatch!(level, band(&job, i * bh, s, Some((o, l)), &k, b))
+                    });
+            }
+            None => {
+                (self.row_sums.par_chunks_mut(bh), bands.par_iter_mut())
+                    .into_par_iter()
+                    .enumerate()
+                    .for_each(|(i, (s, b))| dispatch!(level, band(&job, i * bh, s, None, &k, b)));
+            }
         }
         let total: f64 = self.row_sums.iter().sum();
-        if let Some((out, _)) = grad {
-            // pass 3
-            let hv = [&self.hp[0][..], &self.hp[1][..], &self.hp[2][..]];
-            (
-                out.par_chunks_mut(row),
-                self.x.par_chunks(row),
-                self.y.par_chunks(row),
-            )
-                .into_par_iter()
-                .enumerate()
-                .with_min_len(4)
-                .for_each_init(scratch, |sc, (y, (o, xr, yr))| {
-                    dispatch!(level, pass3(hv, xr, yr, (w, h), y, o, &k, sc))
-                });
-        }
-        total / (3 * n) as f64
+        let (l1, se) = if job.gl1.is_some() {
+            self.l1_sums
+                .iter()
+                .fold((0.0, 0.0), |a, r| (a.0 + r.0, a.1 + r.1))
+        } else {
+            (0.0, 0.0)
+        };
+        (total / (3 * n) as f64, l1, se)
     }
 }
 
@@ -616,6 +784,108 @@ mod tests {
         let base = run(1, Simd::Scalar);
         assert_eq!(base, run(3, Simd::Auto));
         assert_eq!(base, run(2, Simd::Avx2));
+    }
+
+    /// The plane-by-plane computation the streaming bands replace (whole planes, the same
+    /// arithmetic per value): (mean SSIM, gradient with the L1 part, L1 sum, squared-error sum).
+    fn reference(x: &[f32], y: &[f32], w: usize, h: usize, scale: f32, gl1: f32) -> (f64, Vec<f32>, f64, f64) {
+        let k = window();
+        let plane = |f: &dyn Fn(usize) -> f32| -> Vec<f32> { (0..w * h).map(f).collect() };
+        let hb = |p: &[f32]| -> Vec<f32> {
+            let mut o = vec![0.0f32; w * h];
+            for r in 0..h {
+                let mut pad = vec![0.0f32; w + 2 * RADIUS];
+                pad[RADIUS..RADIUS + w].copy_from_slice(&p[r * w..(r + 1) * w]);
+                taps(&pad, &mut o[r * w..(r + 1) * w], &k);
+            }
+            o
+        };
+        let vb = |p: &[f32]| -> Vec<f32> {
+            let mut o = vec![0.0f32; w * h];
+            for r in 0..h {
+                for i in 0..w {
+                    let mut s = 0.0f32;
+                    for t in 0..TAPS {
+                        let rr = r as isize + t as isize - RADIUS as isize;
+                        let v = if rr < 0 || rr >= h as isize { 0.0 } else { p[rr as usize * w + i] };
+                        s += k[t] * v;
+                    }
+                    o[r * w + i] = s;
+                }
+            }
+            o
+        };
+        let gs = ((1.0 / (3.0 * (w * h) as f64)) * scale as f64) as f32;
+        let mut grad = vec![0.0f32; w * h * 3];
+        let mut rows = vec![0.0f64; h];
+        for c in 0..3 {
+            let xs = plane(&|i| x[i * 3 + c]);
+            let ys = plane(&|i| y[i * 3 + c]);
+            let m: Vec<Vec<f32>> = [
+                xs.clone(),
+                ys.clone(),
+                plane(&|i| xs[i] * xs[i]),
+                plane(&|i| ys[i] * ys[i]),
+                plane(&|i| xs[i] * ys[i]),
+            ]
+            .iter()
+            .map(|p| vb(&hb(p)))
+            .collect();
+            let (mut pa, mut pb, mut pc, mut sm) =
+                (vec![0.0f32; w * h], vec![0.0f32; w * h], vec![0.0f32; w * h], vec![0.0f32; w * h]);
+            for i in 0..w * h {
+                let (ux, uy) = (m[0][i], m[1][i]);
+                let (sxx, syy, sxy) = (m[2][i] - ux * ux, m[3][i] - uy * uy, m[4][i] - ux * uy);
+                let (a1, a2) = (2.0 * ux * uy + C1, 2.0 * sxy + C2);
+                let (b1, b2) = (ux * ux + uy * uy + C1, sxx + syy + C2);
+                let inv = 1.0 / (b1 * b2);
+                let s = a1 * a2 * inv;
+                sm[i] = s;
+                let gi = gs * inv;
+                pa[i] = 2.0 * gi * (uy * (a2 - a1) - ux * s * (b2 - b1));
+                pb[i] = -(gi * s * b1);
+                pc[i] = 2.0 * gi * a1;
+            }
+            for r in 0..h {
+                rows[r] += lane_sum(&sm[r * w..(r + 1) * w]);
+            }
+            let (da, db, dc) = (vb(&hb(&pa)), vb(&hb(&pb)), vb(&hb(&pc)));
+            for i in 0..w * h {
+                grad[i * 3 + c] = da[i] + 2.0 * xs[i] * db[i] + ys[i] * dc[i];
+            }
+        }
+        let mut sums = Vec::new();
+        let (l1, se) = l1_term(Simd::Scalar, &mut grad, x, y, 3 * w, gl1, &mut sums);
+        let total: f64 = rows.iter().sum();
+        (total / (3 * w * h) as f64, grad, l1, se)
+    }
+
+    #[test]
+    fn streaming_bands_give_the_bits_of_whole_planes_for_any_band_height() {
+        for (w, h) in [(37, 29), (8, 5), (23, 12), (12, 40)] {
+            let x = image(w, h, 11);
+            let y = image(w, h, 12);
+            let (s0, g0, l0, e0) = reference(&x, &y, w, h, -0.2, 0.8 / (3 * w * h) as f32);
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            for band_rows in [0, 1, 3, 7, 11, 16, 100] {
+                for simd in [Simd::Scalar, Simd::Auto] {
+                    let mut ws = SsimWorkspace {
+                        band_rows,
+                        simd,
+                        ..SsimWorkspace::default()
+                    };
+                    let mut g = vec![0.0f32; w * h * 3];
+                    let (s, l, e) = ws.ssim_l1(&x, &y, w, h, &mut g, -0.2, 0.8 / (3 * w * h) as f32);
+                    let at = format!("{w}x{h}, {band_rows} rows a band, {simd:?}");
+                    assert_eq!(s.to_bits(), s0.to_bits(), "{at}");
+                    assert_eq!((l.to_bits(), e.to_bits()), (l0.to_bits(), e0.to_bits()), "{at}");
+                    assert_eq!(bits(&g), bits(&g0), "{at}");
+                    // the value-only path (evaluation) on the same workspace
+                    let v = ws.ssim(&x, &y, w, h, false, None);
+                    assert!((v - s0).abs() < 1e-6, "{at}: {v} vs {s0}");
+                }
+            }
+        }
     }
 
     #[test]
