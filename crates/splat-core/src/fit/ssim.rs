@@ -204,11 +204,17 @@ pub(crate) fn fold_lanes(mut acc: [f64; LANES]) -> f64 {
 /// Split one interleaved RGB row into channel rows (3W): value (c, i) at c W + i.
 #[inline(always)]
 fn split(src: &[f32], out: &mut [f32], w: usize) {
-    for c in 0..3 {
-        let o = &mut out[c * w..(c + 1) * w];
-        for i in 0..w {
-            o[i] = src[i * 3 + c];
-        }
+    let (o0, rest) = out[..3 * w].split_at_mut(w);
+    let (o1, o2) = rest.split_at_mut(w);
+    for (((px, a), b), c) in src[..3 * w]
+        .chunks_exact(3)
+        .zip(o0.iter_mut())
+        .zip(o1.iter_mut())
+        .zip(o2.iter_mut())
+    {
+        *a = px[0];
+        *b = px[1];
+        *c = px[2];
     }
 }
 
@@ -359,6 +365,7 @@ fn stage_c_row(
         }
         let (v0, v1, v2) = (&v[0][..w], &v[1][..w], &v[2][..w]);
         let (xc, yc) = (&xr[c * w..(c + 1) * w], &yr[c * w..(c + 1) * w]);
+        let r = &mut r[..w];
         for i in 0..w {
             r[i] = v0[i] + 2.0 * xc[i] * v1[i] + yc[i] * v2[i];
         }
