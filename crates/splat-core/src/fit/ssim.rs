@@ -777,7 +777,9 @@ impl SsimWorkspace {
         let level = self.simd.resolve();
         let row = 3 * w;
         let bh = match self.band_rows {
-            0 => h.div_ceil(2 * rayon::current_num_threads()).max(2 * TAPS),
+            // one band a thread: each band recomputes 2 R rows of stage A and R of stage B
+            // on each side (at 648x420, 2 threads, two bands instead of four: CPU -8%)
+            0 => h.div_ceil(rayon::current_num_threads()).max(2 * TAPS),
             b => b,
         }
         .min(h);
