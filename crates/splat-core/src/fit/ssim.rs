@@ -22,15 +22,18 @@
 //! so dS/dmu_x = 2 inv (mu_y (A2 - A1) - mu_x S (B2 - B1)), dS/de_xx = -S B1 inv and
 //! dS/de_xy = 2 A1 inv.
 //!
-//! Three passes, each parallel over image rows (all three channels of a row in one task): (1)
-//! split the channels and blur x, y, x^2, y^2, xy horizontally; (2) blur them vertically, form
-//! S and the three partials, and blur the partials horizontally (row-local, so in the same
-//! task); (3) blur those vertically and combine into the gradient. Every value is computed in a
-//! fixed order with plain IEEE multiplies, adds and divisions (no FMA contraction, no
-//! approximate reciprocals), so the AVX-512, AVX2 and plain builds of the row kernels, and any
-//! thread count, give the same bits. The mean is summed per channel row into 16 float64 lane
-//! accumulators (value i into lane i % 16, lanes combined pairwise in a fixed order), the same
-//! arithmetic in every kernel, and the rows are added in order.
+//! Three stages stream down the image in row bands, one band per task (`band_rows`): (A) split
+//! the channels and blur x, y, x^2, y^2, xy horizontally; (B) blur them vertically, form S and
+//! the three partials, and blur the partials horizontally; (C) blur those vertically and
+//! combine into the gradient, adding the L1 term's part (`SsimWorkspace::ssim_l1`). Each stage
+//! keeps its last 12 rows in a ring, so no whole plane is written; B and C form two rows at a
+//! time, loading each ring row once for both (`vblur2`). A band recomputes its halo rows, with
+//! the same arithmetic. Every value is computed in a fixed order with plain IEEE multiplies,
+//! adds and divisions (no FMA contraction, no approximate reciprocals), so the AVX-512, AVX2
+//! and plain builds, any banding and any thread count give the same bits (those of the
+//! whole-plane passes this replaced, see the tests). The mean is summed per channel row into 16
+//! float64 lane accumulators (value i into lane i % 16, lanes combined pairwise in a fixed
+//! order), the same arithmetic in every kernel, and the rows are added in order.
 use rayon::prelude::*;
 
 use crate::raster::Simd;
