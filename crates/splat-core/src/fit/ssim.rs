@@ -1051,6 +1051,32 @@ mod tests {
     }
 
     #[test]
+    fn a_reused_workspace_gives_the_bits_of_a_fresh_one_across_sizes() {
+        // the rings keep rows of the last call: a new size, or evaluation between two losses,
+        // must not read them
+        let mut kept = SsimWorkspace::default();
+        for (w, h) in [(31, 40), (31, 17), (12, 9), (31, 40), (40, 31)] {
+            let (x, y) = (image(w, h, 21), image(w, h, 22));
+            let mut g = vec![0.0f32; w * h * 3];
+            let got = kept.ssim_l1(&x, &y, w, h, &mut g, -0.2, 0.01);
+            let eval = kept.ssim(&x, &y, w, h, true, None);
+            let mut fresh = SsimWorkspace::default();
+            let mut g0 = vec![0.0f32; w * h * 3];
+            let want = fresh.ssim_l1(&x, &y, w, h, &mut g0, -0.2, 0.01);
+            let eval0 = SsimWorkspace::default().ssim(&x, &y, w, h, true, None);
+            assert_eq!(
+                format!("{got:?} {eval}"),
+                format!("{want:?} {eval0}"),
+                "{w}x{h}"
+            );
+            assert!(
+                g.iter().zip(&g0).all(|(a, b)| a.to_bits() == b.to_bits()),
+                "{w}x{h}"
+            );
+        }
+    }
+
+    #[test]
     fn row_blur_in_place_matches_the_padded_copy_at_every_width() {
         let k = window();
         for w in 1..40 {
