@@ -49,23 +49,18 @@ impl LossWorkspace {
         grad: &mut [f32],
     ) -> LossTerms {
         let n = width * height * 3;
-        // SSIM first: it writes its gradient (times -lambda), the L1 part is added after.
-        let ssim = if ssim_lambda != 0.0 {
-            self.ssim.ssim(
-                pred,
-                target,
-                width,
-                height,
-                false,
-                Some((grad, -ssim_lambda)),
-            )
+        let gl1 = (1.0 - ssim_lambda) / n as f32;
+        // SSIM and L1 in one pass: each gradient value is the SSIM part (times -lambda), the
+        // L1 part added after.
+        let (ssim, l1, se) = if ssim_lambda != 0.0 {
+            self.ssim
+                .ssim_l1(pred, target, width, height, grad, -ssim_lambda, gl1)
         } else {
             grad.fill(0.0);
-            1.0
+            let row = width * 3;
+            let (l1, se) = l1_term(self.ssim.simd, grad, pred, target, row, gl1, &mut self.rows);
+            (1.0, l1, se)
         };
-        let gl1 = (1.0 - ssim_lambda) / n as f32;
-        let row = width * 3;
-        let (l1, se) = l1_term(self.ssim.simd, grad, pred, target, row, gl1, &mut self.rows);
         let l1 = l1 / n as f64;
         let lam = ssim_lambda as f64;
         LossTerms {

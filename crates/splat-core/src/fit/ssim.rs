@@ -22,15 +22,18 @@
 //! so dS/dmu_x = 2 inv (mu_y (A2 - A1) - mu_x S (B2 - B1)), dS/de_xx = -S B1 inv and
 //! dS/de_xy = 2 A1 inv.
 //!
-//! Three passes, each parallel over image rows (all three channels of a row in one task): (1)
-//! split the channels and blur x, y, x^2, y^2, xy horizontally; (2) blur them vertically, form
-//! S and the three partials, and blur the partials horizontally (row-local, so in the same
-//! task); (3) blur those vertically and combine into the gradient. Every value is computed in a
-//! fixed order with plain IEEE multiplies, adds and divisions (no FMA contraction, no
-//! approximate reciprocals), so the AVX-512, AVX2 and plain builds of the row kernels, and any
-//! thread count, give the same bits. The mean is summed per channel row into 16 float64 lane
-//! accumulators (value i into lane i % 16, lanes combined pairwise in a fixed order), the same
-//! arithmetic in every kernel, and the rows are added in order.
+//! Three stages stream down the image in row bands, one band per task (`band_rows`): (A) split
+//! the channels and blur x, y, x^2, y^2, xy horizontally; (B) blur them vertically, form S and
+//! the three partials, and blur the partials horizontally; (C) blur those vertically and
+//! combine into the gradient, adding the L1 term's part (`SsimWorkspace::ssim_l1`). Each stage
+//! keeps its last 12 rows in a ring, so no whole plane is written; B and C form two rows at a
+//! time, loading each ring row once for both (`vblur2`). A band recomputes its halo rows, with
+//! the same arithmetic. Every value is computed in a fixed order with plain IEEE multiplies,
+//! adds and divisions (no FMA contraction, no approximate reciprocals), so the AVX-512, AVX2
+//! and plain builds, any banding and any thread count give the same bits (those of the
+//! whole-plane passes this replaced, see the tests). The mean is summed per channel row into 16
+//! float64 lane accumulators (value i into lane i % 16, lanes combined pairwise in a fixed
+//! order), the same arithmetic in every kernel, and the rows are added in order.
 use rayon::prelude::*;
 
 use crate::raster::Simd;
@@ -56,22 +59,22 @@ pub fn window() -> [f32; TAPS] {
     w.map(|v| (v / s) as f32)
 }
 
-/// Scratch planes of the SSIM passes, reused. Layout "row-planar": image row y holds its three
-/// channel rows one after another, value (y, c, x) at (3 y + c) W + x, so every pass splits its
-/// outputs into disjoint per-row blocks.
+/// Buffers of the SSIM, reused across calls: one set of rings and row buffers per band (see
+/// `band_rows`), and the per-row sums.
 #[derive(Default)]
 pub struct SsimWorkspace {
-    /// The prediction and the target, split into channel rows.
-    x: Vec<f32>,
-    y: Vec<f32>,
-    /// Horizontal blurs of x, y, x^2, y^2, xy (pass 1).
-    h: [Vec<f32>; 5],
-    /// Horizontal blurs of the partials g dS/dmu_x, g dS/de_xx, g dS/de_xy (pass 2).
-    hp: [Vec<f32>; 3],
+    bands: Vec<Band>,
     row_sums: Vec<f64>,
+    l1_sums: Vec<(f64, f64)>,
+    /// Rows per band; 0 picks from the image height and the thread count (any value gives
+    /// the same bits).
+    pub band_rows: usize,
     /// Which row kernels run (all give the same bits).
     pub simd: Simd,
 }
+
+/// A ring slot that is outside the image (its rows are zeros).
+const NONE: usize = usize::MAX;
 
 /// `out[i] = sum_t k[t] src[i + t]`, summed in tap order in a register per output value.
 #[inline(always)]
@@ -109,34 +112,79 @@ fn hblur(src: &[f32], pad: &mut [f32], out: &mut [f32], k: &[f32; TAPS]) {
     taps(e, &mut out[w - RADIUS..w], k);
 }
 
-/// Vertical 11-tap blur of channel `c` at image row `y` of a row-planar buffer (rows outside
-/// the image are zeros), summed in tap order in a register per output value.
+/// Vertical 11-tap blur: `out[i] = sum_t k[t] rows[t][i]` (rows outside the image are zero
+/// rows), summed in tap order in a register per output value.
 #[inline(always)]
-fn vblur(
-    plane: &[f32],
-    w: usize,
-    h: usize,
-    c: usize,
-    y: usize,
-    zeros: &[f32],
-    out: &mut [f32],
-    k: &[f32; TAPS],
-) {
-    let rows: [&[f32]; TAPS] = std::array::from_fn(|t| {
-        let yy = y as isize + t as isize - RADIUS as isize;
-        if yy < 0 || yy >= h as isize {
-            &zeros[..w]
-        } else {
-            let at = (yy as usize * 3 + c) * w;
-            &plane[at..at + w]
-        }
-    });
-    for (i, o) in out[..w].iter_mut().enumerate() {
+fn vblur(rows: &[&[f32]; TAPS], out: &mut [f32], k: &[f32; TAPS]) {
+    let w = out.len();
+    let r: [&[f32]; TAPS] = std::array::from_fn(|t| &rows[t][..w]);
+    for (i, o) in out.iter_mut().enumerate() {
         let mut s = 0.0f32;
         for t in 0..TAPS {
-            s += k[t] * rows[t][i];
+            s += k[t] * r[t][i];
         }
         *o = s;
+    }
+}
+
+/// Two vertical blurs at once, of the output rows whose windows are `rows[0..11]` and
+/// `rows[1..12]`: each input row is loaded once for both, and each output value is summed in
+/// tap order in its own register (`vblur`'s bits). Halves the loads of the vertical pass.
+#[inline(always)]
+fn vblur2(rows: &[&[f32]; RING], out0: &mut [f32], out1: &mut [f32], k: &[f32; TAPS]) {
+    let w = out0.len();
+    let out1 = &mut out1[..w];
+    let r: [&[f32]; RING] = std::array::from_fn(|t| &rows[t][..w]);
+    for i in 0..w {
+        let mut s0 = 0.0f32;
+        let mut s1 = 0.0f32;
+        s0 += k[0] * r[0][i];
+        for t in 1..TAPS {
+            let x = r[t][i];
+            s0 += k[t] * x;
+            s1 += k[t - 1] * x;
+        }
+        s1 += k[TAPS - 1] * r[TAPS][i];
+        out0[i] = s0;
+        out1[i] = s1;
+    }
+}
+
+/// Ring slots: a stage keeps its last 12 rows (row r in slot r % 12), the 11 rows of one
+/// output row's window and one more for the second row of a pair.
+const RING: usize = TAPS + 1;
+
+/// The 12 rows of block `block` (of `blocks` blocks of W values a slot) from the ring's slots
+/// `slots` (the zero row where a slot is `NONE`, outside the image).
+#[inline(always)]
+fn ring_rows<'a>(
+    ring: &'a [f32],
+    slots: &[usize; RING],
+    blocks: usize,
+    block: usize,
+    zeros: &'a [f32],
+) -> [&'a [f32]; RING] {
+    let w = zeros.len();
+    std::array::from_fn(|t| {
+        if slots[t] == NONE {
+            zeros
+        } else {
+            let at = (slots[t] * blocks + block) * w;
+            &ring[at..at + w]
+        }
+    })
+}
+
+/// The vertical blurs of one block for the rows `two` selects: 0b01 the first row of the pair
+/// (window `rows[0..11]`) into `out[..w]`, 0b10 the second (`rows[1..12]`) into `out[w..]`.
+#[inline(always)]
+fn vblur_rows(rows: &[&[f32]; RING], two: u8, out: &mut [f32], k: &[f32; TAPS]) {
+    let w = out.len() / 2;
+    let (o0, o1) = out.split_at_mut(w);
+    match two {
+        0b11 => vblur2(rows, o0, o1, k),
+        0b01 => vblur(rows[..TAPS].try_into().expect("11 rows"), o0, k),
+        _ => vblur(rows[1..].try_into().expect("11 rows"), o1, k),
     }
 }
 
@@ -147,6 +195,9 @@ struct Scratch {
     v: [Vec<f32>; 5],
     p: [Vec<f32>; 3],
     zeros: Vec<f32>,
+    /// The row's prediction and target split into channel rows (3W each).
+    xr: Vec<f32>,
+    yr: Vec<f32>,
 }
 
 impl Scratch {
@@ -154,9 +205,11 @@ impl Scratch {
         Scratch {
             pad: vec![0.0; w + 2 * RADIUS],
             tmp: vec![0.0; w],
-            v: std::array::from_fn(|_| vec![0.0; w]),
-            p: std::array::from_fn(|_| vec![0.0; w]),
+            v: std::array::from_fn(|_| vec![0.0; 2 * w]),
+            p: std::array::from_fn(|_| vec![0.0; 2 * w]),
             zeros: vec![0.0; w],
+            xr: vec![0.0; 6 * w],
+            yr: vec![0.0; 6 * w],
         }
     }
 }
@@ -191,153 +244,217 @@ pub(crate) fn fold_lanes(mut acc: [f64; LANES]) -> f64 {
     acc[0]
 }
 
-/// Pass 1 for one image row: split the channels (clamping the prediction when asked) and blur
-/// x, y, x^2, y^2, xy horizontally. Slices are the row's blocks (3W values).
+/// Split one interleaved RGB row into channel rows (3W): value (c, i) at c W + i.
 #[inline(always)]
-fn pass1_row(
+fn split(src: &[f32], out: &mut [f32], w: usize) {
+    let (o0, rest) = out[..3 * w].split_at_mut(w);
+    let (o1, o2) = rest.split_at_mut(w);
+    for (((px, a), b), c) in src[..3 * w]
+        .chunks_exact(3)
+        .zip(o0.iter_mut())
+        .zip(o1.iter_mut())
+        .zip(o2.iter_mut())
+    {
+        *a = px[0];
+        *b = px[1];
+        *c = px[2];
+    }
+}
+
+/// Stage A for one image row: split the channels (clamping the prediction when asked) and blur
+/// x, y, x^2, y^2, xy horizontally into `slot` (5 quantities x 3 channels x W, quantity-major).
+#[inline(always)]
+fn stage_a_row(
     pred: &[f32],
     target: &[f32],
     clamp: bool,
-    xr: &mut [f32],
-    yr: &mut [f32],
-    h: [&mut [f32]; 5],
+    slot: &mut [f32],
     k: &[f32; TAPS],
     sc: &mut Scratch,
 ) {
     let w = pred.len() / 3;
-    let (pad, tmp) = (&mut sc.pad, &mut sc.tmp[..w]);
-    let [h0, h1, h2, h3, h4] = h;
+    let Scratch {
+        pad, tmp, xr, yr, ..
+    } = sc;
+    let tmp = &mut tmp[..w];
+    split(pred, xr, w);
+    split(target, yr, w);
+    if clamp {
+        for v in xr[..3 * w].iter_mut() {
+            *v = v.clamp(0.0, 1.0);
+        }
+    }
+    let block = |m: usize, c: usize| (m * 3 + c) * w..(m * 3 + c + 1) * w;
     for c in 0..3 {
         let r = c * w..(c + 1) * w;
-        let (xs, ys) = (&mut xr[r.clone()], &mut yr[r.clone()]);
-        for i in 0..w {
-            xs[i] = pred[i * 3 + c];
-            ys[i] = target[i * 3 + c];
-        }
-        if clamp {
-            for v in xs.iter_mut() {
-                *v = v.clamp(0.0, 1.0);
-            }
-        }
-        hblur(xs, pad, &mut h0[r.clone()], k);
-        hblur(ys, pad, &mut h1[r.clone()], k);
+        let (xs, ys) = (&xr[r.clone()], &yr[r]);
+        hblur(xs, pad, &mut slot[block(0, c)], k);
+        hblur(ys, pad, &mut slot[block(1, c)], k);
         for i in 0..w {
             tmp[i] = xs[i] * xs[i];
         }
-        hblur(tmp, pad, &mut h2[r.clone()], k);
+        hblur(tmp, pad, &mut slot[block(2, c)], k);
         for i in 0..w {
             tmp[i] = ys[i] * ys[i];
         }
-        hblur(tmp, pad, &mut h3[r.clone()], k);
+        hblur(tmp, pad, &mut slot[block(3, c)], k);
         for i in 0..w {
             tmp[i] = xs[i] * ys[i];
         }
-        hblur(tmp, pad, &mut h4[r], k);
+        hblur(tmp, pad, &mut slot[block(4, c)], k);
     }
 }
 
-/// Pass 2 for image row `y`: vertical blurs, the SSIM map (returns its row sum) and, with `gs`,
-/// the partials times gs, blurred horizontally into the row's blocks `hp`.
+/// Stage B for one or two consecutive image rows (`two`: 0b01 the first, 0b10 the second,
+/// 0b11 both; `slots` the 12 stage A rows of the pair's windows, see `ring_rows`): vertical
+/// blurs, the SSIM map (returns each row's sum: per channel a lane sum, channels added in
+/// order) and, with `gs`, the partials times gs, blurred horizontally into `out[j]` (3 partials
+/// x 3 channels x W, partial-major) for row j of the pair.
 #[inline(always)]
-fn pass2_row(
-    h: [&[f32]; 5],
-    wh: (usize, usize),
-    y: usize,
+fn stage_b_rows(
+    ring: &[f32],
+    slots: &[usize; RING],
+    two: u8,
     gs: Option<f32>,
-    hp: [&mut [f32]; 3],
+    mut out: [&mut [f32]; 2],
     k: &[f32; TAPS],
     sc: &mut Scratch,
-) -> f64 {
-    let (w, hh) = wh;
-    let [ha, hb, hc] = hp;
+) -> [f64; 2] {
+    let w = sc.zeros.len();
     let Scratch {
         pad,
         tmp,
         v,
         p,
         zeros,
+        ..
     } = sc;
     let [pa, pb, pc] = p;
     let (pa, pb, pc) = (&mut pa[..w], &mut pb[..w], &mut pc[..w]);
     let srow = &mut tmp[..w];
-    let mut sum = 0.0f64;
+    let mut sum = [0.0f64; 2];
     for c in 0..3 {
-        for (m, out) in v.iter_mut().enumerate() {
-            vblur(h[m], w, hh, c, y, zeros, out, k);
+        for (m, o) in v.iter_mut().enumerate() {
+            let rows = ring_rows(ring, slots, 15, m * 3 + c, zeros);
+            vblur_rows(&rows, two, &mut o[..2 * w], k);
         }
-        let [v0, v1, v2, v3, v4] = &*v;
-        let (v0, v1, v2, v3, v4) = (&v0[..w], &v1[..w], &v2[..w], &v3[..w], &v4[..w]);
-        match gs {
-            Some(g) => {
-                for i in 0..w {
-                    let (ux, uy) = (v0[i], v1[i]);
-                    let sxx = v2[i] - ux * ux;
-                    let syy = v3[i] - uy * uy;
-                    let sxy = v4[i] - ux * uy;
-                    let a1 = 2.0 * ux * uy + C1;
-                    let a2 = 2.0 * sxy + C2;
-                    let b1 = ux * ux + uy * uy + C1;
-                    let b2 = sxx + syy + C2;
-                    let inv = 1.0 / (b1 * b2);
-                    let s = a1 * a2 * inv;
-                    srow[i] = s;
-                    let gi = g * inv;
-                    pa[i] = 2.0 * gi * (uy * (a2 - a1) - ux * s * (b2 - b1));
-                    pb[i] = -(gi * s * b1);
-                    pc[i] = 2.0 * gi * a1;
-                }
-                let r = c * w..(c + 1) * w;
-                hblur(pa, pad, &mut ha[r.clone()], k);
-                hblur(pb, pad, &mut hb[r.clone()], k);
-                hblur(pc, pad, &mut hc[r], k);
+        for (j, out) in out.iter_mut().enumerate() {
+            if two & (1 << j) == 0 {
+                continue;
             }
-            None => {
-                for i in 0..w {
-                    let (ux, uy) = (v0[i], v1[i]);
-                    let a1 = 2.0 * ux * uy + C1;
-                    let a2 = 2.0 * (v4[i] - ux * uy) + C2;
-                    let b1 = ux * ux + uy * uy + C1;
-                    let b2 = (v2[i] - ux * ux) + (v3[i] - uy * uy) + C2;
-                    srow[i] = (a1 * a2) / (b1 * b2);
+            let [v0, v1, v2, v3, v4] = &*v;
+            let r = j * w..(j + 1) * w;
+            let (v0, v1, v2, v3, v4) = (
+                &v0[r.clone()],
+                &v1[r.clone()],
+                &v2[r.clone()],
+                &v3[r.clone()],
+                &v4[r],
+            );
+            match gs {
+                Some(g) => {
+                    for i in 0..w {
+                        let (ux, uy) = (v0[i], v1[i]);
+                        let sxx = v2[i] - ux * ux;
+                        let syy = v3[i] - uy * uy;
+                        let sxy = v4[i] - ux * uy;
+                        let a1 = 2.0 * ux * uy + C1;
+                        let a2 = 2.0 * sxy + C2;
+                        let b1 = ux * ux + uy * uy + C1;
+                        let b2 = sxx + syy + C2;
+                        let inv = 1.0 / (b1 * b2);
+                        let s = a1 * a2 * inv;
+                        srow[i] = s;
+                        let gi = g * inv;
+                        pa[i] = 2.0 * gi * (uy * (a2 - a1) - ux * s * (b2 - b1));
+                        pb[i] = -(gi * s * b1);
+                        pc[i] = 2.0 * gi * a1;
+                    }
+                    let block = |m: usize| (m * 3 + c) * w..(m * 3 + c + 1) * w;
+                    hblur(pa, pad, &mut out[block(0)], k);
+                    hblur(pb, pad, &mut out[block(1)], k);
+                    hblur(pc, pad, &mut out[block(2)], k);
+                }
+                None => {
+                    for i in 0..w {
+                        let (ux, uy) = (v0[i], v1[i]);
+                        let a1 = 2.0 * ux * uy + C1;
+                        let a2 = 2.0 * (v4[i] - ux * uy) + C2;
+                        let b1 = ux * ux + uy * uy + C1;
+                        let b2 = (v2[i] - ux * ux) + (v3[i] - uy * uy) + C2;
+                        srow[i] = (a1 * a2) / (b1 * b2);
+                    }
                 }
             }
+            sum[j] += lane_sum(srow);
         }
-        sum += lane_sum(srow);
     }
     sum
 }
 
-/// Pass 3 for image row `y`: vertical blurs of the blurred partials, combined with the row's x
-/// and y blocks into the gradient row (interleaved RGB).
+/// Stage C for one or two consecutive image rows (`two` and `slots` as for `stage_b_rows`,
+/// over stage B's ring): vertical blurs of the partials, combined with the row's prediction
+/// and target (`pred[j]`, `target[j]`) into the gradient row `out[j]` (interleaved RGB); with
+/// `gl1`, the L1 term is added to it (`l1_row`) and its row sums returned.
 #[inline(always)]
-fn pass3_row(
-    hp: [&[f32]; 3],
-    x: &[f32],
-    yv: &[f32],
-    wh: (usize, usize),
-    y: usize,
-    out: &mut [f32],
+fn stage_c_rows(
+    ring: &[f32],
+    slots: &[usize; RING],
+    two: u8,
+    pred: [&[f32]; 2],
+    target: [&[f32]; 2],
+    gl1: Option<f32>,
+    out: [&mut [f32]; 2],
     k: &[f32; TAPS],
     sc: &mut Scratch,
-) {
-    let (w, hh) = wh;
-    let (v, rows, zeros) = (&mut sc.v, &mut sc.p, &sc.zeros);
-    for (c, r) in rows.iter_mut().enumerate() {
+) -> [(f64, f64); 2] {
+    let w = sc.zeros.len();
+    let rows_of = |j: usize| two & (1 << j) != 0;
+    for j in (0..2).filter(|&j| rows_of(j)) {
+        split(pred[j], &mut sc.xr[3 * w * j..3 * w * (j + 1)], w);
+        split(target[j], &mut sc.yr[3 * w * j..3 * w * (j + 1)], w);
+    }
+    let Scratch {
+        v,
+        p: comb,
+        zeros,
+        xr,
+        yr,
+        ..
+    } = &mut *sc;
+    for (c, comb) in comb.iter_mut().enumerate() {
         for (m, o) in v[..3].iter_mut().enumerate() {
-            vblur(hp[m], w, hh, c, y, zeros, o, k);
+            let rows = ring_rows(ring, slots, 9, m * 3 + c, zeros);
+            vblur_rows(&rows, two, &mut o[..2 * w], k);
         }
-        let (v0, v1, v2) = (&v[0][..w], &v[1][..w], &v[2][..w]);
-        let (xc, yc) = (&x[c * w..(c + 1) * w], &yv[c * w..(c + 1) * w]);
-        for i in 0..w {
-            r[i] = v0[i] + 2.0 * xc[i] * v1[i] + yc[i] * v2[i];
+        for j in (0..2).filter(|&j| rows_of(j)) {
+            let r = j * w..(j + 1) * w;
+            let (v0, v1, v2) = (&v[0][r.clone()], &v[1][r.clone()], &v[2][r.clone()]);
+            let at = (3 * j + c) * w..(3 * j + c + 1) * w;
+            let (xc, yc) = (&xr[at.clone()], &yr[at]);
+            let o = &mut comb[r];
+            for i in 0..w {
+                o[i] = v0[i] + 2.0 * xc[i] * v1[i] + yc[i] * v2[i];
+            }
         }
     }
-    let [r0, r1, r2] = &*rows;
-    for (i, o) in out[..3 * w].chunks_exact_mut(3).enumerate() {
-        o[0] = r0[i];
-        o[1] = r1[i];
-        o[2] = r2[i];
+    let mut sums = [(0.0, 0.0); 2];
+    for (j, out) in out.into_iter().enumerate() {
+        if !rows_of(j) {
+            continue;
+        }
+        let r = j * w..(j + 1) * w;
+        let (r0, r1, r2) = (&comb[0][r.clone()], &comb[1][r.clone()], &comb[2][r]);
+        for (i, o) in out[..3 * w].chunks_exact_mut(3).enumerate() {
+            o[0] = r0[i];
+            o[1] = r1[i];
+            o[2] = r2[i];
+        }
+        if let Some(g) = gl1 {
+            sums[j] = l1_row(out, pred[j], target[j], g);
+        }
     }
+    sums
 }
 
 /// One row of the L1 term: adds `gl1` sign(p - t) (0 where equal, like torch) to the gradient
@@ -371,26 +488,187 @@ fn l1_row(g: &mut [f32], p: &[f32], t: &[f32], gl1: f32) -> (f64, f64) {
     (fold_lanes(l1), fold_lanes(se))
 }
 
-/// The row kernels compiled for one instruction set (the same source, so the same bits).
+/// What every band of one call computes.
+#[derive(Clone, Copy)]
+struct Job<'a> {
+    pred: &'a [f32],
+    target: &'a [f32],
+    w: usize,
+    h: usize,
+    clamp: bool,
+    /// The map's gradient scale (with it, stages B and C run for the gradient).
+    gs: Option<f32>,
+    /// The L1 term's gradient scale (with it, stage C adds the L1 term and its sums).
+    gl1: Option<f32>,
+}
+
+/// One band task's rings and row buffers, kept across calls.
+struct Band {
+    /// Stage A's ring: 11 slots of 5 quantities x 3 channels x W.
+    a: Vec<f32>,
+    /// Stage B's ring: 11 slots of 3 partials x 3 channels x W (gradient only).
+    b: Vec<f32>,
+    sc: Scratch,
+}
+
+impl Band {
+    fn new(w: usize, grad: bool) -> Self {
+        Band {
+            a: vec![0.0; RING * 15 * w],
+            b: vec![0.0; if grad { RING * 9 * w } else { 0 }],
+            sc: Scratch::new(w),
+        }
+    }
+}
+
+/// The two slots `s` (of `size` values each) of a ring, as disjoint slices (a `NONE` slot is
+/// an empty slice).
+fn two_slots(ring: &mut [f32], size: usize, s: [usize; 2]) -> [&mut [f32]; 2] {
+    match s {
+        [NONE, NONE] => [&mut [], &mut []],
+        [a, NONE] => [&mut ring[a * size..(a + 1) * size], &mut []],
+        [NONE, b] => [&mut [], &mut ring[b * size..(b + 1) * size]],
+        [a, b] => {
+            let (lo, hi) = (a.min(b), a.max(b));
+            let (x, rest) = ring[lo * size..].split_at_mut((hi - lo) * size);
+            let (x, y) = (&mut x[..size], &mut rest[..size]);
+            if a < b {
+                [x, y]
+            } else {
+                [y, x]
+            }
+        }
+    }
+}
+
+/// One band of image rows, y0 .. y0 + sums.len(), streamed top to bottom two rows at a time:
+/// stage A (horizontal blurs) runs 2 R rows ahead of stage C (the gradient rows), stage B
+/// (vertical blurs, the map, the partials' horizontal blurs) R rows ahead, each stage keeping
+/// its last 12 rows in a ring of slots (row r in slot r % 12), so the planes never leave the
+/// cache, and stages B and C forming their rows in pairs (`vblur2`). Rows of the band's halo
+/// (R or 2 R rows each side) are computed again by the neighbouring band, with the same
+/// arithmetic, so every value has the bits of any other banding. Writes the map's row sums into
+/// `sums` and, with the gradient, the gradient rows into `grad.0` and the L1 row sums into
+/// `grad.1`.
+#[inline(always)]
+fn band_rows(
+    job: &Job,
+    y0: usize,
+    sums: &mut [f64],
+    mut grad: Option<(&mut [f32], &mut [(f64, f64)])>,
+    k: &[f32; TAPS],
+    band: &mut Band,
+) {
+    let (w, h) = (job.w, job.h);
+    let row = 3 * w;
+    let (y0, y1, hh) = (y0 as isize, (y0 + sums.len()) as isize, h as isize);
+    let r_ = RADIUS as isize;
+    let inside = |r: isize| r >= 0 && r < hh;
+    let slot = |r: isize| if inside(r) { r as usize % RING } else { NONE };
+    let lag = if grad.is_some() { 2 * r_ } else { r_ };
+    // the rows each stage forms: A's and B's clipped to the image
+    let (a0, a1) = ((y0 - lag).max(0), (y1 + lag).min(hh));
+    let (b0, b1) = if grad.is_some() {
+        ((y0 - r_).max(0), (y1 + r_).min(hh))
+    } else {
+        (y0, y1)
+    };
+    // which rows of the pair starting at `p` lie in [lo, hi): bit j for row p + j
+    let pair = |p: isize, lo: isize, hi: isize| {
+        (p >= lo && p < hi) as u8 | (((p + 1 >= lo) && (p + 1 < hi)) as u8) << 1
+    };
+    let Band { a, b, sc } = band;
+    let mut r = y0 - lag;
+    while r < y1 + lag {
+        for ra in r..r + 2 {
+            if ra >= a0 && ra < a1 {
+                let (ru, s) = (ra as usize, ra as usize % RING);
+                stage_a_row(
+                    &job.pred[ru * row..(ru + 1) * row],
+                    &job.target[ru * row..(ru + 1) * row],
+                    job.clamp,
+                    &mut a[s * 15 * w..(s + 1) * 15 * w],
+                    k,
+                    sc,
+                );
+            }
+        }
+        // stage B's pair yb, yb + 1: windows over A's rows yb - R .. yb + 1 + R
+        let yb = r - r_;
+        let two = pair(yb, b0, b1);
+        if two != 0 {
+            let slots: [usize; RING] = std::array::from_fn(|t| slot(yb - r_ + t as isize));
+            let out = if job.gs.is_some() {
+                two_slots(b, 9 * w, [slot(yb), slot(yb + 1)])
+            } else {
+                [&mut [][..], &mut []]
+            };
+            let s2 = stage_b_rows(a, &slots, two, job.gs, out, k, sc);
+            for j in 0..2 {
+                let y = yb + j as isize;
+                if two & (1 << j) != 0 && y >= y0 && y < y1 {
+                    sums[(y - y0) as usize] = s2[j];
+                }
+            }
+        }
+        if let Some((out, l1)) = grad.as_mut() {
+            // stage C's pair yc, yc + 1: windows over B's rows yc - R .. yc + 1 + R
+            let yc = r - 2 * r_;
+            let two = pair(yc, y0, y1);
+            if two != 0 {
+                let slots: [usize; RING] = std::array::from_fn(|t| slot(yc - r_ + t as isize));
+                // the pair's rows in the band (a row outside it gets an empty slice)
+                let j0 = (yc - y0).max(0) as usize;
+                let first = (two & 1) as usize;
+                let band_out = &mut out[j0 * row..];
+                let (o0, rest) = band_out.split_at_mut(row * first);
+                let o1: &mut [f32] = if two & 2 != 0 {
+                    &mut rest[..row]
+                } else {
+                    &mut []
+                };
+                let at = |j: isize| {
+                    let y = yc + j;
+                    if inside(y) {
+                        y as usize * row..(y as usize + 1) * row
+                    } else {
+                        0..0
+                    }
+                };
+                let s2 = stage_c_rows(
+                    b,
+                    &slots,
+                    two,
+                    [&job.pred[at(0)], &job.pred[at(1)]],
+                    [&job.target[at(0)], &job.target[at(1)]],
+                    job.gl1,
+                    [o0, o1],
+                    k,
+                    sc,
+                );
+                for j in 0..2 {
+                    if two & (1 << j) != 0 {
+                        l1[(yc + j as isize - y0) as usize] = s2[j];
+                    }
+                }
+            }
+        }
+        r += 2;
+    }
+}
+
+/// The kernels compiled for one instruction set (the same source, so the same bits).
 macro_rules! kernels {
     ($name:ident $(, $feat:literal)?) => {
         mod $name {
             use super::*;
             $(#[target_feature(enable = $feat)])?
-            pub(super) unsafe fn pass1(pred: &[f32], target: &[f32], clamp: bool, xr: &mut [f32], yr: &mut [f32], h: [&mut [f32]; 5], k: &[f32; TAPS], sc: &mut Scratch) {
-                pass1_row(pred, target, clamp, xr, yr, h, k, sc)
-            }
-            $(#[target_feature(enable = $feat)])?
-            pub(super) unsafe fn pass2(h: [&[f32]; 5], wh: (usize, usize), y: usize, gs: Option<f32>, hp: [&mut [f32]; 3], k: &[f32; TAPS], sc: &mut Scratch) -> f64 {
-                pass2_row(h, wh, y, gs, hp, k, sc)
+            pub(super) unsafe fn band(job: &Job, y0: usize, sums: &mut [f64], grad: Option<(&mut [f32], &mut [(f64, f64)])>, k: &[f32; TAPS], b: &mut Band) {
+                band_rows(job, y0, sums, grad, k, b)
             }
             $(#[target_feature(enable = $feat)])?
             pub(super) unsafe fn l1(g: &mut [f32], p: &[f32], t: &[f32], gl1: f32) -> (f64, f64) {
                 l1_row(g, p, t, gl1)
-            }
-            $(#[target_feature(enable = $feat)])?
-            pub(super) unsafe fn pass3(hp: [&[f32]; 3], x: &[f32], yv: &[f32], wh: (usize, usize), y: usize, out: &mut [f32], k: &[f32; TAPS], sc: &mut Scratch) {
-                pass3_row(hp, x, yv, wh, y, out, k, sc)
             }
         }
     };
@@ -452,86 +730,116 @@ impl SsimWorkspace {
         clamp: bool,
         grad: Option<(&mut [f32], f32)>,
     ) -> f64 {
+        debug_assert!(!(clamp && grad.is_some()));
+        self.run(pred, target, width, height, clamp, grad, None).0
+    }
+
+    /// The loss's SSIM and L1 terms in one streaming pass: writes `scale` dSSIM_mean/d(pred) +
+    /// `gl1` sign(pred - target) into `grad` (H*W*3, the L1 part added to each value after
+    /// its SSIM part) and returns (mean SSIM, sum |pred - target|, sum (pred - target)^2), the
+    /// L1 sums per row in 16 float64 lanes and the rows added in order (`l1_term`'s bits).
+    pub fn ssim_l1(
+        &mut self,
+        pred: &[f32],
+        target: &[f32],
+        width: usize,
+        height: usize,
+        grad: &mut [f32],
+        scale: f32,
+        gl1: f32,
+    ) -> (f64, f64, f64) {
+        self.run(
+            pred,
+            target,
+            width,
+            height,
+            false,
+            Some((grad, scale)),
+            Some(gl1),
+        )
+    }
+
+    fn run(
+        &mut self,
+        pred: &[f32],
+        target: &[f32],
+        width: usize,
+        height: usize,
+        clamp: bool,
+        grad: Option<(&mut [f32], f32)>,
+        gl1: Option<f32>,
+    ) -> (f64, f64, f64) {
         let (w, h) = (width, height);
         let n = w * h;
         debug_assert_eq!(pred.len(), n * 3);
         debug_assert_eq!(target.len(), n * 3);
         if n == 0 {
-            return 1.0;
+            return (1.0, 0.0, 0.0);
         }
         let k = window();
         let level = self.simd.resolve();
         let row = 3 * w;
-        let scratch = || Scratch::new(w);
-        for v in [&mut self.x, &mut self.y]
-            .into_iter()
-            .chain(self.h.iter_mut())
-            .chain(self.hp.iter_mut())
-        {
-            v.resize(3 * n, 0.0);
+        let bh = match self.band_rows {
+            // one band a thread: each band recomputes 2 R rows of stage A and R of stage B
+            // on each side (at 648x420, 2 threads, two bands instead of four: CPU -8%)
+            0 => h.div_ceil(rayon::current_num_threads()).max(2 * TAPS),
+            b => b,
         }
-        // pass 1
-        {
-            let [h0, h1, h2, h3, h4] = &mut self.h;
-            (
-                pred.par_chunks(row),
-                target.par_chunks(row),
-                self.x.par_chunks_mut(row),
-                self.y.par_chunks_mut(row),
-                h0.par_chunks_mut(row),
-                h1.par_chunks_mut(row),
-                h2.par_chunks_mut(row),
-                h3.par_chunks_mut(row),
-                h4.par_chunks_mut(row),
-            )
-                .into_par_iter()
-                .with_min_len(4)
-                .for_each_init(scratch, |sc, (p, t, xr, yr, a, b, c, d, e)| {
-                    dispatch!(level, pass1(p, t, clamp, xr, yr, [a, b, c, d, e], &k, sc))
-                });
-        }
-        // pass 2 (the partials' planes are written only with a gradient)
+        .min(h);
+        let nb = h.div_ceil(bh);
         let g = 1.0 / (3.0 * n as f64);
         let gs = grad.as_ref().map(|(_, s)| (g * *s as f64) as f32);
-        {
-            let hv = [
-                &self.h[0][..],
-                &self.h[1][..],
-                &self.h[2][..],
-                &self.h[3][..],
-                &self.h[4][..],
-            ];
-            let [p0, p1, p2] = &mut self.hp;
-            (
-                p0.par_chunks_mut(row),
-                p1.par_chunks_mut(row),
-                p2.par_chunks_mut(row),
-            )
-                .into_par_iter()
-                .enumerate()
-                .with_min_len(4)
-                .map_init(scratch, |sc, (y, (a, b, c))| {
-                    dispatch!(level, pass2(hv, (w, h), y, gs, [a, b, c], &k, sc))
-                })
-                .collect_into_vec(&mut self.row_sums);
+        let job = Job {
+            pred,
+            target,
+            w,
+            h,
+            clamp,
+            gs,
+            gl1: gl1.filter(|_| grad.is_some()),
+        };
+        let fresh = self
+            .bands
+            .iter()
+            .any(|b| b.sc.zeros.len() != w || (gs.is_some() && b.b.len() != RING * 9 * w));
+        if fresh {
+            self.bands.clear();
+        }
+        self.bands
+            .resize_with(nb.max(self.bands.len()), || Band::new(w, gs.is_some()));
+        self.row_sums.resize(h, 0.0);
+        let bands = &mut self.bands[..nb];
+        match grad {
+            Some((out, _)) => {
+                self.l1_sums.resize(h, (0.0, 0.0));
+                (
+                    self.row_sums.par_chunks_mut(bh),
+                    out.par_chunks_mut(bh * row),
+                    self.l1_sums.par_chunks_mut(bh),
+                    bands.par_iter_mut(),
+                )
+                    .into_par_iter()
+                    .enumerate()
+                    .for_each(|(i, (s, o, l, b))| {
+                        dispatch!(level, band(&job, i * bh, s, Some((o, l)), &k, b))
+                    });
+            }
+            None => {
+                (self.row_sums.par_chunks_mut(bh), bands.par_iter_mut())
+                    .into_par_iter()
+                    .enumerate()
+                    .for_each(|(i, (s, b))| dispatch!(level, band(&job, i * bh, s, None, &k, b)));
+            }
         }
         let total: f64 = self.row_sums.iter().sum();
-        if let Some((out, _)) = grad {
-            // pass 3
-            let hv = [&self.hp[0][..], &self.hp[1][..], &self.hp[2][..]];
-            (
-                out.par_chunks_mut(row),
-                self.x.par_chunks(row),
-                self.y.par_chunks(row),
-            )
-                .into_par_iter()
-                .enumerate()
-                .with_min_len(4)
-                .for_each_init(scratch, |sc, (y, (o, xr, yr))| {
-                    dispatch!(level, pass3(hv, xr, yr, (w, h), y, o, &k, sc))
-                });
-        }
-        total / (3 * n) as f64
+        let (l1, se) = if job.gl1.is_some() {
+            self.l1_sums
+                .iter()
+                .fold((0.0, 0.0), |a, r| (a.0 + r.0, a.1 + r.1))
+        } else {
+            (0.0, 0.0)
+        };
+        (total / (3 * n) as f64, l1, se)
     }
 }
 
@@ -616,6 +924,156 @@ mod tests {
         let base = run(1, Simd::Scalar);
         assert_eq!(base, run(3, Simd::Auto));
         assert_eq!(base, run(2, Simd::Avx2));
+    }
+
+    /// The plane-by-plane computation the streaming bands replace (whole planes, the same
+    /// arithmetic per value): (mean SSIM, gradient with the L1 part, L1 sum, squared-error sum).
+    fn reference(
+        x: &[f32],
+        y: &[f32],
+        w: usize,
+        h: usize,
+        scale: f32,
+        gl1: f32,
+    ) -> (f64, Vec<f32>, f64, f64) {
+        let k = window();
+        let plane = |f: &dyn Fn(usize) -> f32| -> Vec<f32> { (0..w * h).map(f).collect() };
+        let hb = |p: &[f32]| -> Vec<f32> {
+            let mut o = vec![0.0f32; w * h];
+            for r in 0..h {
+                let mut pad = vec![0.0f32; w + 2 * RADIUS];
+                pad[RADIUS..RADIUS + w].copy_from_slice(&p[r * w..(r + 1) * w]);
+                taps(&pad, &mut o[r * w..(r + 1) * w], &k);
+            }
+            o
+        };
+        let vb = |p: &[f32]| -> Vec<f32> {
+            let mut o = vec![0.0f32; w * h];
+            for r in 0..h {
+                for i in 0..w {
+                    let mut s = 0.0f32;
+                    for t in 0..TAPS {
+                        let rr = r as isize + t as isize - RADIUS as isize;
+                        let v = if rr < 0 || rr >= h as isize {
+                            0.0
+                        } else {
+                            p[rr as usize * w + i]
+                        };
+                        s += k[t] * v;
+                    }
+                    o[r * w + i] = s;
+                }
+            }
+            o
+        };
+        let gs = ((1.0 / (3.0 * (w * h) as f64)) * scale as f64) as f32;
+        let mut grad = vec![0.0f32; w * h * 3];
+        let mut rows = vec![0.0f64; h];
+        for c in 0..3 {
+            let xs = plane(&|i| x[i * 3 + c]);
+            let ys = plane(&|i| y[i * 3 + c]);
+            let m: Vec<Vec<f32>> = [
+                xs.clone(),
+                ys.clone(),
+                plane(&|i| xs[i] * xs[i]),
+                plane(&|i| ys[i] * ys[i]),
+                plane(&|i| xs[i] * ys[i]),
+            ]
+            .iter()
+            .map(|p| vb(&hb(p)))
+            .collect();
+            let (mut pa, mut pb, mut pc, mut sm) = (
+                vec![0.0f32; w * h],
+                vec![0.0f32; w * h],
+                vec![0.0f32; w * h],
+                vec![0.0f32; w * h],
+            );
+            for i in 0..w * h {
+                let (ux, uy) = (m[0][i], m[1][i]);
+                let (sxx, syy, sxy) = (m[2][i] - ux * ux, m[3][i] - uy * uy, m[4][i] - ux * uy);
+                let (a1, a2) = (2.0 * ux * uy + C1, 2.0 * sxy + C2);
+                let (b1, b2) = (ux * ux + uy * uy + C1, sxx + syy + C2);
+                let inv = 1.0 / (b1 * b2);
+                let s = a1 * a2 * inv;
+                sm[i] = s;
+                let gi = gs * inv;
+                pa[i] = 2.0 * gi * (uy * (a2 - a1) - ux * s * (b2 - b1));
+                pb[i] = -(gi * s * b1);
+                pc[i] = 2.0 * gi * a1;
+            }
+            for r in 0..h {
+                rows[r] += lane_sum(&sm[r * w..(r + 1) * w]);
+            }
+            let (da, db, dc) = (vb(&hb(&pa)), vb(&hb(&pb)), vb(&hb(&pc)));
+            for i in 0..w * h {
+                grad[i * 3 + c] = da[i] + 2.0 * xs[i] * db[i] + ys[i] * dc[i];
+            }
+        }
+        let mut sums = Vec::new();
+        let (l1, se) = l1_term(Simd::Scalar, &mut grad, x, y, 3 * w, gl1, &mut sums);
+        let total: f64 = rows.iter().sum();
+        (total / (3 * w * h) as f64, grad, l1, se)
+    }
+
+    #[test]
+    fn streaming_bands_give_the_bits_of_whole_planes_for_any_band_height() {
+        for (w, h) in [(37, 29), (8, 5), (23, 12), (12, 40), (6, 1), (9, 2)] {
+            let x = image(w, h, 11);
+            let y = image(w, h, 12);
+            let (s0, g0, l0, e0) = reference(&x, &y, w, h, -0.2, 0.8 / (3 * w * h) as f32);
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            let mut value = None;
+            for band_rows in [0, 1, 2, 3, 7, 11, 16, 100] {
+                for simd in [Simd::Scalar, Simd::Auto] {
+                    let mut ws = SsimWorkspace {
+                        band_rows,
+                        simd,
+                        ..SsimWorkspace::default()
+                    };
+                    let mut g = vec![0.0f32; w * h * 3];
+                    let (s, l, e) =
+                        ws.ssim_l1(&x, &y, w, h, &mut g, -0.2, 0.8 / (3 * w * h) as f32);
+                    let at = format!("{w}x{h}, {band_rows} rows a band, {simd:?}");
+                    assert_eq!(s.to_bits(), s0.to_bits(), "{at}");
+                    assert_eq!(
+                        (l.to_bits(), e.to_bits()),
+                        (l0.to_bits(), e0.to_bits()),
+                        "{at}"
+                    );
+                    assert_eq!(bits(&g), bits(&g0), "{at}");
+                    // the value-only path (evaluation) on the same workspace
+                    let v = ws.ssim(&x, &y, w, h, false, None);
+                    assert!((v - s0).abs() < 1e-6, "{at}: {v} vs {s0}");
+                    assert_eq!(v.to_bits(), *value.get_or_insert(v.to_bits()), "{at}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_reused_workspace_gives_the_bits_of_a_fresh_one_across_sizes() {
+        // the rings keep rows of the last call: a new size, or evaluation between two losses,
+        // must not read them
+        let mut kept = SsimWorkspace::default();
+        for (w, h) in [(31, 40), (31, 17), (12, 9), (31, 40), (40, 31)] {
+            let (x, y) = (image(w, h, 21), image(w, h, 22));
+            let mut g = vec![0.0f32; w * h * 3];
+            let got = kept.ssim_l1(&x, &y, w, h, &mut g, -0.2, 0.01);
+            let eval = kept.ssim(&x, &y, w, h, true, None);
+            let mut fresh = SsimWorkspace::default();
+            let mut g0 = vec![0.0f32; w * h * 3];
+            let want = fresh.ssim_l1(&x, &y, w, h, &mut g0, -0.2, 0.01);
+            let eval0 = SsimWorkspace::default().ssim(&x, &y, w, h, true, None);
+            assert_eq!(
+                format!("{got:?} {eval}"),
+                format!("{want:?} {eval0}"),
+                "{w}x{h}"
+            );
+            assert!(
+                g.iter().zip(&g0).all(|(a, b)| a.to_bits() == b.to_bits()),
+                "{w}x{h}"
+            );
+        }
     }
 
     #[test]
