@@ -39,9 +39,17 @@ impl Default for PixIn {
 }
 
 /// Where a tile kernel puts the slot of list entry `pos` (a sorted-splat position). Kernels
-/// call `put` exactly once per entry of the tile's list, in list order.
+/// call `put` or `zero` exactly once per entry of the tile's list, in list order.
 pub(crate) trait SlotSink {
     fn put(&mut self, pos: u32, vals: &[f32; slot::LEN]);
+    /// Entry `pos` has no slot to add: it comes after the tile finished, or none of its rows
+    /// passes the contour test (every kernel decides this alike). Its sums would be zeros
+    /// (some -0.0), which leave any running sum that starts at +0.0 unchanged, so a sink may
+    /// skip it; by default it puts +0.0 zeros.
+    #[inline]
+    fn zero(&mut self, pos: u32) {
+        self.put(pos, &[0.0; slot::LEN]);
+    }
     /// Called for every (pixel, Gaussian) pair that contributes, in blend order, when
     /// `RECORD` is true (tests and the reference check): row r, lane l, sorted position, and
     /// whether alpha was clamped at max_alpha.
@@ -108,8 +116,8 @@ pub(crate) fn finish_slot(acc: &[[f32; LANES]; 9], dx: &[f32; LANES]) -> [f32; s
     out
 }
 
-/// Replay one tile's list and emit the slot of every entry (zeros for entries after the tile
-/// finished or whose rows all miss). `t_final` is the forward's state (for the live pixels).
+/// Replay one tile's list and emit the slot of every entry (`SlotSink::zero` for entries after
+/// the tile finished or whose rows all miss). `t_final` is the forward's state (for the live pixels).
 /// Returns the Gaussian-pixel evaluations (as the forward counts them).
 #[inline(always)]
 fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
@@ -147,7 +155,7 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
     for list in lists {
         for (k, &gi) in list.iter().enumerate() {
             if done {
-                sink.put(gi, &[0.0; slot::LEN]);
+                sink.zero(gi);
                 continue;
             }
             if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
@@ -174,6 +182,7 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
                 bdx[l] = cb * dxs[l];
             }
             let mut acc = [[0.0f32; LANES]; 9];
+            let mut any = false;
             for r in lo..hi {
                 if !alive[r] {
                     continue;
@@ -189,6 +198,7 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
                     continue;
                 }
                 evals += LANES as u64;
+                any = true;
                 let cdy2 = 0.5 * cc * dy * dy;
                 let dy2 = dy * dy;
                 let cdy = cc * dy;
@@ -247,7 +257,11 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
                     }
                 }
             }
-            sink.put(gi, &finish_slot(&acc, &dxs));
+            if any {
+                sink.put(gi, &finish_slot(&acc, &dxs));
+            } else {
+                sink.zero(gi);
+            }
         }
     }
     evals

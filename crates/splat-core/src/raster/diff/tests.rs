@@ -222,13 +222,17 @@ fn gradients_do_not_depend_on_the_banding() {
     assert_eq!(ws.bands(usize::MAX).len(), 1);
 }
 
-/// Collects every slot a kernel emits, in order.
+/// Collects every slot a kernel emits, in order (`None` for `SlotSink::zero`).
 #[derive(Default, PartialEq, Debug)]
-struct VecSink(Vec<(u32, [u32; slot::LEN])>);
+struct VecSink(Vec<(u32, Option<[u32; slot::LEN]>)>);
 
 impl blend_bwd::SlotSink for VecSink {
     fn put(&mut self, pos: u32, vals: &[f32; slot::LEN]) {
-        self.0.push((pos, vals.map(f32::to_bits)));
+        self.0.push((pos, Some(vals.map(f32::to_bits))));
+    }
+
+    fn zero(&mut self, pos: u32) {
+        self.0.push((pos, None));
     }
 }
 
@@ -242,6 +246,7 @@ fn explicit_kernels_give_the_generic_kernels_slots_tile_by_tile() {
     }
     let mut checked = 0;
     let mut nonzero = 0;
+    let mut zeros = 0;
     for (n, max_alpha, w, h, aa, abs) in [
         (3000, 0.99, 100, 70, false, true),
         (20000, 0.999, 100, 70, false, false),
@@ -299,8 +304,9 @@ fn explicit_kernels_give_the_generic_kernels_slots_tile_by_tile() {
             nonzero += want
                 .0
                 .iter()
-                .filter(|(_, v)| v.iter().any(|&b| b != 0))
+                .filter(|(_, v)| v.is_some_and(|v| v.iter().any(|&b| b != 0)))
                 .count();
+            zeros += want.0.iter().filter(|(_, v)| v.is_none()).count();
             let mut got = Vec::new();
             if Simd::Avx2.resolve() == Simd::Avx2 {
                 let mut o = VecSink::default();
@@ -325,8 +331,8 @@ fn explicit_kernels_give_the_generic_kernels_slots_tile_by_tile() {
         }
     }
     assert!(
-        checked > 50 && nonzero > 1000,
-        "{checked} tiles, {nonzero} slots"
+        checked > 50 && nonzero > 1000 && zeros > 100,
+        "{checked} tiles, {nonzero} slots, {zeros} without sums"
     );
 }
 
@@ -445,4 +451,100 @@ fn reset_since_a_lower_degree_gives_the_fresh_reset_gradients() {
     g.reset_since(10, s.sh_rest_k(), false, Some(0));
     assert_eq!(g.sh_rest.len(), 10 * s.sh_rest_k() * 3);
     assert!(g.means.iter().chain(&g.sh_rest).all(|&v| v == 0.0));
+}
+
+/// The per-Gaussian pass in vectorised blocks (taken without the camera gradient) gives the
+/// one-by-one `gauss_backward`'s bits (taken with it), with and without antialiasing, SH
+/// degrees 0 and 3, and Gaussians beyond the frustum clamp on both axes.
+#[test]
+fn per_gaussian_blocks_give_the_one_by_one_bits() {
+    for (degree, aa) in [(3, false), (3, true), (0, true)] {
+        let mut s = scene(2500, degree, 11 + degree as u64);
+        let k = s.sh_rest_k() * 3;
+        let mut next = rng(5);
+        // large Gaussians off to the sides: visible, but their means lie beyond the clamp
+        for i in 0..60 {
+            let side = if i % 2 == 0 { 1.0 } else { -1.0 };
+            let (x, y) = if i % 4 < 2 {
+                (side * (2.4 + next()), next() - 0.5)
+            } else {
+                (next() - 0.5, side * (2.4 + next()))
+            };
+            s.means.extend([x, y, next() - 0.5]);
+            s.quats.extend([1.0, next() - 0.5, next() - 0.5, 0.2]);
+            s.log_scales.extend([-0.3 - next(), -0.3 - next(), -0.5]);
+            s.opacity_logits.push(next() * 4.0 - 2.0);
+            s.sh0.extend([next() - 0.5, next() - 0.5, next() - 0.5]);
+            s.sh_rest.extend((0..k).map(|_| 0.3 * (next() - 0.5)));
+        }
+        s.normalize_quats();
+        let cam = camera(120, 90);
+        let opts = DiffOptions {
+            render: RenderOptions {
+                antialiased: aa,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let mut ws = Workspace::default();
+        forward(&mut ws, &s, &cam, &opts);
+        let proj = Projector::new(&cam, &opts.render, degree);
+        let clamped = ws
+            .radii()
+            .filter(|&(i, _)| {
+                let m = &s.means[i * 3..i * 3 + 3];
+                let z = m[2] + 4.0;
+                !(-proj.lim_x_neg..=proj.lim_x_pos).contains(&(m[0] / z))
+                    || !(-proj.lim_y_neg..=proj.lim_y_pos).contains(&(m[1] / z))
+            })
+            .count();
+        assert!(
+            clamped >= 10,
+            "{clamped} visible Gaussians beyond the clamp"
+        );
+        let (r, d, a) = image_grads(&cam, 3);
+        let grads = ImageGrads {
+            rgb: Some(&r),
+            depth: Some(&d),
+            alpha: Some(&a),
+        };
+        let run = |camera_grad: bool| {
+            let mut g = Gradients::default();
+            g.reset(s.len(), s.sh_rest_k(), false);
+            let mut view = ViewGrads {
+                viewmat: camera_grad.then_some([0.0; 16]),
+                ..Default::default()
+            };
+            let mut ws = Workspace::default();
+            forward(&mut ws, &s, &cam, &opts);
+            ws.backward(&s.view(), None, &grads, &mut g, Some(&mut view), None)
+                .expect("backward");
+            view.viewmat = None;
+            (g, view)
+        };
+        let (g1, v1) = run(true);
+        let (g2, v2) = run(false);
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert!(g2.quats.iter().any(|&v| v != 0.0));
+        for (name, a, b) in [
+            ("means", &g1.means, &g2.means),
+            ("quats", &g1.quats, &g2.quats),
+            ("log_scales", &g1.log_scales, &g2.log_scales),
+            ("opacity_logits", &g1.opacity_logits, &g2.opacity_logits),
+            ("sh0", &g1.sh0, &g2.sh0),
+            ("sh_rest", &g1.sh_rest, &g2.sh_rest),
+            ("scales", &g1.scales, &g2.scales),
+            ("opacities", &g1.opacities, &g2.opacities),
+            ("means2d", &v1.means2d, &v2.means2d),
+            ("conics", &v1.conics, &v2.conics),
+            ("view opacities", &v1.opacities, &v2.opacities),
+            ("depths", &v1.depths, &v2.depths),
+        ] {
+            assert_eq!(
+                bits(a),
+                bits(b),
+                "{name}, degree {degree}, antialiased {aa}"
+            );
+        }
+    }
 }
