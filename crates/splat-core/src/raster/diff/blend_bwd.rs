@@ -376,58 +376,42 @@ pub(crate) fn tile_inputs(
     *pix = PixIn::default();
     let mut v_bg = [0.0f64; 3];
     let cols = LANES.min(width - x0);
-    let dsum = |gd: f32, am: f32, d: f32| gd * (d / am) / am;
     for r in 0..LANES.min(height - y0) {
-        // the row's image gradients as lane arrays (zeros past the image's right edge), then
-        // every lane's arithmetic in one loop the compiler vectorises (the same operations per
-        // pixel as one pixel at a time), lanes past the edge set to zero
-        let row0 = (y0 + r) * width + x0;
-        let mut g = [[0.0f32; LANES]; 3];
-        let mut ga = [0.0f32; LANES];
-        let mut gd = [0.0f32; LANES];
-        if let Some(v) = grads.rgb {
-            for (l, px) in v[row0 * 3..(row0 + cols) * 3].chunks_exact(3).enumerate() {
-                g[0][l] = px[0];
-                g[1][l] = px[1];
-                g[2][l] = px[2];
-            }
-        }
-        if let Some(v) = grads.alpha {
-            ga[..cols].copy_from_slice(&v[row0..row0 + cols]);
-        }
-        if let Some(v) = grads.depth {
-            gd[..cols].copy_from_slice(&v[row0..row0 + cols]);
-        }
-        let mut t_row = [0.0f32; LANES];
-        for l in 0..LANES {
+        for l in 0..cols {
+            let i = (y0 + r) * width + x0 + l;
             let t = saved.t[r][l].abs();
             let a = 1.0 - t;
-            let d = saved.d[r][l];
-            // depth = D / max(A, 1e-10) with the expected depth
-            let am = a.max(1e-10);
-            let (g3, ga) = if expected_depth {
-                let ga_d = ga[l] - dsum(gd[l], am, d);
-                (gd[l] / am, if a > 1e-10 { ga_d } else { ga[l] })
+            let mut g = [0.0f32; 4];
+            if let Some(v) = grads.rgb {
+                g[..3].copy_from_slice(&v[i * 3..i * 3 + 3]);
+            }
+            let mut ga = grads.alpha.map_or(0.0, |v| v[i]);
+            let gd = grads.depth.map_or(0.0, |v| v[i]);
+            if expected_depth {
+                // depth = D / max(A, 1e-10)
+                let am = a.max(1e-10);
+                g[3] = gd / am;
+                if a > 1e-10 {
+                    ga -= gd * (saved.d[r][l] / am) / am;
+                }
             } else {
-                (gd[l], ga[l])
-            };
-            let gbg = g[0][l] * background[0] + g[1][l] * background[1] + g[2][l] * background[2];
+                g[3] = gd;
+            }
+            let cf = [
+                saved.c[0][r][l],
+                saved.c[1][r][l],
+                saved.c[2][r][l],
+                saved.d[r][l],
+            ];
+            let gbg = g[0] * background[0] + g[1] * background[1] + g[2] * background[2];
             let mut q = t * (gbg - ga);
-            q += g[0][l] * saved.c[0][r][l];
-            q += g[1][l] * saved.c[1][r][l];
-            q += g[2][l] * saved.c[2][r][l];
-            q += g3 * d;
-            let inside = l < cols;
-            pix.g[0][r][l] = g[0][l];
-            pix.g[1][r][l] = g[1][l];
-            pix.g[2][r][l] = g[2][l];
-            pix.g[3][r][l] = if inside { g3 } else { 0.0 };
-            pix.q[r][l] = if inside { q } else { 0.0 };
-            t_row[l] = t;
-        }
-        for l in 0..cols {
+            for c in 0..4 {
+                q += g[c] * cf[c];
+                pix.g[c][r][l] = g[c];
+            }
+            pix.q[r][l] = q;
             for c in 0..3 {
-                v_bg[c] += g[c][l] as f64 * t_row[l] as f64;
+                v_bg[c] += g[c] as f64 * t as f64;
             }
         }
     }
