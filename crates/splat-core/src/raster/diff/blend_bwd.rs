@@ -42,10 +42,11 @@ impl Default for PixIn {
 /// call `put` or `zero` exactly once per entry of the tile's list, in list order.
 pub(crate) trait SlotSink {
     fn put(&mut self, pos: u32, vals: &[f32; slot::LEN]);
-    /// Entry `pos` has no slot to add: it comes after the tile finished, or none of its rows
-    /// passes the contour test (every kernel decides this alike). Its sums would be zeros
-    /// (some -0.0), which leave any running sum that starts at +0.0 unchanged, so a sink may
-    /// skip it; by default it puts +0.0 zeros.
+    /// Entry `pos` has no slot to add: it comes after the tile finished. Its sums would be
+    /// +0.0 zeros, which leave any running sum unchanged, so a sink may skip it; by default it
+    /// puts them. (Splats none of whose rows passes the contour test still put their zero sums:
+    /// skipping them was measured slower, a branch that mispredicts in the kernel and in the
+    /// reduction.)
     #[inline]
     fn zero(&mut self, pos: u32) {
         self.put(pos, &[0.0; slot::LEN]);
@@ -117,7 +118,7 @@ pub(crate) fn finish_slot(acc: &[[f32; LANES]; 9], dx: &[f32; LANES]) -> [f32; s
 }
 
 /// Replay one tile's list and emit the slot of every entry (`SlotSink::zero` for entries after
-/// the tile finished or whose rows all miss). `t_final` is the forward's state (for the live pixels).
+/// the tile finished). `t_final` is the forward's state (for the live pixels).
 /// Returns the Gaussian-pixel evaluations (as the forward counts them).
 #[inline(always)]
 fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
@@ -182,7 +183,6 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
                 bdx[l] = cb * dxs[l];
             }
             let mut acc = [[0.0f32; LANES]; 9];
-            let mut any = false;
             for r in lo..hi {
                 if !alive[r] {
                     continue;
@@ -198,7 +198,6 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
                     continue;
                 }
                 evals += LANES as u64;
-                any = true;
                 let cdy2 = 0.5 * cc * dy * dy;
                 let dy2 = dy * dy;
                 let cdy = cc * dy;
@@ -257,11 +256,7 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
                     }
                 }
             }
-            if any {
-                sink.put(gi, &finish_slot(&acc, &dxs));
-            } else {
-                sink.zero(gi);
-            }
+            sink.put(gi, &finish_slot(&acc, &dxs));
         }
     }
     evals

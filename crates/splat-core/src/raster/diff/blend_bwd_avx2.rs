@@ -196,10 +196,6 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
                 }
             }
             let rows = range & alive & ok;
-            if rows == 0 {
-                sink.zero(gi);
-                continue;
-            }
             let half_a = _mm256_set1_ps(0.5 * ca);
             let (va_, vb_) = (_mm256_set1_ps(ca), _mm256_set1_ps(cb));
             let dx = [_mm256_sub_ps(v_mx, px[0]), _mm256_sub_ps(v_mx, px[1])];

@@ -172,10 +172,6 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
             let ok = _mm512_mask_cmp_ps_mask::<_CMP_NGT_UQ>(ok, left, v_xh);
             let ok = _mm512_mask_cmp_ps_mask::<_CMP_NLT_UQ>(ok, right, v_xl);
             let mut todo = range & alive & ok as u32;
-            if todo == 0 {
-                sink.zero(gi);
-                continue;
-            }
             let cdy2 = _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(0.5 * cc), dy), dy);
             let cdy = _mm512_mul_ps(_mm512_set1_ps(cc), dy);
             // SAFETY: each row array holds 16 aligned floats.
