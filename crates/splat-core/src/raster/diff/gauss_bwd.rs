@@ -76,161 +76,6 @@ pub(crate) fn scales_into(log_scales: &[f32], out: &mut Vec<f32>) {
 /// Values per task of [`scales_into`].
 const SCALE_CHUNK: usize = 3 << 12;
 
-/// Gaussians per block of [`gauss_backward_block`].
-pub(crate) const BLOCK: usize = 16;
-
-/// Layout of the projection backward's inputs per Gaussian (one float each).
-pub(crate) mod pin {
-    /// The splat's conic (3).
-    pub const CONIC: usize = 0;
-    /// The stored mean (3), quaternion (4), exp(log-scales) (3) and opacity logit.
-    pub const MEAN: usize = 3;
-    pub const QUAT: usize = 6;
-    pub const SCALE: usize = 10;
-    pub const LOGIT: usize = 13;
-    /// Slot sums: V0, VDX, VDY, VDX2, VDXDY, VDY2 and the depth colour's.
-    pub const V0: usize = 14;
-    pub const VDX: usize = 15;
-    pub const VDY: usize = 16;
-    pub const VDX2: usize = 17;
-    pub const VDXDY: usize = 18;
-    pub const VDY2: usize = 19;
-    pub const DEPTH: usize = 20;
-    pub const LEN: usize = 21;
-}
-
-/// Gaussian `i`'s inputs of [`proj_backward`] (splat `s`, summed slot `acc`).
-#[inline(always)]
-pub(crate) fn proj_inputs(
-    ctx: &GaussCtx<'_>,
-    i: usize,
-    s: &Splat,
-    acc: &[f32; slot::LEN],
-) -> [f32; pin::LEN] {
-    let sc = ctx.scene;
-    let mut x = [0.0f32; pin::LEN];
-    x[pin::CONIC..pin::CONIC + 3].copy_from_slice(&s.conic);
-    x[pin::MEAN..pin::MEAN + 3].copy_from_slice(&sc.means[i * 3..i * 3 + 3]);
-    x[pin::QUAT..pin::QUAT + 4].copy_from_slice(&sc.quats[i * 4..i * 4 + 4]);
-    x[pin::SCALE..pin::SCALE + 3].copy_from_slice(&ctx.scales[i * 3..i * 3 + 3]);
-    x[pin::LOGIT] = sc.opacity_logits[i];
-    x[pin::V0] = acc[slot::V0];
-    x[pin::VDX] = acc[slot::VDX];
-    x[pin::VDY] = acc[slot::VDY];
-    x[pin::VDX2] = acc[slot::VDX2];
-    x[pin::VDXDY] = acc[slot::VDXDY];
-    x[pin::VDY2] = acc[slot::VDY2];
-    x[pin::DEPTH] = acc[slot::C0 + 3];
-    x
-}
-
-/// What the projection backward gives one Gaussian (before the colour's share of the mean).
-#[derive(Debug, Clone, Copy, Default)]
-pub(crate) struct ProjGrad {
-    pub means2d: [f32; 2],
-    pub conic: [f32; 3],
-    pub opacity_eff: f32,
-    /// dL/d(mean) through the camera-space mean (the SH direction's share is added later).
-    pub mean: [f32; 3],
-    pub scales: [f32; 3],
-    pub quats: [f32; 4],
-    pub log_scales: [f32; 3],
-    pub opacity: f32,
-    pub opacity_logit: f32,
-    // for the camera gradient (the one-Gaussian path only)
-    pub v_pc: [f32; 3],
-    pub v_mq: [[f32; 3]; 3],
-    pub rq: [[f32; 3]; 3],
-}
-
-/// Floats of [`ProjGrad::flat`] (the fields a block returns: not the camera-gradient terms).
-pub(crate) const POUT: usize = 23;
-
-impl ProjGrad {
-    #[inline(always)]
-    fn flat(&self) -> [f32; POUT] {
-        let mut o = [0.0f32; POUT];
-        o[0..2].copy_from_slice(&self.means2d);
-        o[2..5].copy_from_slice(&self.conic);
-        o[5] = self.opacity_eff;
-        o[6..9].copy_from_slice(&self.mean);
-        o[9..12].copy_from_slice(&self.scales);
-        o[12..16].copy_from_slice(&self.quats);
-        o[16..19].copy_from_slice(&self.log_scales);
-        o[19] = self.opacity;
-        o[20] = self.opacity_logit;
-        o
-    }
-
-    /// Lane `l` of a block's output (the camera-gradient terms zero).
-    #[inline(always)]
-    pub(crate) fn lane(out: &[[f32; BLOCK]; POUT], l: usize) -> Self {
-        let v = |k: usize| out[k][l];
-        ProjGrad {
-            means2d: [v(0), v(1)],
-            conic: [v(2), v(3), v(4)],
-            opacity_eff: v(5),
-            mean: [v(6), v(7), v(8)],
-            scales: [v(9), v(10), v(11)],
-            quats: [v(12), v(13), v(14), v(15)],
-            log_scales: [v(16), v(17), v(18)],
-            opacity: v(19),
-            opacity_logit: v(20),
-            ..Default::default()
-        }
-    }
-}
-
-/// The projection backward of a block of Gaussians (`x[k][l]`: input k of lane l, see [`pin`]):
-/// [`proj_backward`] lane by lane, in a loop the compiler vectorises (compiled for AVX-512 and
-/// AVX2 too, picked at run time; Rust never contracts a * b + c into an FMA, so every build
-/// and every lane gives the one-Gaussian bits).
-pub(crate) fn gauss_backward_block(
-    p: &Projector,
-    x: &[[f32; BLOCK]; pin::LEN],
-    out: &mut [[f32; BLOCK]; POUT],
-) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::is_x86_feature_detected!("avx512f")
-            && std::is_x86_feature_detected!("avx512dq")
-            && std::is_x86_feature_detected!("avx512vl")
-            && std::is_x86_feature_detected!("avx2")
-        {
-            // SAFETY: the CPU has these features (checked just above).
-            return unsafe { block_avx512(p, x, out) };
-        }
-        if std::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU has AVX2 (checked just above).
-            return unsafe { block_avx2(p, x, out) };
-        }
-    }
-    block_impl(p, x, out)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-fn block_avx512(p: &Projector, x: &[[f32; BLOCK]; pin::LEN], out: &mut [[f32; BLOCK]; POUT]) {
-    block_impl(p, x, out)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn block_avx2(p: &Projector, x: &[[f32; BLOCK]; pin::LEN], out: &mut [[f32; BLOCK]; POUT]) {
-    block_impl(p, x, out)
-}
-
-#[inline(always)]
-fn block_impl(p: &Projector, x: &[[f32; BLOCK]; pin::LEN], out: &mut [[f32; BLOCK]; POUT]) {
-    for l in 0..BLOCK {
-        let xl: [f32; pin::LEN] = std::array::from_fn(|k| x[k][l]);
-        let g = proj_backward(p, &xl).flat();
-        for k in 0..POUT {
-            out[k][l] = g[k];
-        }
-    }
-}
-
 /// Backward of Gaussian `i`, whose depth-sorted splat is `s`, from its summed blend slot.
 pub(crate) fn gauss_backward(
     ctx: &GaussCtx<'_>,
@@ -238,31 +83,31 @@ pub(crate) fn gauss_backward(
     s: &Splat,
     acc: &[f32; slot::LEN],
 ) -> GaussGrad {
-    let pg = proj_backward(ctx.proj, &proj_inputs(ctx, i, s, acc));
-    gauss_finish(ctx, i, acc, &pg)
-}
-
-/// The projection backward of one Gaussian (conic inverse, antialiasing compensation, EWA
-/// Jacobian with the frustum clamp, world to camera, covariance from quaternion and scale,
-/// the opacity's activation) from its inputs (see [`pin`]). Branch-free per Gaussian (both
-/// sides computed, one kept), so a loop of it vectorises.
-#[inline(always)]
-pub(crate) fn proj_backward(p: &Projector, x: &[f32; pin::LEN]) -> ProjGrad {
-    let mut out = ProjGrad::default();
-    let [ca, cb, cc] = [x[pin::CONIC], x[pin::CONIC + 1], x[pin::CONIC + 2]];
+    let p = ctx.proj;
+    let sc = ctx.scene;
+    let mut out = GaussGrad::default();
+    let [ca, cb, cc] = s.conic;
 
     // ---- blend slot -> gradients of the splat's values
-    let v_conic = [-0.5 * x[pin::VDX2], -x[pin::VDXDY], -0.5 * x[pin::VDY2]];
-    let v_xy = [
-        -(ca * x[pin::VDX] + cb * x[pin::VDY]),
-        -(cb * x[pin::VDX] + cc * x[pin::VDY]),
+    let v_conic = [
+        -0.5 * acc[slot::VDX2],
+        -acc[slot::VDXDY],
+        -0.5 * acc[slot::VDY2],
     ];
-    let v_z_blend = x[pin::DEPTH];
+    let v_xy = [
+        -(ca * acc[slot::VDX] + cb * acc[slot::VDY]),
+        -(cb * acc[slot::VDX] + cc * acc[slot::VDY]),
+    ];
+    let v_rgb = [acc[slot::C0], acc[slot::C0 + 1], acc[slot::C0 + 2]];
+    let v_z_blend = acc[slot::C0 + 3];
     out.means2d = v_xy;
+    out.means2d_abs = [acc[slot::ABSX], acc[slot::ABSY]];
     out.conic = v_conic;
+    out.rgb = v_rgb;
+    out.depth = v_z_blend;
 
     // ---- recompute the forward (as `Projector::screen` / `footprint`)
-    let mean = [x[pin::MEAN], x[pin::MEAN + 1], x[pin::MEAN + 2]];
+    let mean = [sc.means[i * 3], sc.means[i * 3 + 1], sc.means[i * 3 + 2]];
     let mut pc = [0.0f32; 3];
     for (r, v) in pc.iter_mut().enumerate() {
         *v = (p.rot[r][0] * mean[0] as f64
@@ -270,9 +115,9 @@ pub(crate) fn proj_backward(p: &Projector, x: &[f32; pin::LEN]) -> ProjGrad {
             + p.rot[r][2] * mean[2] as f64
             + p.trans[r]) as f32;
     }
-    let [x_, y, z] = pc;
+    let [x, y, z] = pc;
     let (fx, fy) = (p.fx, p.fy);
-    let (ux, uy) = (x_ / z, y / z);
+    let (ux, uy) = (x / z, y / z);
     let in_x = ux >= -p.lim_x_neg && ux <= p.lim_x_pos;
     let in_y = uy >= -p.lim_y_neg && uy <= p.lim_y_pos;
     let tx = z * ux.max(-p.lim_x_neg).min(p.lim_x_pos);
@@ -283,15 +128,19 @@ pub(crate) fn proj_backward(p: &Projector, x: &[f32; pin::LEN]) -> ProjGrad {
     let j12 = -fy * ty / (z * z);
 
     let qv = [
-        x[pin::QUAT],
-        x[pin::QUAT + 1],
-        x[pin::QUAT + 2],
-        x[pin::QUAT + 3],
+        sc.quats[i * 4],
+        sc.quats[i * 4 + 1],
+        sc.quats[i * 4 + 2],
+        sc.quats[i * 4 + 3],
     ];
     let qn = (qv[0] * qv[0] + qv[1] * qv[1] + qv[2] * qv[2] + qv[3] * qv[3]).sqrt();
     let [qw, qx, qy, qz] = qv.map(|v| v / qn);
     let rq = crate::raster::project::quat_rotation(qw, qx, qy, qz);
-    let scale = [x[pin::SCALE], x[pin::SCALE + 1], x[pin::SCALE + 2]];
+    let scale = [
+        ctx.scales[i * 3],
+        ctx.scales[i * 3 + 1],
+        ctx.scales[i * 3 + 2],
+    ];
     let w = &p.rot32;
     // Mq = W Rq; T = Mq diag(s)
     let mut mq = [[0.0f32; 3]; 3];
@@ -314,7 +163,7 @@ pub(crate) fn proj_backward(p: &Projector, x: &[f32; pin::LEN]) -> ProjGrad {
     let (bx, by) = (c00 + EPS2D, c11 + EPS2D);
     let det = bx * by - c01 * c01;
 
-    let logit = x[pin::LOGIT];
+    let logit = sc.opacity_logits[i];
     let opacity = 1.0 / (1.0 + fastmath::exp(-logit));
     let ratio = (c00 * c11 - c01 * c01) / det;
     let comp = if p.antialiased {
@@ -325,13 +174,13 @@ pub(crate) fn proj_backward(p: &Projector, x: &[f32; pin::LEN]) -> ProjGrad {
     let o_eff = opacity * comp;
 
     // ---- opacity: alpha = o_eff e^-sigma, so dL/do_eff = sum(e v_alpha) / o_eff
-    let v_o_eff = x[pin::V0] / o_eff;
+    let v_o_eff = acc[slot::V0] / o_eff;
     out.opacity_eff = v_o_eff;
     let v_opacity = v_o_eff * comp;
     let v_comp = v_o_eff * opacity;
 
     // ---- conic = inverse(Sigma2d + eps I): v_Sigma = -P V P with V = [[va, vb/2], [vb/2, vc]]
-    let (pa, pb, pc_) = (ca, cb, cc);
+    let (pa, pb, pc_) = (s.conic[0], s.conic[1], s.conic[2]);
     let (va, vb, vc) = (v_conic[0], 0.5 * v_conic[1], v_conic[2]);
     // PV = [[pa va + pb vb, pa vb + pb vc], [pb va + pc vb, pb vb + pc vc]]
     let pv00 = pa * va + pb * vb;
@@ -342,15 +191,11 @@ pub(crate) fn proj_backward(p: &Projector, x: &[f32; pin::LEN]) -> ProjGrad {
     let mut v_c01 = -2.0 * (pv00 * pb + pv01 * pc_); // c01 appears twice in the matrix
     let mut v_c11 = -(pv10 * pb + pv11 * pc_);
     // antialiasing: comp = sqrt(max(0.005^2, det(Sigma) / det(Sigma + eps I)))
-    if p.antialiased {
+    if p.antialiased && ratio > 0.005 * 0.005 {
         let v_ratio = v_comp * 0.5 / comp;
-        let aa = ratio > 0.005 * 0.005;
-        let a00 = v_c00 + v_ratio * (c11 - ratio * by) / det;
-        let a11 = v_c11 + v_ratio * (c00 - ratio * bx) / det;
-        let a01 = v_c01 + v_ratio * (2.0 * c01 * (ratio - 1.0)) / det;
-        v_c00 = if aa { a00 } else { v_c00 };
-        v_c11 = if aa { a11 } else { v_c11 };
-        v_c01 = if aa { a01 } else { v_c01 };
+        v_c00 += v_ratio * (c11 - ratio * by) / det;
+        v_c11 += v_ratio * (c00 - ratio * bx) / det;
+        v_c01 += v_ratio * (2.0 * c01 * (ratio - 1.0)) / det;
     }
 
     // ---- Sigma2d = A A^T with A = J T (2x3): v_A = 2 Vs A, Vs = [[v00, v01/2], [v01/2, v11]]
@@ -377,23 +222,27 @@ pub(crate) fn proj_backward(p: &Projector, x: &[f32; pin::LEN]) -> ProjGrad {
     let rz = 1.0 / z;
     let rz2 = rz * rz;
     let mut v_pc = [fx * rz * v_xy[0], fy * rz * v_xy[1], 0.0];
-    v_pc[2] -= (fx * x_ * v_xy[0] + fy * y * v_xy[1]) * rz2;
+    v_pc[2] -= (fx * x * v_xy[0] + fy * y * v_xy[1]) * rz2;
     v_pc[2] -= fx * rz2 * v_j00 + fy * rz2 * v_j11;
-    // inside the clamp j02 = -fx x / z^2, outside j02 = -fx lim / z (tx = z lim)
-    let in0 = v_pc[0] - fx * rz2 * v_j02;
-    let in2 = v_pc[2] + 2.0 * fx * x_ * rz2 * rz * v_j02;
-    let out2 = v_pc[2] + fx * tx * rz2 * rz * v_j02;
-    v_pc[0] = if in_x { in0 } else { v_pc[0] };
-    v_pc[2] = if in_x { in2 } else { out2 };
-    let in1 = v_pc[1] - fy * rz2 * v_j12;
-    let in2 = v_pc[2] + 2.0 * fy * y * rz2 * rz * v_j12;
-    let out2 = v_pc[2] + fy * ty * rz2 * rz * v_j12;
-    v_pc[1] = if in_y { in1 } else { v_pc[1] };
-    v_pc[2] = if in_y { in2 } else { out2 };
+    if in_x {
+        // j02 = -fx x / z^2
+        v_pc[0] -= fx * rz2 * v_j02;
+        v_pc[2] += 2.0 * fx * x * rz2 * rz * v_j02;
+    } else {
+        // j02 = -fx lim / z (tx = z lim)
+        v_pc[2] += fx * tx * rz2 * rz * v_j02;
+    }
+    if in_y {
+        v_pc[1] -= fy * rz2 * v_j12;
+        v_pc[2] += 2.0 * fy * y * rz2 * rz * v_j12;
+    } else {
+        v_pc[2] += fy * ty * rz2 * rz * v_j12;
+    }
     v_pc[2] += v_z_blend;
     // mean: pc = W mean + t
+    let mut v_mean = [0.0f32; 3];
     for c in 0..3 {
-        out.mean[c] = w[0][c] * v_pc[0] + w[1][c] * v_pc[1] + w[2][c] * v_pc[2];
+        v_mean[c] = w[0][c] * v_pc[0] + w[1][c] * v_pc[1] + w[2][c] * v_pc[2];
     }
 
     // ---- covariance factor: T = Mq diag(s), Mq = W Rq
@@ -432,44 +281,6 @@ pub(crate) fn proj_backward(p: &Projector, x: &[f32; pin::LEN]) -> ProjGrad {
     for c in 0..4 {
         out.quats[c] = (vq_hat[c] - d * qh[c]) / qn;
     }
-
-    out.scales = v_scale;
-    out.log_scales = [
-        v_scale[0] * scale[0],
-        v_scale[1] * scale[1],
-        v_scale[2] * scale[2],
-    ];
-    out.opacity = v_opacity;
-    out.opacity_logit = v_opacity * opacity * (1.0 - opacity);
-    out.v_pc = v_pc;
-    out.v_mq = v_mq;
-    out.rq = rq;
-    out
-}
-
-/// The rest of Gaussian `i`'s backward after its projection backward `pg`: the view's
-/// gradients from the slot, the colour (SH with its direction's share of the mean, or given
-/// colours) and, with [`GaussCtx::pose`], the camera gradient (which needs `pg`'s camera
-/// terms: the one-Gaussian path only).
-#[inline(always)]
-pub(crate) fn gauss_finish(
-    ctx: &GaussCtx<'_>,
-    i: usize,
-    acc: &[f32; slot::LEN],
-    pg: &ProjGrad,
-) -> GaussGrad {
-    let p = ctx.proj;
-    let sc = ctx.scene;
-    let mut out = GaussGrad::default();
-    let v_rgb = [acc[slot::C0], acc[slot::C0 + 1], acc[slot::C0 + 2]];
-    out.means2d = pg.means2d;
-    out.means2d_abs = [acc[slot::ABSX], acc[slot::ABSY]];
-    out.conic = pg.conic;
-    out.rgb = v_rgb;
-    out.depth = acc[slot::C0 + 3];
-    out.opacity_eff = pg.opacity_eff;
-    let mut v_mean = pg.mean;
-    let mean = [sc.means[i * 3], sc.means[i * 3 + 1], sc.means[i * 3 + 2]];
 
     // ---- colour
     let mut v_dir_mean = [0.0f32; 3];
@@ -513,7 +324,6 @@ pub(crate) fn gauss_finish(
 
     if ctx.pose {
         // pc = W mean + t and Mq = W Rq: dL/dW = v_pc mean^T + v_Mq Rq^T, dL/dt = v_pc
-        let (v_pc, v_mq, rq) = (&pg.v_pc, &pg.v_mq, &pg.rq);
         for r in 0..3 {
             for k in 0..3 {
                 out.pose[r * 3 + k] = v_pc[r] * mean[k]
@@ -527,10 +337,13 @@ pub(crate) fn gauss_finish(
     }
 
     out.means = v_mean;
-    out.scales = pg.scales;
-    out.log_scales = pg.log_scales;
-    out.quats = pg.quats;
-    out.opacity = pg.opacity;
-    out.opacity_logit = pg.opacity_logit;
+    out.scales = v_scale;
+    out.log_scales = [
+        v_scale[0] * scale[0],
+        v_scale[1] * scale[1],
+        v_scale[2] * scale[2],
+    ];
+    out.opacity = v_opacity;
+    out.opacity_logit = v_opacity * opacity * (1.0 - opacity);
     out
 }

@@ -559,12 +559,6 @@ impl Workspace {
             .map(|(c, (ss, ids))| {
                 let mut part = [0.0f64; gauss_bwd::POSE_LEN];
                 let pos = &pos[part_off[c]..part_off[c] + ss.len()];
-                if !pose {
-                    // blocks of 16: the projection backward vectorised across them, then
-                    // the colour and the scatter one by one
-                    per_gaussian_blocks(&ctx, ss, ids, pos, acc, &scatter, sv.degree);
-                    return part;
-                }
                 for (j, ((s, &i), &p)) in ss.iter().zip(ids).zip(pos).enumerate() {
                     // the sums lie in depth order: fetch ahead (a cache miss each otherwise)
                     if let Some(&ahead) = pos.get(j + ACC_PREFETCH) {
@@ -849,53 +843,6 @@ impl Workspace {
                     }
                 }
             });
-    }
-}
-
-/// The per-Gaussian pass over one projection chunk's visible Gaussians (splats `ss`, their
-/// ids and sorted positions) without the camera gradient: blocks of [`gauss_bwd::BLOCK`]
-/// through the vectorised projection backward, then each Gaussian's colour backward and
-/// scatter in index order. The same bits as [`gauss_bwd::gauss_backward`] one by one.
-fn per_gaussian_blocks(
-    ctx: &gauss_bwd::GaussCtx<'_>,
-    ss: &[Splat],
-    ids: &[u32],
-    pos: &[u32],
-    acc: &[[f32; slot::LEN]],
-    scatter: &Scatter<'_>,
-    degree: u8,
-) {
-    use gauss_bwd::{pin, ProjGrad, BLOCK, POUT};
-    let mut j = 0;
-    while j < ss.len() {
-        let nb = BLOCK.min(ss.len() - j);
-        // unused lanes stay zero (their results, NaNs among them, are not read)
-        let mut x = [[0.0f32; BLOCK]; pin::LEN];
-        for l in 0..nb {
-            // the sums lie in depth order: fetch ahead (a cache miss each otherwise)
-            if let Some(&ahead) = pos.get(j + l + ACC_PREFETCH) {
-                prefetch_slot(acc, ahead as usize);
-            }
-            let xi = gauss_bwd::proj_inputs(
-                ctx,
-                ids[j + l] as usize,
-                &ss[j + l],
-                &acc[pos[j + l] as usize],
-            );
-            for (k, v) in xi.into_iter().enumerate() {
-                x[k][l] = v;
-            }
-        }
-        let mut o = [[0.0f32; BLOCK]; POUT];
-        gauss_bwd::gauss_backward_block(ctx.proj, &x, &mut o);
-        for l in 0..nb {
-            let i = ids[j + l] as usize;
-            let g =
-                gauss_bwd::gauss_finish(ctx, i, &acc[pos[j + l] as usize], &ProjGrad::lane(&o, l));
-            // SAFETY: every Gaussian index occurs once among the visible splats.
-            unsafe { scatter.put(i, &ss[j + l], &g, degree) };
-        }
-        j += nb;
     }
 }
 
