@@ -19,7 +19,7 @@
 //! float is reduced across threads, so gradients are the same bits for 1 or N threads.
 //! The slots lie in tile-list order; the sums stream through them once per binning chunk (whose
 //! Gaussians' sums that chunk's task owns), so each Gaussian meets its tiles in row-major order.
-//! Memory: 48 bytes per slot; the image is processed in bands of tile rows whose slots fit
+//! Memory: 48 bytes per slot and a byte for its written flag; the image is processed in bands of tile rows whose slots fit
 //! [`DiffOptions::slot_budget`] (the sums do not depend on the banding), plus 48 bytes per
 //! visible Gaussian for the running sums.
 use std::time::Instant;
@@ -259,8 +259,8 @@ struct Saved {
 /// Buffers of the differentiable rasterizer, reused across calls, and the state one forward
 /// leaves for its backward. About 64 + 4 + 4 bytes per visible Gaussian and 4 bytes per
 /// intersection (depth-sorted splats, their ids and sorted positions, the tile lists), 20 bytes per
-/// pixel (final transmittance, colour and depth sums), and during the backward 48 bytes per
-/// intersection of a band plus 48 bytes per visible Gaussian.
+/// pixel (final transmittance, colour and depth sums), and during the backward 49 bytes per
+/// intersection of a band (slot and written flag) plus 48 bytes per visible Gaussian.
 #[derive(Default)]
 pub struct Workspace {
     saved: Option<Saved>,
