@@ -10,6 +10,13 @@ projection + SH with a dense torch blend (float32, autograd) on a window of gard
 
     python benches/bench_backward.py            # full run (a few minutes on 2 cores)
     python benches/bench_backward.py --quick    # tiny smoke run
+    python benches/bench_backward.py --baseline /tmp/old --rounds 5   # A/B against an older build
+
+With --baseline DIR (a folder holding an older build's `morphgs` package), only the A/B runs:
+the garden frame's backward at 1 thread (OpenBLAS held to one thread, whose idle threads spin
+inside the process otherwise), the older build and this one in alternating processes for
+--rounds rounds; per process the median and minimum of the process CPU time of each backward
+call and of each stage's wall time, then the median over the rounds of each and new/old.
 
 Thread counts and kernels are fixed per process (RAYON_NUM_THREADS, MORPHGS_SIMD), so each
 configuration runs in a subprocess.
@@ -55,10 +62,13 @@ def _worker(args: argparse.Namespace) -> None:
         t0 = time.perf_counter()
         _, _, _, fs = r.forward(*p.arrays(), cam.world_to_camera, cam.K, cam.width, cam.height)
         t1 = time.perf_counter()
+        c1 = time.process_time()
         g = r.backward(*p.arrays(), v_rgb=v_rgb)
         t2 = time.perf_counter()
+        c2 = time.process_time()
         if i:  # the first step pays the page faults
-            steps.append({"fwd": t1 - t0, "bwd": t2 - t1, "fs": fs, "bs": g["stats"]})
+            steps.append({"fwd": t1 - t0, "bwd": t2 - t1, "bwd_cpu": c2 - c1, "fs": fs,
+                          "bs": g["stats"]})
     # each stage's minimum over the steps
     best = {"fwd": min(s["fwd"] for s in steps), "bwd": min(s["bwd"] for s in steps),
             "fs": {k: (min(s["fs"][k] for s in steps) if k.endswith("_s") else steps[0]["fs"][k])
@@ -67,14 +77,19 @@ def _worker(args: argparse.Namespace) -> None:
                    for k in steps[0]["bs"]}}
     print(json.dumps({
         "n": len(p.opacity_logits), "fwd": [s["fwd"] for s in steps],
-        "bwd": [s["bwd"] for s in steps], "best": best,
+        "bwd": [s["bwd"] for s in steps], "bwd_cpu": [s["bwd_cpu"] for s in steps],
+        "stages": {k: [s["bs"][k] for s in steps] for k in ("blend_s", "reduce_s", "project_s")},
+        "best": best,
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }))
 
 
-def run(grid: int, width: int, height: int, threads: int, repeat: int, simd: str = "auto") -> dict:
+def run(grid: int, width: int, height: int, threads: int, repeat: int, simd: str = "auto",
+        baseline: str | None = None) -> dict:
     env = dict(os.environ, RAYON_NUM_THREADS=str(threads), MORPHGS_SIMD=simd)
     env.pop("MORPHGS_NUM_THREADS", None)
+    if baseline is not None:
+        env.update(PYTHONPATH=baseline, OPENBLAS_NUM_THREADS="1")
     out = subprocess.run(
         [sys.executable, __file__, "--worker", "--grid", str(grid), "--width", str(width),
          "--height", str(height), "--repeat", str(repeat)],
@@ -94,6 +109,30 @@ def row(label: str, threads: int, res: dict) -> str:
             f"{rate:5.2f} {bs['slot_bytes']/2**20:6.1f} {res['peak_mb']:7.0f}   "
             f"(fwd: proj {fs['project_s']*1e3:.1f} sort {fs['sort_s']*1e3:.1f} "
             f"bin {fs['bin_s']*1e3:.1f} blend {fs['blend_s']*1e3:.1f}; kernel {fs['simd']})")
+
+
+def ab(baseline: str, rounds: int, quick: bool) -> None:
+    """The garden backward at 1 thread, `baseline`'s build and this one alternating."""
+    w, h = (162, 105) if quick else (648, 420)
+    rep = 3 if quick else 20
+    print(f"backward A/B, garden {w}x{h}, 1 thread, {rounds} rounds of {rep} calls per process "
+          f"(load average {os.getloadavg()[0]:.1f}); ms: median / minimum per process")
+    keys = ("bwd_cpu", "blend_s", "reduce_s", "project_s")
+    res: dict[str, list[dict]] = {"baseline": [], "this": []}
+    for r in range(rounds):
+        for build in ("baseline", "this"):
+            out = run(1, w, h, 1, rep, baseline=baseline if build == "baseline" else None)
+            vals = {k: out["bwd_cpu"] if k == "bwd_cpu" else out["stages"][k] for k in keys}
+            d = {k: (float(np.median(v)), float(np.min(v))) for k, v in vals.items()}
+            res[build].append(d)
+            print(f"{build:>8} {r}  " + "  ".join(
+                f"{k} {d[k][0] * 1e3:6.2f}/{d[k][1] * 1e3:6.2f}" for k in keys), flush=True)
+    for i, what in ((0, "median"), (1, "minimum")):
+        for k in keys:
+            o = float(np.median([d[k][i] for d in res["baseline"]]))
+            n = float(np.median([d[k][i] for d in res["this"]]))
+            print(f"{what:>8} {k:<10} baseline {o * 1e3:7.2f}  this {n * 1e3:7.2f}  "
+                  f"this/baseline {n / o:.3f}")
 
 
 def torch_ratio(quick: bool) -> None:
@@ -153,6 +192,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="tiny sizes (smoke check)")
+    ap.add_argument("--baseline", help="folder holding an older build's morphgs package: run "
+                    "only the alternating backward A/B against it")
+    ap.add_argument("--rounds", type=int, default=5, help="A/B rounds (with --baseline)")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--grid", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--width", type=int, default=648, help=argparse.SUPPRESS)
@@ -161,6 +203,9 @@ def main() -> None:
     args = ap.parse_args()
     if args.worker:
         _worker(args)
+        return
+    if args.baseline:
+        ab(args.baseline, args.rounds, args.quick)
         return
 
     import morphgs

@@ -19,3 +19,14 @@ def test_bench_backward_quick_runs() -> None:
                          capture_output=True, text=True, check=True, timeout=600)
     for row in ("garden 162x105", "scalar kernel", "morphgs.torch.rasterization", "x faster"):
         assert row in out.stdout, out.stdout
+
+
+def test_bench_backward_ab_mode_runs() -> None:
+    """--baseline runs the alternating A/B (here against this checkout's own package) and
+    prints each round and the ratios."""
+    pkg = BENCH.parents[1] / "python"
+    out = subprocess.run([sys.executable, str(BENCH), "--quick", "--baseline", str(pkg),
+                          "--rounds", "1"],
+                         capture_output=True, text=True, check=True, timeout=600)
+    for row in ("backward A/B", "baseline 0", "this 0", "median bwd_cpu", "this/baseline"):
+        assert row in out.stdout, out.stdout

@@ -39,9 +39,18 @@ impl Default for PixIn {
 }
 
 /// Where a tile kernel puts the slot of list entry `pos` (a sorted-splat position). Kernels
-/// call `put` exactly once per entry of the tile's list, in list order.
+/// call `put` or `zero` exactly once per entry of the tile's list, in list order.
 pub(crate) trait SlotSink {
     fn put(&mut self, pos: u32, vals: &[f32; slot::LEN]);
+    /// Entry `pos` has no slot to add: it comes after the tile finished. Its sums would be
+    /// +0.0 zeros, which leave any running sum unchanged, so a sink may skip it; by default it
+    /// puts them. (Splats none of whose rows passes the contour test still put their zero sums:
+    /// skipping them was measured slower, a branch that mispredicts in the kernel and in the
+    /// reduction.)
+    #[inline]
+    fn zero(&mut self, pos: u32) {
+        self.put(pos, &[0.0; slot::LEN]);
+    }
     /// Called for every (pixel, Gaussian) pair that contributes, in blend order, when
     /// `RECORD` is true (tests and the reference check): row r, lane l, sorted position, and
     /// whether alpha was clamped at max_alpha.
@@ -108,8 +117,8 @@ pub(crate) fn finish_slot(acc: &[[f32; LANES]; 9], dx: &[f32; LANES]) -> [f32; s
     out
 }
 
-/// Replay one tile's list and emit the slot of every entry (zeros for entries after the tile
-/// finished or whose rows all miss). `t_final` is the forward's state (for the live pixels).
+/// Replay one tile's list and emit the slot of every entry (`SlotSink::zero` for entries after
+/// the tile finished). `t_final` is the forward's state (for the live pixels).
 /// Returns the Gaussian-pixel evaluations (as the forward counts them).
 #[inline(always)]
 fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
@@ -147,7 +156,7 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
     for list in lists {
         for (k, &gi) in list.iter().enumerate() {
             if done {
-                sink.put(gi, &[0.0; slot::LEN]);
+                sink.zero(gi);
                 continue;
             }
             if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {

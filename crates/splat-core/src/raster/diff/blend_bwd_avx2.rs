@@ -152,7 +152,7 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
     for list in lists {
         for (k, &gi) in list.iter().enumerate() {
             if done {
-                sink.put(gi, &[0.0; slot::LEN]);
+                sink.zero(gi);
                 continue;
             }
             if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {

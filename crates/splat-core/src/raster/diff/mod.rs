@@ -19,7 +19,7 @@
 //! float is reduced across threads, so gradients are the same bits for 1 or N threads.
 //! The slots lie in tile-list order; the sums stream through them once per binning chunk (whose
 //! Gaussians' sums that chunk's task owns), so each Gaussian meets its tiles in row-major order.
-//! Memory: 48 bytes per slot; the image is processed in bands of tile rows whose slots fit
+//! Memory: 48 bytes per slot and a byte for its written flag; the image is processed in bands of tile rows whose slots fit
 //! [`DiffOptions::slot_budget`] (the sums do not depend on the banding), plus 48 bytes per
 //! visible Gaussian for the running sums.
 use std::time::Instant;
@@ -259,8 +259,8 @@ struct Saved {
 /// Buffers of the differentiable rasterizer, reused across calls, and the state one forward
 /// leaves for its backward. About 64 + 4 + 4 bytes per visible Gaussian and 4 bytes per
 /// intersection (depth-sorted splats, their ids and sorted positions, the tile lists), 20 bytes per
-/// pixel (final transmittance, colour and depth sums), and during the backward 48 bytes per
-/// intersection of a band plus 48 bytes per visible Gaussian.
+/// pixel (final transmittance, colour and depth sums), and during the backward 49 bytes per
+/// intersection of a band (slot and written flag) plus 48 bytes per visible Gaussian.
 #[derive(Default)]
 pub struct Workspace {
     saved: Option<Saved>,
@@ -282,6 +282,9 @@ pub struct Workspace {
     band_lo: Vec<u32>,
     /// The band's slots, in tile-list order (chunk by chunk, tile by tile).
     slots: Vec<[f32; slot::LEN]>,
+    /// Per slot of the band: 1 when the tile pass wrote it, 0 when its entry has no sums
+    /// (`SlotSink::zero`: the slot is neither written nor read).
+    written: Vec<u8>,
     /// Summed slots per sorted splat.
     acc: Vec<[f32; slot::LEN]>,
     /// exp(log_scales) for the per-Gaussian pass.
@@ -504,6 +507,9 @@ impl Workspace {
             if self.slots.len() < total {
                 self.slots.resize(total, [0.0; slot::LEN]);
             }
+            if self.written.len() < total {
+                self.written.resize(total, 0);
+            }
             let (evals, bg) = self.blend_band(&sv, grads, r0, r1);
             stats.evaluations += evals;
             for c in 0..3 {
@@ -640,6 +646,7 @@ impl Workspace {
             + self.bins.bytes()
             + v(self.tiles.capacity(), size_of::<TileOut>())
             + v(self.slots.capacity() + self.acc.capacity(), SLOT_BYTES)
+            + self.written.capacity()
             + v(self.scales.capacity(), 4)
     }
 
@@ -741,7 +748,8 @@ impl Workspace {
         let tiles_x = self.bins.tiles_x as usize;
         let sink = SlotWriter {
             base: self.slots.as_mut_ptr(),
-            len: self.slots.len(),
+            written: self.written.as_mut_ptr(),
+            len: self.slots.len().min(self.written.len()),
         };
         let (sorted, bins, tiles) = (&self.sorted, &self.bins, &self.tiles);
         let (band_base, band_lo) = (&self.band_base, &self.band_lo);
@@ -804,10 +812,13 @@ impl Workspace {
     /// Add each visible splat's slots of rows [r0, r1) to its running sums, in row-major
     /// tile order: one task per binning chunk walks the chunk's slots of the band in storage
     /// order (tile by tile), adding each to its splat's sums, which only that task touches.
+    /// Slots the tile pass did not write (`written` 0: zero sums, which would leave the
+    /// running sums' bits unchanged, see `SlotSink::zero`) are skipped.
     fn reduce_band(&mut self, r0: u32, r1: u32) {
         let tx = self.bins.tiles_x as usize;
         let (t0, t1) = (r0 as usize * tx, r1 as usize * tx);
-        let (slots, bins, band_base) = (&self.slots, &self.bins, &self.band_base);
+        let (slots, written) = (&self.slots, &self.written);
+        let (bins, band_base) = (&self.bins, &self.band_base);
         self.acc
             .par_chunks_mut(TileBins::CHUNK)
             .enumerate()
@@ -815,10 +826,16 @@ impl Workspace {
                 let base = c * TileBins::CHUNK;
                 let items = bins.chunk_items(c, t0, t1);
                 let run = &slots[band_base[c]..band_base[c] + items.len()];
-                for (k, (&p, s)) in items.iter().zip(run).enumerate() {
+                let wr = &written[band_base[c]..band_base[c] + items.len()];
+                for (k, ((&p, s), &w)) in items.iter().zip(run).zip(wr).enumerate() {
                     // the sums are a random access (L2 at best): fetch them ahead
-                    if let Some(&ahead) = items.get(k + REDUCE_PREFETCH) {
+                    if let (Some(&ahead), Some(&1)) =
+                        (items.get(k + REDUCE_PREFETCH), wr.get(k + REDUCE_PREFETCH))
+                    {
                         prefetch_slot(accs, ahead as usize - base);
+                    }
+                    if w == 0 {
+                        continue;
                     }
                     let acc = &mut accs[p as usize - base];
                     for (a, v) in acc.iter_mut().zip(s) {
@@ -863,14 +880,15 @@ fn check_colors(c: &[f32], n: usize) -> Result<()> {
     Ok(())
 }
 
-/// The band's slot buffer, written from the tile tasks.
+/// The band's slot buffer and its written flags, written from the tile tasks.
 struct SlotWriter {
     base: *mut [f32; slot::LEN],
+    written: *mut u8,
     len: usize,
 }
 
-// SAFETY: each slot index is written by exactly one (tile, splat) pair, hence one task (see
-// `TileSink::put`), and nothing reads the buffer during the tile pass.
+// SAFETY: each slot index (slot and flag) is written by exactly one (tile, splat) pair, hence
+// one task (see `TileSink::put`), and nothing reads the buffers during the tile pass.
 unsafe impl Sync for SlotWriter {}
 
 /// Puts one tile's slots in list order: chunk c's entries of tile t go to consecutive slots
@@ -909,9 +927,10 @@ impl TileSink<'_> {
     }
 }
 
-impl blend_bwd::SlotSink for TileSink<'_> {
-    #[inline]
-    fn put(&mut self, _pos: u32, vals: &[f32; slot::LEN]) {
+impl TileSink<'_> {
+    /// The next entry's slot index.
+    #[inline(always)]
+    fn next_slot(&mut self) -> usize {
         while self.next == self.end {
             assert!(
                 self.chunk < self.bins.n_chunks(),
@@ -921,10 +940,28 @@ impl blend_bwd::SlotSink for TileSink<'_> {
         }
         let i = self.next;
         assert!(i < self.w.len, "slot index out of range");
+        self.next += 1;
+        i
+    }
+}
+
+impl blend_bwd::SlotSink for TileSink<'_> {
+    #[inline]
+    fn put(&mut self, _pos: u32, vals: &[f32; slot::LEN]) {
+        let i = self.next_slot();
         // SAFETY: i is in bounds (checked) and belongs to this tile's entries only: chunk c's
         // entries of tile t are [start(c, t), start(c, t + 1)), a run no other tile shares.
-        unsafe { *self.w.base.add(i) = *vals };
-        self.next += 1;
+        unsafe {
+            *self.w.base.add(i) = *vals;
+            *self.w.written.add(i) = 1;
+        }
+    }
+
+    #[inline]
+    fn zero(&mut self, _pos: u32) {
+        let i = self.next_slot();
+        // SAFETY: as in `put`
+        unsafe { *self.w.written.add(i) = 0 };
     }
 }
 

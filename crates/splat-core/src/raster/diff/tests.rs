@@ -222,13 +222,17 @@ fn gradients_do_not_depend_on_the_banding() {
     assert_eq!(ws.bands(usize::MAX).len(), 1);
 }
 
-/// Collects every slot a kernel emits, in order.
+/// Collects every slot a kernel emits, in order (`None` for `SlotSink::zero`).
 #[derive(Default, PartialEq, Debug)]
-struct VecSink(Vec<(u32, [u32; slot::LEN])>);
+struct VecSink(Vec<(u32, Option<[u32; slot::LEN]>)>);
 
 impl blend_bwd::SlotSink for VecSink {
     fn put(&mut self, pos: u32, vals: &[f32; slot::LEN]) {
-        self.0.push((pos, vals.map(f32::to_bits)));
+        self.0.push((pos, Some(vals.map(f32::to_bits))));
+    }
+
+    fn zero(&mut self, pos: u32) {
+        self.0.push((pos, None));
     }
 }
 
@@ -242,6 +246,7 @@ fn explicit_kernels_give_the_generic_kernels_slots_tile_by_tile() {
     }
     let mut checked = 0;
     let mut nonzero = 0;
+    let mut zeros = 0;
     for (n, max_alpha, w, h, aa, abs) in [
         (3000, 0.99, 100, 70, false, true),
         (20000, 0.999, 100, 70, false, false),
@@ -299,8 +304,9 @@ fn explicit_kernels_give_the_generic_kernels_slots_tile_by_tile() {
             nonzero += want
                 .0
                 .iter()
-                .filter(|(_, v)| v.iter().any(|&b| b != 0))
+                .filter(|(_, v)| v.is_some_and(|v| v.iter().any(|&b| b != 0)))
                 .count();
+            zeros += want.0.iter().filter(|(_, v)| v.is_none()).count();
             let mut got = Vec::new();
             if Simd::Avx2.resolve() == Simd::Avx2 {
                 let mut o = VecSink::default();
@@ -325,8 +331,8 @@ fn explicit_kernels_give_the_generic_kernels_slots_tile_by_tile() {
         }
     }
     assert!(
-        checked > 50 && nonzero > 1000,
-        "{checked} tiles, {nonzero} slots"
+        checked > 50 && nonzero > 1000 && zeros > 100,
+        "{checked} tiles, {nonzero} slots, {zeros} without sums"
     );
 }
 
