@@ -176,17 +176,35 @@ impl Gradients {
             &mut self.opacities,
             &mut self.colors,
         ] {
-            v.fill(0.0);
+            par_zero(v);
         }
         self.background = [0.0; 3];
         let used = ((d as usize + 1) * (d as usize + 1) - 1).min(sh_rest_k) * 3;
         if used == sh_rest_k * 3 {
-            self.sh_rest.fill(0.0);
+            par_zero(&mut self.sh_rest);
         } else if used > 0 {
-            for g in self.sh_rest.chunks_exact_mut(sh_rest_k * 3) {
-                g[..used].fill(0.0);
-            }
+            let per = sh_rest_k * 3;
+            self.sh_rest
+                .par_chunks_mut(per * ZERO_CHUNK.div_ceil(per))
+                .for_each(|c| {
+                    for g in c.chunks_exact_mut(per) {
+                        g[..used].fill(0.0);
+                    }
+                });
         }
+    }
+}
+
+/// Floats per task of the parallel clears (256 KiB).
+const ZERO_CHUNK: usize = 1 << 16;
+
+/// Zeroes `v` in parallel: a fit step clears tens of MB of gradients, which one thread's
+/// memset makes a serial part of every step.
+fn par_zero(v: &mut [f32]) {
+    if v.len() <= ZERO_CHUNK {
+        v.fill(0.0);
+    } else {
+        v.par_chunks_mut(ZERO_CHUNK).for_each(|c| c.fill(0.0));
     }
 }
 

@@ -452,3 +452,42 @@ fn reset_since_a_lower_degree_gives_the_fresh_reset_gradients() {
     assert_eq!(g.sh_rest.len(), 10 * s.sh_rest_k() * 3);
     assert!(g.means.iter().chain(&g.sh_rest).all(|&v| v == 0.0));
 }
+
+#[test]
+fn reset_since_clears_large_buffers_in_parallel_chunks_exactly() {
+    // more floats than one parallel chunk, and a Gaussian count whose SH rows do not divide it:
+    // every parameter gradient and exactly the bands up to the degree end up zero
+    let (n, k) = (7_001, 15);
+    let mut g = Gradients::default();
+    g.reset(n, k, false);
+    for v in [
+        &mut g.means,
+        &mut g.quats,
+        &mut g.log_scales,
+        &mut g.opacity_logits,
+        &mut g.sh0,
+        &mut g.sh_rest,
+        &mut g.scales,
+        &mut g.opacities,
+    ] {
+        v.fill(1.0);
+    }
+    g.reset_since(n, k, false, Some(1));
+    for v in [
+        &g.means,
+        &g.quats,
+        &g.log_scales,
+        &g.opacity_logits,
+        &g.sh0,
+        &g.scales,
+        &g.opacities,
+    ] {
+        assert!(v.iter().all(|&x| x == 0.0));
+    }
+    for row in g.sh_rest.chunks_exact(k * 3) {
+        assert!(row[..9].iter().all(|&x| x == 0.0));
+        assert!(row[9..].iter().all(|&x| x == 1.0));
+    }
+    g.reset_since(n, k, false, Some(3));
+    assert!(g.sh_rest.iter().all(|&x| x == 0.0));
+}
