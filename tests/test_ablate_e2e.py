@@ -102,16 +102,22 @@ def test_the_ray_backend_gives_the_same_bytes(smoke: Path, tmp_path: Path) -> No
         assert (out / f).read_bytes() == (smoke / f).read_bytes(), f
 
 
+def _wait_for_a_training_checkpoint(proc: subprocess.Popen, out: Path) -> None:
+    """Until a refiner training of the study at `out` has written a checkpoint (or the process
+    ended, or 10 minutes passed)."""
+    deadline = time.monotonic() + 600
+    while proc.poll() is None and time.monotonic() < deadline:
+        if any((out / "training").glob(".*.work/run/checkpoints/step-*")):
+            return
+        time.sleep(0.005)
+
+
 def test_sigkill_during_training_then_rerun_gives_the_uninterrupted_results(smoke: Path, tmp_path: Path) -> None:
     out = tmp_path / "killed"
     proc = subprocess.Popen(_cmd("--preset", "smoke", "--out", str(out)), env=ENV, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     try:
-        deadline = time.monotonic() + 600
-        while proc.poll() is None and time.monotonic() < deadline:
-            if any((out / "training").glob(".*.work/run/checkpoints/step-*")):
-                break
-            time.sleep(0.005)
+        _wait_for_a_training_checkpoint(proc, out)
         proc.send_signal(signal.SIGKILL)
     finally:
         proc.wait(timeout=60)
@@ -158,11 +164,7 @@ def test_sigterm_during_training_stops_the_study_without_finishing_the_training(
     proc = subprocess.Popen(_cmd("--preset", "smoke", "--out", str(out), "-j", workers), env=ENV,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
-        deadline = time.monotonic() + 600
-        while proc.poll() is None and time.monotonic() < deadline:
-            if any((out / "training").glob(".*.work/run/checkpoints/step-*")):
-                break
-            time.sleep(0.005)
+        _wait_for_a_training_checkpoint(proc, out)
         children = [c for c in _children(proc.pid) if "spawn_main" in Path(f"/proc/{c}/cmdline").read_text()]
         assert children or workers == "1", "no worker process was running a job"
         in_flight = [p.name[1:-len(".work")] for p in (out / "training").glob(".*.work")]
