@@ -1,10 +1,10 @@
 """The renderer's and the backward's output bytes are pinned: renders and gradients of the
 garden fixture scene (648x420, its real cameras) and of a trained scene (PlayCanvas's guitar),
 through each blend kernel, hash to the values the code gave before the culling work of issue 21
-(exact ellipse-tile binning, etc.); the gradients to those since the backward's block summation
-order (issue 21's fifth pass, see PINNED). Any change to which Gaussian-pixel pairs are blended, or to
-the order or rounding of the arithmetic, changes a digest. Each kernel runs in its own process
-(the kernel is fixed per process by MORPHGS_SIMD)."""
+(exact ellipse-tile binning, etc.); the gradients to those since the backward's block
+summation order (issue 21's fifth pass, see PINNED). Any change to which Gaussian-pixel pairs
+are blended, or to the order or rounding of the arithmetic, changes a digest. Each kernel runs
+in its own process (the kernel is fixed per process by MORPHGS_SIMD)."""
 
 from __future__ import annotations
 
