@@ -11,6 +11,7 @@ projection + SH with a dense torch blend (float32, autograd) on a window of gard
     python benches/bench_backward.py            # full run (a few minutes on 2 cores)
     python benches/bench_backward.py --quick    # tiny smoke run
     python benches/bench_backward.py --baseline /tmp/old --rounds 5   # A/B against an older build
+    python benches/bench_backward.py --baseline /tmp/old --simd avx2  # the same, AVX2 kernels
 
 With --baseline DIR (a folder holding an older build's `morphgs` package), only the A/B runs:
 the garden frame's backward at 1 thread (OpenBLAS held to one thread, whose idle threads spin
@@ -111,22 +112,30 @@ def row(label: str, threads: int, res: dict) -> str:
             f"bin {fs['bin_s']*1e3:.1f} blend {fs['blend_s']*1e3:.1f}; kernel {fs['simd']})")
 
 
-def ab(baseline: str, rounds: int, quick: bool) -> None:
-    """The garden backward at 1 thread, `baseline`'s build and this one alternating."""
+def ab(baseline: str, rounds: int, quick: bool, simd: str = "auto") -> None:
+    """The garden backward at 1 thread, `baseline`'s build and this one alternating, both with
+    the kernel `simd` (MORPHGS_SIMD)."""
     w, h = (162, 105) if quick else (648, 420)
     rep = 3 if quick else 20
-    print(f"backward A/B, garden {w}x{h}, 1 thread, {rounds} rounds of {rep} calls per process "
-          f"(load average {os.getloadavg()[0]:.1f}); ms: median / minimum per process")
+    print(f"backward A/B, garden {w}x{h}, 1 thread, kernel {simd}, {rounds} rounds of {rep} "
+          f"calls per process (load average {os.getloadavg()[0]:.1f}); ms: median / minimum "
+          "per process")
     keys = ("bwd_cpu", "blend_s", "reduce_s", "project_s")
     res: dict[str, list[dict]] = {"baseline": [], "this": []}
+    evals: dict[str, int] = {}
     for r in range(rounds):
         for build in ("baseline", "this"):
-            out = run(1, w, h, 1, rep, baseline=baseline if build == "baseline" else None)
+            out = run(1, w, h, 1, rep, simd=simd,
+                      baseline=baseline if build == "baseline" else None)
             vals = {k: out["bwd_cpu"] if k == "bwd_cpu" else out["stages"][k] for k in keys}
             d = {k: (float(np.median(v)), float(np.min(v))) for k, v in vals.items()}
             res[build].append(d)
+            evals[build] = int(out["best"]["bs"]["evaluations"])
             print(f"{build:>8} {r}  " + "  ".join(
                 f"{k} {d[k][0] * 1e3:6.2f}/{d[k][1] * 1e3:6.2f}" for k in keys), flush=True)
+    print(f"backward evaluations (the kernel's work units x their pixels): baseline "
+          f"{evals['baseline']:,}  this {evals['this']:,}  this/baseline "
+          f"{evals['this'] / evals['baseline']:.3f}")
     for i, what in ((0, "median"), (1, "minimum")):
         for k in keys:
             o = float(np.median([d[k][i] for d in res["baseline"]]))
@@ -195,6 +204,8 @@ def main() -> None:
     ap.add_argument("--baseline", help="folder holding an older build's morphgs package: run "
                     "only the alternating backward A/B against it")
     ap.add_argument("--rounds", type=int, default=5, help="A/B rounds (with --baseline)")
+    ap.add_argument("--simd", default="auto", choices=("auto", "avx512", "avx2", "scalar"),
+                    help="the kernel of both builds in the A/B (MORPHGS_SIMD; with --baseline)")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--grid", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--width", type=int, default=648, help=argparse.SUPPRESS)
@@ -205,7 +216,7 @@ def main() -> None:
         _worker(args)
         return
     if args.baseline:
-        ab(args.baseline, args.rounds, args.quick)
+        ab(args.baseline, args.rounds, args.quick, args.simd)
         return
 
     import morphgs

@@ -28,5 +28,6 @@ def test_bench_backward_ab_mode_runs() -> None:
     out = subprocess.run([sys.executable, str(BENCH), "--quick", "--baseline", str(pkg),
                           "--rounds", "1"],
                          capture_output=True, text=True, check=True, timeout=600)
-    for row in ("backward A/B", "baseline 0", "this 0", "median bwd_cpu", "this/baseline"):
+    for row in ("backward A/B", "baseline 0", "this 0", "median bwd_cpu", "this/baseline",
+                "backward evaluations"):
         assert row in out.stdout, out.stdout

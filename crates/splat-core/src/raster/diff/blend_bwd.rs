@@ -10,9 +10,14 @@
 //!   Q = g . C_final + T_final (g . background - dL/dA),
 //!
 //! (gsplat's back-to-front `v_alpha` rewritten with the colour behind i as C_final - C_i).
-//! Per (tile, Gaussian) the kernel sums over the tile's pixels, lane by lane and row by row,
-//! then over the 16 lanes with a fixed halving tree, into one [`slot`] of the intersection.
-//! Every kernel (generic, AVX2, AVX-512) performs the same operations in the same order.
+//! Per (tile, Gaussian) the kernel sums over the tile's pixels in 16 lanes, the lanes of a 4x4
+//! pixel block: lane (y % 4) * 4 + x % 4 adds its 16 pixels' terms in row-major pixel order
+//! (band y / 4, then block column x / 4), every term per pixel (u dx, u dx^2, u dx dy as well as
+//! u dy, u dy^2); then the 16 lanes are summed with a fixed halving tree into one [`slot`] of
+//! the intersection. Every kernel (generic, AVX2, AVX-512) performs the same operations in the
+//! same order: the generic one pixel by pixel in row-major order, AVX-512 one 4x4 block (16
+//! lanes) at a time in block order, AVX2 the two 4x2 halves of each block (issue 21, fifth pass:
+//! until then a lane was a tile column and the sums ran row by row).
 use super::slot;
 use crate::raster::blend::{
     opacity_exp, prefetch, row_span, BlendParams, TileOut, LANES, PREFETCH_AHEAD, T_MIN,
@@ -21,7 +26,8 @@ use crate::raster::project::{Splat, ALPHA_THRESHOLD};
 use crate::raster::Simd;
 
 /// Per-pixel inputs of a tile's backward: the colour gradients g (r, g, b, depth channel) and
-/// Q (see the module docs); pixels outside the image hold zeros.
+/// Q (see the module docs), in block order (`[b][i]`: lane i of 4x4 block b, see
+/// [`block_lane`]); pixels outside the image hold zeros.
 #[derive(Clone)]
 #[repr(C, align(64))]
 pub(crate) struct PixIn {
@@ -58,6 +64,13 @@ pub(crate) trait SlotSink {
     fn contrib(&mut self, _r: usize, _l: usize, _pos: u32, _clamped: bool) {}
 }
 
+/// Block and lane of tile pixel (row r, column l): blocks of 4x4 pixels numbered row by row
+/// over the tile (b = 4 (r / 4) + l / 4), lanes row by row inside a block.
+#[inline(always)]
+pub(crate) const fn block_lane(r: usize, l: usize) -> (usize, usize) {
+    (4 * (r / 4) + l / 4, 4 * (r % 4) + l % 4)
+}
+
 #[inline(always)]
 fn fmadd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
     if FMA {
@@ -89,32 +102,11 @@ pub(crate) fn hsum16(v: &[f32; LANES]) -> f32 {
     h2[0] + h2[1]
 }
 
-/// The slot of one (tile, Gaussian) pair from its per-lane accumulators (rows already summed):
-/// `acc` = [c0, c1, c2, c3, V0, V1 (u dy), V2 (u dy^2), |x|, |y|] and the Gaussian's dx per lane.
+/// The slot of one (tile, Gaussian) pair from its 12 per-lane accumulators, in slot order
+/// ([c0..c3, V0, u dx, u dy, u dx^2, u dx dy, u dy^2, |x|, |y|]): each lane's 16-lane sum.
 #[inline(always)]
-pub(crate) fn finish_slot(acc: &[[f32; LANES]; 9], dx: &[f32; LANES]) -> [f32; slot::LEN] {
-    let mut w5 = [0.0f32; LANES];
-    let mut w7 = [0.0f32; LANES];
-    let mut w8 = [0.0f32; LANES];
-    for l in 0..LANES {
-        w5[l] = dx[l] * acc[4][l];
-        w7[l] = (dx[l] * dx[l]) * acc[4][l];
-        w8[l] = dx[l] * acc[5][l];
-    }
-    let mut out = [0.0f32; slot::LEN];
-    out[slot::C0] = hsum16(&acc[0]);
-    out[slot::C0 + 1] = hsum16(&acc[1]);
-    out[slot::C0 + 2] = hsum16(&acc[2]);
-    out[slot::C0 + 3] = hsum16(&acc[3]);
-    out[slot::V0] = hsum16(&acc[4]);
-    out[slot::VDX] = hsum16(&w5);
-    out[slot::VDY] = hsum16(&acc[5]);
-    out[slot::VDX2] = hsum16(&w7);
-    out[slot::VDXDY] = hsum16(&w8);
-    out[slot::VDY2] = hsum16(&acc[6]);
-    out[slot::ABSX] = hsum16(&acc[7]);
-    out[slot::ABSY] = hsum16(&acc[8]);
-    out
+pub(crate) fn finish_slot(acc: &[[f32; LANES]; slot::LEN]) -> [f32; slot::LEN] {
+    acc.map(|a| hsum16(&a))
 }
 
 /// Replay one tile's list and emit the slot of every entry (`SlotSink::zero` for entries after
@@ -149,6 +141,17 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
         alive[r] = y0 + (r as u32) < p.height;
         alive_rows += alive[r] as usize;
     }
+    // the inputs in row order, for the per-pixel loop over a row
+    let mut rows = PixIn::default();
+    for b in 0..LANES {
+        for i in 0..LANES {
+            let (r, l) = (4 * (b / 4) + i / 4, 4 * (b % 4) + i % 4);
+            for c in 0..4 {
+                rows.g[c][r][l] = pix.g[c][b][i];
+            }
+            rows.q[r][l] = pix.q[b][i];
+        }
+    }
     let max_alpha = p.max_alpha;
     let y0f = y0 as f32;
     let mut evals = 0u64;
@@ -174,15 +177,18 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
             let (xl, xh) = (px[0], px[LANES - 1]);
             let mut dxs = [0.0f32; LANES];
             let mut adx2 = [0.0f32; LANES];
+            let mut dx2 = [0.0f32; LANES];
             let mut adx = [0.0f32; LANES];
             let mut bdx = [0.0f32; LANES];
             for l in 0..LANES {
                 dxs[l] = mx - px[l];
                 adx2[l] = half_a * dxs[l] * dxs[l];
+                dx2[l] = dxs[l] * dxs[l];
                 adx[l] = ca * dxs[l];
                 bdx[l] = cb * dxs[l];
             }
-            let mut acc = [[0.0f32; LANES]; 9];
+            // per lane of a 4x4 block, in slot order
+            let mut acc = [[0.0f32; LANES]; slot::LEN];
             for r in lo..hi {
                 if !alive[r] {
                     continue;
@@ -202,8 +208,13 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
                 let dy2 = dy * dy;
                 let cdy = cc * dy;
                 let (trow, srow) = (&mut tt[r], &mut ss[r]);
-                let (g0, g1, g2, g3) = (&pix.g[0][r], &pix.g[1][r], &pix.g[2][r], &pix.g[3][r]);
-                let qrow = &pix.q[r];
+                let (g0, g1, g2, g3) = (&rows.g[0][r], &rows.g[1][r], &rows.g[2][r], &rows.g[3][r]);
+                let qrow = &rows.q[r];
+                // the row's per-pixel values, then their sums in block-lane order (below)
+                let mut wts = [0.0f32; LANES];
+                let mut us = [0.0f32; LANES];
+                let mut cs = [false; LANES];
+                let mut m2s = [false; LANES];
                 for l in 0..LANES {
                     let sigma = fmadd::<FMA>(bdy, dxs[l], adx2[l]) + cdy2;
                     let e = opacity_exp::<FMA>(sigma, ln_op);
@@ -222,25 +233,46 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
                     let ra = 1.0 / (1.0 - alpha);
                     let tq = (qrow[l] - s_new) * ra;
                     let va = fmadd::<FMA>(gc, t, -tq);
-                    let u = e * va;
-                    let m2 = contrib & (e < max_alpha);
-                    acc[0][l] = select(contrib, fmadd::<FMA>(wt, g0[l], acc[0][l]), acc[0][l]);
-                    acc[1][l] = select(contrib, fmadd::<FMA>(wt, g1[l], acc[1][l]), acc[1][l]);
-                    acc[2][l] = select(contrib, fmadd::<FMA>(wt, g2[l], acc[2][l]), acc[2][l]);
-                    acc[3][l] = select(contrib, fmadd::<FMA>(wt, g3[l], acc[3][l]), acc[3][l]);
-                    acc[4][l] = select(m2, acc[4][l] + u, acc[4][l]);
-                    acc[5][l] = select(m2, fmadd::<FMA>(u, dy, acc[5][l]), acc[5][l]);
-                    acc[6][l] = select(m2, fmadd::<FMA>(u, dy2, acc[6][l]), acc[6][l]);
-                    if ABS {
-                        let ax = (u * (adx[l] + bdy)).abs();
-                        let ay = (u * (bdx[l] + cdy)).abs();
-                        acc[7][l] = select(m2, acc[7][l] + ax, acc[7][l]);
-                        acc[8][l] = select(m2, acc[8][l] + ay, acc[8][l]);
-                    }
+                    wts[l] = wt;
+                    us[l] = e * va;
+                    cs[l] = contrib;
+                    m2s[l] = contrib & (e < max_alpha);
                     srow[l] = select(contrib, s_new, srow[l]);
                     trow[l] = select(contrib, tn, select(valid, -t, t));
                     if S::RECORD && contrib {
                         sink.contrib(r, l, gi, e >= max_alpha);
+                    }
+                }
+                // lane rl + j of the block lanes takes columns j, 4 + j, 8 + j, 12 + j in turn
+                let rl = 4 * (r % 4);
+                for bc in 0..4 {
+                    for j in 0..4 {
+                        let (l, i) = (4 * bc + j, rl + j);
+                        let (wt, u, contrib, m2) = (wts[l], us[l], cs[l], m2s[l]);
+                        let a = &mut acc;
+                        a[0][i] = select(contrib, fmadd::<FMA>(wt, g0[l], a[0][i]), a[0][i]);
+                        a[1][i] = select(contrib, fmadd::<FMA>(wt, g1[l], a[1][i]), a[1][i]);
+                        a[2][i] = select(contrib, fmadd::<FMA>(wt, g2[l], a[2][i]), a[2][i]);
+                        a[3][i] = select(contrib, fmadd::<FMA>(wt, g3[l], a[3][i]), a[3][i]);
+                        a[slot::V0][i] = select(m2, a[slot::V0][i] + u, a[slot::V0][i]);
+                        let dx = dxs[l];
+                        let dxdy = dx * dy;
+                        for (k, term) in [
+                            (slot::VDX, dx),
+                            (slot::VDY, dy),
+                            (slot::VDX2, dx2[l]),
+                            (slot::VDXDY, dxdy),
+                            (slot::VDY2, dy2),
+                        ] {
+                            a[k][i] = select(m2, fmadd::<FMA>(u, term, a[k][i]), a[k][i]);
+                        }
+                        if ABS {
+                            let ax = (u * (adx[l] + bdy)).abs();
+                            let ay = (u * (bdx[l] + cdy)).abs();
+                            let (x, y) = (a[slot::ABSX][i], a[slot::ABSY][i]);
+                            a[slot::ABSX][i] = select(m2, x + ax, x);
+                            a[slot::ABSY][i] = select(m2, y + ay, y);
+                        }
                     }
                 }
                 let mut all_done = u32::MAX;
@@ -256,7 +288,7 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
                     }
                 }
             }
-            sink.put(gi, &finish_slot(&acc, &dxs));
+            sink.put(gi, &finish_slot(&acc));
         }
     }
     evals
@@ -400,11 +432,12 @@ pub(crate) fn tile_inputs(
             ];
             let gbg = g[0] * background[0] + g[1] * background[1] + g[2] * background[2];
             let mut q = t * (gbg - ga);
+            let (b, j) = block_lane(r, l);
             for c in 0..4 {
                 q += g[c] * cf[c];
-                pix.g[c][r][l] = g[c];
+                pix.g[c][b][j] = g[c];
             }
-            pix.q[r][l] = q;
+            pix.q[b][j] = q;
             for c in 0..3 {
                 v_bg[c] += g[c] as f64 * t as f64;
             }

@@ -1,7 +1,8 @@
 //! The AVX2 + FMA blend-backward kernel: the AVX-512 kernel's organisation (see
-//! `blend_bwd_avx512.rs`) with each 16-pixel row as two 8-lane halves and lane masks held in
-//! vectors. Same operations in the same order as the generic kernel, so the same slot bits.
-use super::blend_bwd::{PixIn, SlotSink};
+//! `blend_bwd_avx512.rs`) with each 4x4-pixel block as two 4x2 halves (8 lanes each) and lane
+//! masks held in vectors. Same operations in the same order per lane as the generic kernel, so
+//! the same slot bits.
+use super::blend_bwd::{block_lane, PixIn, SlotSink};
 use super::slot;
 use crate::raster::blend::{
     prefetch, row_mask, BlendParams, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16, EXP_MAGIC, LANES,
@@ -72,7 +73,10 @@ fn hsum12(v: &[[__m256; 2]; 12]) -> [f32; slot::LEN] {
     ]
 }
 
-/// Replay one tile's list with AVX2 + FMA and emit every entry's slot.
+/// Replay one tile's list with AVX2 + FMA and emit every entry's slot: the AVX-512 kernel's
+/// blocks (the same reached blocks, in the same order), each 4x4 block as its two 4x2 halves
+/// (lanes 0-7 and 8-15 of the block), the two halves in turn so that one half's 12
+/// accumulators stay in registers.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
@@ -84,13 +88,16 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
     pix: &PixIn,
     sink: &mut S,
 ) -> u64 {
+    // live lanes per block, blocks with live lanes; lanes outside the image start done
     let mut live = [0u32; LANES];
     let mut alive: u32 = 0;
-    let cols = p.width.saturating_sub(x0).min(LANES as u32);
-    for (r, row) in live.iter_mut().enumerate() {
-        if y0 + (r as u32) < p.height && cols > 0 {
-            *row = (1u32 << cols) - 1;
-            alive |= 1 << r;
+    let cols = p.width.saturating_sub(x0).min(LANES as u32) as usize;
+    let rows = p.height.saturating_sub(y0).min(LANES as u32) as usize;
+    for r in 0..rows {
+        for l in 0..cols {
+            let (b, i) = block_lane(r, l);
+            live[b] |= 1 << i;
+            alive |= 1 << b;
         }
     }
     let lane_f = _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0);
@@ -107,8 +114,12 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
         _mm256_add_ps(_mm256_add_ps(y0v, lane_f), half),
         _mm256_add_ps(_mm256_add_ps(y0v, _mm256_add_ps(lane_f, eight)), half),
     ];
-    let (xl, xh) = ((x0 as f32) + 0.5, ((x0 + LANES as u32 - 1) as f32) + 0.5);
-    let (v_xl, v_xh) = (_mm256_set1_ps(xl), _mm256_set1_ps(xh));
+    // lane 4 j + bc: the first and last pixel centres of block column bc (exact in float)
+    let col_f = _mm256_setr_ps(0.0, 4.0, 8.0, 12.0, 0.0, 4.0, 8.0, 12.0);
+    let v_bxl = _mm256_add_ps(_mm256_add_ps(x0v, col_f), half);
+    let v_bxh = _mm256_add_ps(_mm256_add_ps(x0v, col_f), _mm256_set1_ps(3.5));
+    let inf = _mm256_set1_ps(f32::INFINITY);
+    let neg_inf = _mm256_set1_ps(f32::NEG_INFINITY);
     let zero = _mm256_setzero_ps();
     let one = _mm256_set1_ps(1.0);
     let max_alpha = _mm256_set1_ps(p.max_alpha);
@@ -131,21 +142,13 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
     let lane_bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
     let mut tt = Rows([[1.0; LANES]; LANES]);
     let mut ss = Rows([[0.0; LANES]; LANES]);
-    let (mut dy_r, mut bdy_r, mut cdy2_r, mut dy2_r, mut cdy_r) = (
-        Row::default(),
-        Row::default(),
-        Row::default(),
-        Row::default(),
-        Row::default(),
-    );
+    // per-row terms of the current splat: dy, b dy, 0.5 c dy^2, dy^2, c dy
+    let mut rterm = [Row::default(); 5];
+    // per-column terms: dx, 0.5 a dx^2, dx^2, a dx, b dx
+    let mut cterm = [Row::default(); 5];
     let t_ptr = tt.0.as_mut_ptr() as *mut f32;
     let s_ptr = ss.0.as_mut_ptr() as *mut f32;
-    let g_ptr = [
-        pix.g[0].as_ptr() as *const f32,
-        pix.g[1].as_ptr() as *const f32,
-        pix.g[2].as_ptr() as *const f32,
-        pix.g[3].as_ptr() as *const f32,
-    ];
+    let g_ptr = [0, 1, 2, 3].map(|c| pix.g[c].as_ptr() as *const f32);
     let q_ptr = pix.q.as_ptr() as *const f32;
     let mut evals = 0u64;
     let mut done = alive == 0;
@@ -163,7 +166,9 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
             let [ca, cb, cc] = s.conic;
             let range = row_mask(my, s.half_height, y0f);
             let v_mx = _mm256_set1_ps(mx);
-            let mut ok = 0u32;
+            // the blocks it reaches, as the AVX-512 kernel finds them: rows 8 h .. 8 h + 8 give
+            // bands 2 h and 2 h + 1, i.e. blocks 8 h .. 8 h + 8 (lane 4 j + bc)
+            let mut blocks = 0u32;
             for h in 0..2 {
                 let dy = _mm256_sub_ps(_mm256_set1_ps(my), py[h]);
                 let bdy = _mm256_mul_ps(_mm256_set1_ps(cb), dy);
@@ -176,35 +181,43 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
                 let inv_a = _mm256_set1_ps(s.inv_a);
                 let left = _mm256_sub_ps(v_mx, _mm256_mul_ps(_mm256_sub_ps(sq, bdy), inv_a));
                 let right = _mm256_add_ps(v_mx, _mm256_mul_ps(_mm256_add_ps(sq, bdy), inv_a));
+                let rbits = _mm256_set1_epi32(((range >> (h * HALF)) & 0xFF) as i32);
+                let in_range = _mm256_castsi256_ps(_mm256_cmpeq_epi32(
+                    _mm256_and_si256(rbits, lane_bits),
+                    lane_bits,
+                ));
+                let ok = _mm256_and_ps(in_range, _mm256_cmp_ps::<_CMP_GE_OQ>(disc, zero));
+                let l = _mm256_blendv_ps(inf, left, ok);
+                let r = _mm256_blendv_ps(neg_inf, right, ok);
+                let l = _mm256_min_ps(l, _mm256_permute_ps::<0b10_11_00_01>(l));
+                let r = _mm256_max_ps(r, _mm256_permute_ps::<0b10_11_00_01>(r));
+                let l = _mm256_min_ps(l, _mm256_permute_ps::<0b01_00_11_10>(l));
+                let r = _mm256_max_ps(r, _mm256_permute_ps::<0b01_00_11_10>(r));
                 let m = _mm256_and_ps(
-                    _mm256_cmp_ps::<_CMP_GE_OQ>(disc, zero),
-                    _mm256_and_ps(
-                        _mm256_cmp_ps::<_CMP_NGT_UQ>(left, v_xh),
-                        _mm256_cmp_ps::<_CMP_NLT_UQ>(right, v_xl),
-                    ),
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(l, v_bxh),
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(r, v_bxl),
                 );
-                ok |= (_mm256_movemask_ps(m) as u32) << (h * HALF);
+                blocks |= (_mm256_movemask_ps(m) as u32) << (h * HALF);
                 let cdy2 = _mm256_mul_ps(_mm256_mul_ps(_mm256_set1_ps(0.5 * cc), dy), dy);
                 let cdy = _mm256_mul_ps(_mm256_set1_ps(cc), dy);
-                // SAFETY: each row array holds 16 floats, 32-byte aligned at h * 8.
+                // dx and its terms, lanes 8 h .. 8 h + 8
+                let dx = _mm256_sub_ps(v_mx, px[h]);
+                let adx2 = _mm256_mul_ps(_mm256_mul_ps(_mm256_set1_ps(0.5 * ca), dx), dx);
+                let dx2 = _mm256_mul_ps(dx, dx);
+                let adx = _mm256_mul_ps(_mm256_set1_ps(ca), dx);
+                let bdx = _mm256_mul_ps(_mm256_set1_ps(cb), dx);
+                // SAFETY: each row holds 16 floats, 32-byte aligned at h * 8.
                 unsafe {
-                    _mm256_store_ps(dy_r.0.as_mut_ptr().add(h * HALF), dy);
-                    _mm256_store_ps(bdy_r.0.as_mut_ptr().add(h * HALF), bdy);
-                    _mm256_store_ps(cdy2_r.0.as_mut_ptr().add(h * HALF), cdy2);
-                    _mm256_store_ps(dy2_r.0.as_mut_ptr().add(h * HALF), dy2);
-                    _mm256_store_ps(cdy_r.0.as_mut_ptr().add(h * HALF), cdy);
+                    let o = h * HALF;
+                    for (row, v) in rterm.iter_mut().zip([dy, bdy, cdy2, dy2, cdy]) {
+                        _mm256_store_ps(row.0.as_mut_ptr().add(o), v);
+                    }
+                    for (row, v) in cterm.iter_mut().zip([dx, adx2, dx2, adx, bdx]) {
+                        _mm256_store_ps(row.0.as_mut_ptr().add(o), v);
+                    }
                 }
             }
-            let rows = range & alive & ok;
-            let half_a = _mm256_set1_ps(0.5 * ca);
-            let (va_, vb_) = (_mm256_set1_ps(ca), _mm256_set1_ps(cb));
-            let dx = [_mm256_sub_ps(v_mx, px[0]), _mm256_sub_ps(v_mx, px[1])];
-            let adx2 = [
-                _mm256_mul_ps(_mm256_mul_ps(half_a, dx[0]), dx[0]),
-                _mm256_mul_ps(_mm256_mul_ps(half_a, dx[1]), dx[1]),
-            ];
-            let adx = [_mm256_mul_ps(va_, dx[0]), _mm256_mul_ps(va_, dx[1])];
-            let bdx = [_mm256_mul_ps(vb_, dx[0]), _mm256_mul_ps(vb_, dx[1])];
+            let todo_all = blocks & alive;
             let ln_op = _mm256_set1_ps(s.ln_opacity);
             let col = [
                 _mm256_set1_ps(s.rgb[0]),
@@ -212,23 +225,40 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
                 _mm256_set1_ps(s.rgb[2]),
                 _mm256_set1_ps(s.depth),
             ];
-            // the two 8-lane halves in turn (9 accumulators each fit the 16 ymm registers);
-            // every lane's operations and their order are the generic kernel's
-            let mut row_live = [0u32; LANES];
-            let mut v = [[zero; 2]; 12];
+            // the two 4x2 halves of the blocks in turn; every lane's operations and their order
+            // are the generic kernel's
+            let mut blk_live = [0u32; LANES];
+            let mut v = [[zero; 2]; slot::LEN];
             for h in 0..2 {
-                let mut acc = [zero; 9];
-                let mut todo = rows;
+                let mut acc = [zero; slot::LEN];
+                let mut todo = todo_all;
+                let mut band = usize::MAX;
+                let (mut bdy, mut cdy2, mut dyv, mut dy2v, mut cdy) =
+                    (zero, zero, zero, zero, zero);
                 while todo != 0 {
-                    let r = todo.trailing_zeros() as usize;
+                    let b = todo.trailing_zeros() as usize;
                     todo &= todo - 1;
-                    let (bdy, cdy2) = (_mm256_set1_ps(bdy_r.0[r]), _mm256_set1_ps(cdy2_r.0[r]));
-                    let (dyv, dy2v) = (_mm256_set1_ps(dy_r.0[r]), _mm256_set1_ps(dy2_r.0[r]));
-                    let cdy = _mm256_set1_ps(cdy_r.0[r]);
-                    let o = r * LANES + h * HALF;
-                    // SAFETY: r < 16, h < 2: o..o + 8 lies inside each 256-float array, 32-byte
-                    // aligned.
-                    let (t, sr, g0, g1, g2, g3, q) = unsafe {
+                    if b / 4 != band {
+                        band = b / 4;
+                        // rows 4 band + 2 h (lanes 0-3) and + 1 (lanes 4-7) of the half
+                        let r0 = 4 * band + 2 * h;
+                        let two = |row: &Row| {
+                            _mm256_set_m128(_mm_set1_ps(row.0[r0 + 1]), _mm_set1_ps(row.0[r0]))
+                        };
+                        dyv = two(&rterm[0]);
+                        bdy = two(&rterm[1]);
+                        cdy2 = two(&rterm[2]);
+                        dy2v = two(&rterm[3]);
+                        cdy = two(&rterm[4]);
+                    }
+                    let c = 4 * (b % 4);
+                    let o = b * LANES + h * HALF;
+                    // SAFETY: b < 16, h < 2: o..o + 8 lies inside each 256-float array, 32-byte
+                    // aligned; c + 4 <= 16.
+                    let (t, sr, g0, g1, g2, g3, q, dx, adx2, dx2) = unsafe {
+                        let quad = |row: &Row| {
+                            _mm256_broadcast_ps(&*(row.0.as_ptr().add(c) as *const __m128))
+                        };
                         (
                             _mm256_load_ps(t_ptr.add(o)),
                             _mm256_load_ps(s_ptr.add(o)),
@@ -237,14 +267,17 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
                             _mm256_load_ps(g_ptr[2].add(o)),
                             _mm256_load_ps(g_ptr[3].add(o)),
                             _mm256_load_ps(q_ptr.add(o)),
+                            quad(&cterm[0]),
+                            quad(&cterm[1]),
+                            quad(&cterm[2]),
                         )
                     };
-                    let lbits = (live[r] >> (h * HALF)) & 0xFF;
+                    let lbits = (live[b] >> (h * HALF)) & 0xFF;
                     let lv = _mm256_castsi256_ps(_mm256_cmpeq_epi32(
                         _mm256_and_si256(_mm256_set1_epi32(lbits as i32), lane_bits),
                         lane_bits,
                     ));
-                    let sigma = _mm256_add_ps(_mm256_fmadd_ps(bdy, dx[h], adx2[h]), cdy2);
+                    let sigma = _mm256_add_ps(_mm256_fmadd_ps(bdy, dx, adx2), cdy2);
                     let sg =
                         _mm256_castsi256_ps(_mm256_min_epu32(_mm256_castps_si256(sigma), clamp));
                     let u = _mm256_sub_ps(sg, ln_op);
@@ -281,20 +314,40 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
                     let tq = _mm256_mul_ps(_mm256_sub_ps(q, s_new), ra);
                     let va = _mm256_fmsub_ps(gc, t, tq);
                     let uu = _mm256_mul_ps(e, va);
-                    acc[0] = _mm256_blendv_ps(acc[0], _mm256_fmadd_ps(w, g0, acc[0]), contrib);
-                    acc[1] = _mm256_blendv_ps(acc[1], _mm256_fmadd_ps(w, g1, acc[1]), contrib);
-                    acc[2] = _mm256_blendv_ps(acc[2], _mm256_fmadd_ps(w, g2, acc[2]), contrib);
-                    acc[3] = _mm256_blendv_ps(acc[3], _mm256_fmadd_ps(w, g3, acc[3]), contrib);
-                    acc[4] = _mm256_blendv_ps(acc[4], _mm256_add_ps(acc[4], uu), m2);
-                    acc[5] = _mm256_blendv_ps(acc[5], _mm256_fmadd_ps(uu, dyv, acc[5]), m2);
-                    acc[6] = _mm256_blendv_ps(acc[6], _mm256_fmadd_ps(uu, dy2v, acc[6]), m2);
+                    let dxdy = _mm256_mul_ps(dx, dyv);
+                    let fm = |a: __m256, b: __m256, acc: __m256, m: __m256| {
+                        _mm256_blendv_ps(acc, _mm256_fmadd_ps(a, b, acc), m)
+                    };
+                    acc[0] = fm(w, g0, acc[0], contrib);
+                    acc[1] = fm(w, g1, acc[1], contrib);
+                    acc[2] = fm(w, g2, acc[2], contrib);
+                    acc[3] = fm(w, g3, acc[3], contrib);
+                    let v0 = acc[slot::V0];
+                    acc[slot::V0] = _mm256_blendv_ps(v0, _mm256_add_ps(v0, uu), m2);
+                    acc[slot::VDX] = fm(uu, dx, acc[slot::VDX], m2);
+                    acc[slot::VDY] = fm(uu, dyv, acc[slot::VDY], m2);
+                    acc[slot::VDX2] = fm(uu, dx2, acc[slot::VDX2], m2);
+                    acc[slot::VDXDY] = fm(uu, dxdy, acc[slot::VDXDY], m2);
+                    acc[slot::VDY2] = fm(uu, dy2v, acc[slot::VDY2], m2);
                     if ABS {
+                        // SAFETY: as above
+                        let (adx, bdx) = unsafe {
+                            (
+                                _mm256_broadcast_ps(
+                                    &*(cterm[3].0.as_ptr().add(c) as *const __m128),
+                                ),
+                                _mm256_broadcast_ps(
+                                    &*(cterm[4].0.as_ptr().add(c) as *const __m128),
+                                ),
+                            )
+                        };
                         let ax =
-                            _mm256_and_ps(_mm256_mul_ps(uu, _mm256_add_ps(adx[h], bdy)), abs_mask);
+                            _mm256_and_ps(_mm256_mul_ps(uu, _mm256_add_ps(adx, bdy)), abs_mask);
                         let ay =
-                            _mm256_and_ps(_mm256_mul_ps(uu, _mm256_add_ps(bdx[h], cdy)), abs_mask);
-                        acc[7] = _mm256_blendv_ps(acc[7], _mm256_add_ps(acc[7], ax), m2);
-                        acc[8] = _mm256_blendv_ps(acc[8], _mm256_add_ps(acc[8], ay), m2);
+                            _mm256_and_ps(_mm256_mul_ps(uu, _mm256_add_ps(bdx, cdy)), abs_mask);
+                        let (a7, a8) = (acc[slot::ABSX], acc[slot::ABSY]);
+                        acc[slot::ABSX] = _mm256_blendv_ps(a7, _mm256_add_ps(a7, ax), m2);
+                        acc[slot::ABSY] = _mm256_blendv_ps(a8, _mm256_add_ps(a8, ay), m2);
                     }
                     // SAFETY: see above
                     unsafe {
@@ -303,30 +356,21 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
                     }
                     // valid lanes that do not contribute stop
                     let lv = _mm256_or_ps(_mm256_andnot_ps(valid, lv), contrib);
-                    row_live[r] |= (_mm256_movemask_ps(lv) as u32) << (h * HALF);
+                    blk_live[b] |= (_mm256_movemask_ps(lv) as u32) << (h * HALF);
                 }
-                v[0][h] = acc[0];
-                v[1][h] = acc[1];
-                v[2][h] = acc[2];
-                v[3][h] = acc[3];
-                v[4][h] = acc[4];
-                v[5][h] = _mm256_mul_ps(dx[h], acc[4]);
-                v[6][h] = acc[5];
-                v[7][h] = _mm256_mul_ps(_mm256_mul_ps(dx[h], dx[h]), acc[4]);
-                v[8][h] = _mm256_mul_ps(dx[h], acc[5]);
-                v[9][h] = acc[6];
-                v[10][h] = acc[7];
-                v[11][h] = acc[8];
+                for (vk, a) in v.iter_mut().zip(acc) {
+                    vk[h] = a;
+                }
             }
-            // a splat's rows are fixed at its start, so the count does not depend on the order
-            evals += LANES as u64 * rows.count_ones() as u64;
-            let mut todo = rows;
+            // a splat's blocks are fixed at its start, so the count does not depend on the order
+            evals += LANES as u64 * todo_all.count_ones() as u64;
+            let mut todo = todo_all;
             while todo != 0 {
-                let r = todo.trailing_zeros() as usize;
+                let b = todo.trailing_zeros() as usize;
                 todo &= todo - 1;
-                live[r] = row_live[r];
-                if row_live[r] == 0 {
-                    alive &= !(1 << r);
+                live[b] = blk_live[b];
+                if blk_live[b] == 0 {
+                    alive &= !(1 << b);
                 }
             }
             done = alive == 0;

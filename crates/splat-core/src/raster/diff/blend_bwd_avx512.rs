@@ -1,10 +1,11 @@
 //! The AVX-512 blend-backward kernel (`core::arch` intrinsics): the operations of the generic
-//! kernel (`blend_bwd::bwd_tile_impl::<true, _>`) in the same order, so the same slot bits.
-//! One splat at a time: its per-lane terms and its 9 per-lane accumulators stay in registers
-//! while the rows it reaches are replayed (each row's transmittance and running colour are
-//! loaded and stored back); the 16-lane sums of the 12 slot values are done together by a
-//! transposing halving tree, the canonical order of `blend_bwd::hsum16`.
-use super::blend_bwd::{PixIn, SlotSink};
+//! kernel (`blend_bwd::bwd_tile_impl::<true, _>`) in the same order per lane, so the same slot
+//! bits. One splat at a time: its per-lane terms and its 12 per-lane accumulators stay in
+//! registers while the 4x4-pixel blocks it reaches are replayed in block order (each block's
+//! transmittance and running colour are loaded and stored back); the 16-lane sums of the 12
+//! slot values are done together by a transposing halving tree, the canonical order of
+//! `blend_bwd::hsum16`.
+use super::blend_bwd::{block_lane, PixIn, SlotSink};
 use super::slot;
 use crate::raster::blend::{
     prefetch, row_mask, BlendParams, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16, EXP_MAGIC, LANES,
@@ -75,7 +76,13 @@ fn hsum12(v: &[__m512; 12]) -> [f32; slot::LEN] {
     out
 }
 
-/// Replay one tile's list with AVX-512 and emit every entry's slot (see the generic kernel).
+/// Replay one tile's list with AVX-512 and emit every entry's slot (see the generic kernel):
+/// per splat, the blocks of 4x4 pixels it reaches (the forward AVX-512 kernel's test: each
+/// reached row's contour range, its hull over each band of 4 rows, against each block's
+/// columns), then per reached block, in block order, the per-pixel backward step on the block's
+/// 16 lanes (a lane's row terms by a permute of the splat's 16-row vectors, taken once per band;
+/// its column terms by a 4-lane broadcast). The tile's transmittance and running colour are
+/// kept in block order, as `PixIn` is.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
 pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
@@ -87,16 +94,17 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
     pix: &PixIn,
     sink: &mut S,
 ) -> u64 {
-    // live lanes per row; rows and lanes outside the image start done
+    // live lanes per block; lanes outside the image start done; `alive` the blocks with live
+    // lanes
     let mut live = [0u16; LANES];
-    let mut alive: u32 = 0;
-    let cols = p.width.saturating_sub(x0).min(LANES as u32);
-    for (r, row) in live.iter_mut().enumerate() {
-        if y0 + (r as u32) < p.height {
-            *row = ((1u32 << cols) - 1) as u16;
-            if cols > 0 {
-                alive |= 1 << r;
-            }
+    let mut alive: u16 = 0;
+    let cols = p.width.saturating_sub(x0).min(LANES as u32) as usize;
+    let rows = p.height.saturating_sub(y0).min(LANES as u32) as usize;
+    for r in 0..rows {
+        for l in 0..cols {
+            let (b, i) = block_lane(r, l);
+            live[b] |= 1 << i;
+            alive |= 1 << b;
         }
     }
     let lane_f = _mm512_setr_ps(
@@ -111,8 +119,22 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
         _mm512_add_ps(_mm512_set1_ps(y0f), lane_f),
         _mm512_set1_ps(0.5),
     );
-    let (xl, xh) = ((x0 as f32) + 0.5, ((x0 + LANES as u32 - 1) as f32) + 0.5);
-    let (v_xl, v_xh) = (_mm512_set1_ps(xl), _mm512_set1_ps(xh));
+    // lane 4 br + bc: the first and last pixel centres of block column bc (exact in float)
+    let col_f = _mm512_setr_ps(
+        0.0, 4.0, 8.0, 12.0, 0.0, 4.0, 8.0, 12.0, 0.0, 4.0, 8.0, 12.0, 0.0, 4.0, 8.0, 12.0,
+    );
+    let v_bxl = _mm512_add_ps(
+        _mm512_add_ps(_mm512_set1_ps(x0 as f32), col_f),
+        _mm512_set1_ps(0.5),
+    );
+    let v_bxh = _mm512_add_ps(
+        _mm512_add_ps(_mm512_set1_ps(x0 as f32), col_f),
+        _mm512_set1_ps(3.5),
+    );
+    // lane i of a block of band br takes the row terms of row 4 br + i / 4
+    let quarter = _mm512_setr_epi32(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3);
+    let inf = _mm512_set1_ps(f32::INFINITY);
+    let neg_inf = _mm512_set1_ps(f32::NEG_INFINITY);
     let zero = _mm512_setzero_ps();
     let one = _mm512_set1_ps(1.0);
     let max_alpha = _mm512_set1_ps(p.max_alpha);
@@ -129,13 +151,8 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
     let table = unsafe { _mm512_loadu_si512(EXP2_16THS.as_ptr() as *const _) };
     let mut tt = Rows([[1.0; LANES]; LANES]);
     let mut ss = Rows([[0.0; LANES]; LANES]);
-    let (mut dy_r, mut bdy_r, mut cdy2_r, mut dy2_r, mut cdy_r) = (
-        Row::default(),
-        Row::default(),
-        Row::default(),
-        Row::default(),
-        Row::default(),
-    );
+    // per-column terms of the current splat: dx, 0.5 a dx^2, dx^2, a dx, b dx
+    let mut cterm = [Row::default(); 5];
     let t_ptr = tt.0.as_mut_ptr() as *mut f32;
     let s_ptr = ss.0.as_mut_ptr() as *mut f32;
     let g_ptr = [0, 1, 2, 3].map(|c| pix.g[c].as_ptr() as *const f32);
@@ -154,8 +171,10 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
             let s = &splats[gi as usize];
             let (mx, my) = (s.xy[0], s.xy[1]);
             let [ca, cb, cc] = s.conic;
-            // the rows it reaches: the forward's contour test of all 16 rows at once
-            let range = row_mask(my, s.half_height, y0f);
+            // the blocks it reaches: each row's contour range (the rows test of the generic
+            // kernel), the hull of the reached rows' ranges over each band of 4 rows (in every
+            // lane of the band), against each block's columns (lane 4 br + bc)
+            let range = row_mask(my, s.half_height, y0f) as u16;
             let v_mx = _mm512_set1_ps(mx);
             let dy = _mm512_sub_ps(_mm512_set1_ps(my), py);
             let bdy = _mm512_mul_ps(_mm512_set1_ps(cb), dy);
@@ -164,39 +183,67 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
                 _mm512_set1_ps(s.two_a_level),
                 _mm512_mul_ps(dy2, _mm512_set1_ps(s.conic_det)),
             );
-            let ok = _mm512_cmp_ps_mask::<_CMP_GE_OQ>(disc, zero);
+            let ok = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(range, disc, zero);
             let sq = _mm512_sqrt_ps(disc);
             let inv_a = _mm512_set1_ps(s.inv_a);
             let left = _mm512_sub_ps(v_mx, _mm512_mul_ps(_mm512_sub_ps(sq, bdy), inv_a));
             let right = _mm512_add_ps(v_mx, _mm512_mul_ps(_mm512_add_ps(sq, bdy), inv_a));
-            let ok = _mm512_mask_cmp_ps_mask::<_CMP_NGT_UQ>(ok, left, v_xh);
-            let ok = _mm512_mask_cmp_ps_mask::<_CMP_NLT_UQ>(ok, right, v_xl);
-            let mut todo = range & alive & ok as u32;
+            let l = _mm512_mask_mov_ps(inf, ok, left);
+            let r = _mm512_mask_mov_ps(neg_inf, ok, right);
+            let l = _mm512_min_ps(l, _mm512_permute_ps::<0b10_11_00_01>(l));
+            let r = _mm512_max_ps(r, _mm512_permute_ps::<0b10_11_00_01>(r));
+            let l = _mm512_min_ps(l, _mm512_permute_ps::<0b01_00_11_10>(l));
+            let r = _mm512_max_ps(r, _mm512_permute_ps::<0b01_00_11_10>(r));
+            let blocks = _mm512_mask_cmp_ps_mask::<_CMP_LE_OQ>(alive, l, v_bxh);
+            let mut todo = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(blocks, r, v_bxl);
             let cdy2 = _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(0.5 * cc), dy), dy);
             let cdy = _mm512_mul_ps(_mm512_set1_ps(cc), dy);
-            // SAFETY: each row array holds 16 aligned floats.
-            unsafe {
-                _mm512_store_ps(dy_r.0.as_mut_ptr(), dy);
-                _mm512_store_ps(bdy_r.0.as_mut_ptr(), bdy);
-                _mm512_store_ps(cdy2_r.0.as_mut_ptr(), cdy2);
-                _mm512_store_ps(dy2_r.0.as_mut_ptr(), dy2);
-                _mm512_store_ps(cdy_r.0.as_mut_ptr(), cdy);
-            }
-            // per-lane terms
+            // per-column terms
             let dx = _mm512_sub_ps(v_mx, px);
             let adx2 = _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(0.5 * ca), dx), dx);
-            let adx = _mm512_mul_ps(_mm512_set1_ps(ca), dx);
-            let bdx = _mm512_mul_ps(_mm512_set1_ps(cb), dx);
+            let dx2 = _mm512_mul_ps(dx, dx);
+            // SAFETY: each row holds 16 aligned floats.
+            unsafe {
+                _mm512_store_ps(cterm[0].0.as_mut_ptr(), dx);
+                _mm512_store_ps(cterm[1].0.as_mut_ptr(), adx2);
+                _mm512_store_ps(cterm[2].0.as_mut_ptr(), dx2);
+                if ABS {
+                    _mm512_store_ps(
+                        cterm[3].0.as_mut_ptr(),
+                        _mm512_mul_ps(_mm512_set1_ps(ca), dx),
+                    );
+                    _mm512_store_ps(
+                        cterm[4].0.as_mut_ptr(),
+                        _mm512_mul_ps(_mm512_set1_ps(cb), dx),
+                    );
+                }
+            }
             let ln_op = _mm512_set1_ps(s.ln_opacity);
             let col = [s.rgb[0], s.rgb[1], s.rgb[2], s.depth].map(|v| _mm512_set1_ps(v));
-            let mut acc = [zero; 9];
+            let mut acc = [zero; slot::LEN];
+            // the row terms of the current band in block lanes
+            let mut band = usize::MAX;
+            let (mut b_bdy, mut b_cdy2, mut b_dy, mut b_dy2, mut b_cdy) =
+                (zero, zero, zero, zero, zero);
             while todo != 0 {
-                let r = todo.trailing_zeros() as usize;
+                let b = todo.trailing_zeros() as usize;
                 todo &= todo - 1;
                 evals += LANES as u64;
-                let o = r * LANES;
-                // SAFETY: r < 16, so o..o + 16 lies inside each 256-float array.
-                let (t, sr, g0, g1, g2, g3, q) = unsafe {
+                if b / 4 != band {
+                    band = b / 4;
+                    let idx = _mm512_add_epi32(quarter, _mm512_set1_epi32(4 * band as i32));
+                    b_bdy = _mm512_permutexvar_ps(idx, bdy);
+                    b_cdy2 = _mm512_permutexvar_ps(idx, cdy2);
+                    b_dy = _mm512_permutexvar_ps(idx, dy);
+                    b_dy2 = _mm512_permutexvar_ps(idx, dy2);
+                    if ABS {
+                        b_cdy = _mm512_permutexvar_ps(idx, cdy);
+                    }
+                }
+                let c = 4 * (b % 4);
+                let o = b * LANES;
+                // SAFETY: b < 16, so o..o + 16 lies inside each 256-float array; c + 4 <= 16.
+                let (t, sr, g0, g1, g2, g3, q, dx, adx2, dx2) = unsafe {
                     (
                         _mm512_load_ps(t_ptr.add(o)),
                         _mm512_load_ps(s_ptr.add(o)),
@@ -205,13 +252,13 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
                         _mm512_load_ps(g_ptr[2].add(o)),
                         _mm512_load_ps(g_ptr[3].add(o)),
                         _mm512_load_ps(q_ptr.add(o)),
+                        _mm512_broadcast_f32x4(_mm_load_ps(cterm[0].0.as_ptr().add(c))),
+                        _mm512_broadcast_f32x4(_mm_load_ps(cterm[1].0.as_ptr().add(c))),
+                        _mm512_broadcast_f32x4(_mm_load_ps(cterm[2].0.as_ptr().add(c))),
                     )
                 };
-                let lv = live[r];
-                let sigma = _mm512_add_ps(
-                    _mm512_fmadd_ps(_mm512_set1_ps(bdy_r.0[r]), dx, adx2),
-                    _mm512_set1_ps(cdy2_r.0[r]),
-                );
+                let lv = live[b];
+                let sigma = _mm512_add_ps(_mm512_fmadd_ps(b_bdy, dx, adx2), b_cdy2);
                 // e = exp(ln_op - sigma), exactly as blend::opacity_exp::<true>
                 let sg = _mm512_castsi512_ps(_mm512_min_epu32(_mm512_castps_si512(sigma), clamp));
                 let u = _mm512_sub_ps(sg, ln_op);
@@ -233,7 +280,7 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
                 let w = _mm512_mul_ps(alpha, t);
                 let tn = _mm512_sub_ps(t, w);
                 let contrib = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(valid, tn, t_min);
-                let unclamped = _mm512_mask_cmp_ps_mask::<_CMP_LT_OQ>(contrib, e, max_alpha);
+                let m2 = _mm512_mask_cmp_ps_mask::<_CMP_LT_OQ>(contrib, e, max_alpha);
                 // dL/dalpha = (g . c) T - (Q - S) / (1 - alpha)
                 let gc = _mm512_mul_ps(g0, col[0]);
                 let gc = _mm512_fmadd_ps(g1, col[1], gc);
@@ -244,22 +291,33 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
                 let tq = _mm512_mul_ps(_mm512_sub_ps(q, s_new), ra);
                 let va = _mm512_fmsub_ps(gc, t, tq);
                 let uu = _mm512_mul_ps(e, va);
+                let dxdy = _mm512_mul_ps(dx, b_dy);
                 acc[0] = _mm512_mask3_fmadd_ps(w, g0, acc[0], contrib);
                 acc[1] = _mm512_mask3_fmadd_ps(w, g1, acc[1], contrib);
                 acc[2] = _mm512_mask3_fmadd_ps(w, g2, acc[2], contrib);
                 acc[3] = _mm512_mask3_fmadd_ps(w, g3, acc[3], contrib);
-                acc[4] = _mm512_mask_add_ps(acc[4], unclamped, acc[4], uu);
-                acc[5] = _mm512_mask3_fmadd_ps(uu, _mm512_set1_ps(dy_r.0[r]), acc[5], unclamped);
-                acc[6] = _mm512_mask3_fmadd_ps(uu, _mm512_set1_ps(dy2_r.0[r]), acc[6], unclamped);
+                acc[slot::V0] = _mm512_mask_add_ps(acc[slot::V0], m2, acc[slot::V0], uu);
+                acc[slot::VDX] = _mm512_mask3_fmadd_ps(uu, dx, acc[slot::VDX], m2);
+                acc[slot::VDY] = _mm512_mask3_fmadd_ps(uu, b_dy, acc[slot::VDY], m2);
+                acc[slot::VDX2] = _mm512_mask3_fmadd_ps(uu, dx2, acc[slot::VDX2], m2);
+                acc[slot::VDXDY] = _mm512_mask3_fmadd_ps(uu, dxdy, acc[slot::VDXDY], m2);
+                acc[slot::VDY2] = _mm512_mask3_fmadd_ps(uu, b_dy2, acc[slot::VDY2], m2);
                 if ABS {
-                    let ax = _mm512_mul_ps(uu, _mm512_add_ps(adx, _mm512_set1_ps(bdy_r.0[r])));
-                    let ay = _mm512_mul_ps(uu, _mm512_add_ps(bdx, _mm512_set1_ps(cdy_r.0[r])));
+                    // SAFETY: as above
+                    let (adx, bdx) = unsafe {
+                        (
+                            _mm512_broadcast_f32x4(_mm_load_ps(cterm[3].0.as_ptr().add(c))),
+                            _mm512_broadcast_f32x4(_mm_load_ps(cterm[4].0.as_ptr().add(c))),
+                        )
+                    };
+                    let ax = _mm512_mul_ps(uu, _mm512_add_ps(adx, b_bdy));
+                    let ay = _mm512_mul_ps(uu, _mm512_add_ps(bdx, b_cdy));
                     let ax =
                         _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(ax), abs_mask));
                     let ay =
                         _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(ay), abs_mask));
-                    acc[7] = _mm512_mask_add_ps(acc[7], unclamped, acc[7], ax);
-                    acc[8] = _mm512_mask_add_ps(acc[8], unclamped, acc[8], ay);
+                    acc[slot::ABSX] = _mm512_mask_add_ps(acc[slot::ABSX], m2, acc[slot::ABSX], ax);
+                    acc[slot::ABSY] = _mm512_mask_add_ps(acc[slot::ABSY], m2, acc[slot::ABSY], ay);
                 }
                 // SAFETY: see above
                 unsafe {
@@ -268,23 +326,16 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
                 }
                 // valid lanes that do not contribute stop
                 let lv = (lv & !valid) | contrib;
-                live[r] = lv;
+                live[b] = lv;
                 if lv == 0 {
-                    alive &= !(1 << r);
+                    alive &= !(1 << b);
                     if alive == 0 {
                         done = true;
                         break;
                     }
                 }
             }
-            // slot: [c0..c3, V0, dx V0, V1, dx^2 V0, dx V1, V2, |x|, |y|]
-            let w5 = _mm512_mul_ps(dx, acc[4]);
-            let w7 = _mm512_mul_ps(_mm512_mul_ps(dx, dx), acc[4]);
-            let w8 = _mm512_mul_ps(dx, acc[5]);
-            let v = [
-                acc[0], acc[1], acc[2], acc[3], acc[4], w5, acc[5], w7, w8, acc[6], acc[7], acc[8],
-            ];
-            sink.put(gi, &hsum12(&v));
+            sink.put(gi, &hsum12(&acc));
         }
     }
     evals
