@@ -97,8 +97,9 @@ class Render:
         rgb, depth, alpha = self._frames()
         names = [f"{start + i:05d}" for i in range(rgb.shape[0])]
         pngs = [out / f"{n}.png" for n in names]
-        u8 = np.ascontiguousarray(self.to_uint8().reshape(rgb.shape))
-        _write_png_batch(pngs, u8)
+        # float32 colour: each PNG writer converts its own frame by to_uint8's rule
+        img = rgb if rgb.dtype == np.float32 else self.to_uint8().reshape(rgb.shape)
+        _write_png_batch(pngs, np.ascontiguousarray(img))
         _write_exr_batch([out / f"{n}.depth.exr" for n in names], np.ascontiguousarray(depth))
         _write_exr_batch([out / f"{n}.alpha.exr" for n in names], np.ascontiguousarray(alpha))
         return pngs

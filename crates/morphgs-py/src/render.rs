@@ -291,7 +291,8 @@ fn check_paths(paths: &[PathBuf], frames: usize) -> PyResult<()> {
     Ok(())
 }
 
-/// Write a uint8 image (H,W), (H,W,3) or (H,W,4) as PNG (atomically).
+/// Write a uint8 image (H,W), (H,W,3) or (H,W,4) as PNG (atomically); a float32 image is
+/// converted as `Render.to_uint8` does.
 #[pyfunction]
 fn _write_png(py: Python<'_>, path: PathBuf, image: &Bound<'_, PyUntypedArray>) -> PyResult<()> {
     _write_png_batch(py, vec![path], image, false)
@@ -303,7 +304,10 @@ fn _write_exr(py: Python<'_>, path: PathBuf, image: &Bound<'_, PyUntypedArray>) 
     _write_exr_batch(py, vec![path], image, false)
 }
 
-/// Write F uint8 images (F,H,W[,C]) as PNGs, in parallel; `paths` has F entries.
+/// Write F images (F,H,W[,C]) as PNGs, in parallel; `paths` has F entries. uint8 images are
+/// written as they are; float32 colour is converted frame by frame inside the parallel writers
+/// by `Render.to_uint8`'s rule, round(clip(v, 0, 1) * 255) with ties to even (the same bytes,
+/// without a batch-sized uint8 copy).
 #[pyfunction]
 #[pyo3(signature = (paths, images, batched = true))]
 fn _write_png_batch(
@@ -314,9 +318,14 @@ fn _write_png_batch(
 ) -> PyResult<()> {
     let (f, w, h, c) = image_dims(images, batched)?;
     check_paths(&paths, f)?;
+    if let Ok(floats) = images.cast::<numpy::PyArrayDyn<f32>>() {
+        let arr = floats.try_readonly()?;
+        let frames = split_frames(paths, slice_of(&arr, "images")?, f);
+        return detach(py, || image_out::write_png_batch_f32(&frames, w, h, c));
+    }
     let arr = images
         .cast::<numpy::PyArrayDyn<u8>>()
-        .map_err(|_| PyTypeError::new_err("PNG images must be uint8 arrays"))?
+        .map_err(|_| PyTypeError::new_err("PNG images must be uint8 or float32 arrays"))?
         .try_readonly()?;
     let frames = split_frames(paths, slice_of(&arr, "images")?, f);
     detach(py, || image_out::write_png_batch(&frames, w, h, c))

@@ -30,15 +30,24 @@ fn check_len(path: &Path, got: usize, width: u32, height: u32, channels: usize) 
     Ok(())
 }
 
-/// Float colour in [0, 1] to 8 bits: round(clip(v, 0, 1) * 255); NaN becomes 0.
+/// Float colour in [0, 1] to 8 bits: round(clip(v, 0, 1) * 255) in float32 with ties to even
+/// (numpy's `np.round`, so the same bytes as `Render.to_uint8`); NaN becomes 0.
 pub fn to_u8(values: &[f32]) -> Vec<u8> {
-    values
-        .iter()
-        .map(|&v| {
-            let c = if v > 0.0 { v.min(1.0) } else { 0.0 };
-            (c * 255.0).round() as u8
-        })
-        .collect()
+    let mut out = vec![0u8; values.len()];
+    to_u8_into(values, &mut out);
+    out
+}
+
+/// [`to_u8`] into `out` (of the same length).
+pub fn to_u8_into(values: &[f32], out: &mut [u8]) {
+    // x + 2^23 for x in [0, 255] rounds x to an integer (ties to even, the default rounding
+    // mode) and holds that integer in its low mantissa bits: no float-to-int conversion, so the
+    // loop runs in plain SSE2 lanes (`round_ties_even` would call libm per value)
+    const MAGIC: f32 = 8_388_608.0;
+    for (o, &v) in out.iter_mut().zip(values) {
+        let c = if v > 0.0 { v.min(1.0) } else { 0.0 }; // NaN -> 0
+        *o = ((c * 255.0 + MAGIC).to_bits() & 0xff) as u8;
+    }
 }
 
 /// Write an 8-bit PNG with 1 (grey), 3 (RGB) or 4 (RGBA) interleaved channels.
@@ -332,6 +341,19 @@ pub fn write_png_batch(
     })
 }
 
+/// Write many float colour frames as 8-bit PNGs in parallel, each converted by [`to_u8`] inside
+/// its own work unit (no batch-sized 8-bit copy). Stops at the first error in frame order.
+pub fn write_png_batch_f32(
+    frames: &[Frame<'_, f32>],
+    width: u32,
+    height: u32,
+    channels: usize,
+) -> Result<()> {
+    for_each_frame(frames, |f| {
+        write_png(&f.path, width, height, channels, &to_u8(f.data))
+    })
+}
+
 /// Write many float EXRs of one size in parallel.
 pub fn write_exr_batch(
     frames: &[Frame<'_, f32>],
@@ -362,11 +384,33 @@ mod tests {
     use super::*;
 
     #[test]
-    fn to_u8_rounds_and_clips() {
+    fn to_u8_rounds_ties_to_even_and_clips() {
         assert_eq!(
-            to_u8(&[-1.0, 0.0, 0.5, 1.0 / 255.0 * 0.49, 1.0, 3.0, f32::NAN]),
-            [0, 0, 128, 0, 255, 255, 0]
+            to_u8(&[-1.0, 0.0, 0.5, 1.0 / 255.0 * 0.49, 1.0, 3.0, f32::NAN, -0.0]),
+            [0, 0, 128, 0, 255, 255, 0, 0]
         );
+        assert_eq!(to_u8(&[f32::INFINITY, f32::NEG_INFINITY]), [255, 0]);
+        // every float whose product with 255 is exactly k + 0.5 goes to the even neighbour
+        let mut ties = 0;
+        for k in 0..255u32 {
+            let t = k as f32 + 0.5;
+            let v = t / 255.0;
+            for v in [
+                v,
+                f32::from_bits(v.to_bits() - 1),
+                f32::from_bits(v.to_bits() + 1),
+            ] {
+                let p = v * 255.0;
+                let want = if p == t {
+                    2 * k.div_ceil(2)
+                } else {
+                    p.round() as u32
+                };
+                ties += u32::from(p == t);
+                assert_eq!(u32::from(to_u8(&[v])[0]), want, "{v} * 255 = {p}");
+            }
+        }
+        assert!(ties > 50, "only {ties} exact ties exercised");
     }
 
     #[test]

@@ -75,13 +75,13 @@ class PairWriter:
         """Write a chunk (a batched Render) whose first frame is number `start`."""
         from morphgs import _core
 
-        u8 = _to_uint8(frames.rgb)
-        idx = range(start, start + len(u8))
+        idx = range(start, start + len(frames.rgb))
         if self.opts.video:
-            for frame in u8:
+            for frame in _to_uint8(frames.rgb):
                 self.videos[side].append_data(frame)
-        else:
-            _core._write_png_batch([self.folder / side / f"{i:05d}.png" for i in idx], u8)
+        else:  # float32 colour: converted to 8 bits frame by frame inside the parallel PNG writers
+            img = frames.rgb if frames.rgb.dtype == np.float32 else _to_uint8(frames.rgb)
+            _core._write_png_batch([self.folder / side / f"{i:05d}.png" for i in idx], np.ascontiguousarray(img))
         if self.opts.depth:
             _core._write_exr_batch([self.folder / side / f"{i:05d}.depth.exr" for i in idx],
                                    np.ascontiguousarray(frames.depth, dtype=np.float32))

@@ -1,6 +1,7 @@
-"""Float EXR files (depth and alpha maps, `_write_exr_batch`): read back bit for bit by our reader and
-by the official OpenEXR library (the `OpenEXR` package of the Academy Software Foundation), whatever
-the channel count, the size (not a multiple of the 16-line ZIP chunk) and the special values."""
+"""The frame writers. Float EXR files (depth and alpha maps, `_write_exr_batch`) read back bit for bit
+by our reader and by the official OpenEXR library (the `OpenEXR` package of the Academy Software
+Foundation), whatever the channel count, the size (not a multiple of the 16-line ZIP chunk) and the
+special values. PNGs written from float32 colour hold `Render.to_uint8`'s bytes."""
 
 from __future__ import annotations
 
@@ -90,3 +91,37 @@ def test_exr_batches_are_the_same_bytes_as_single_frames(tmp_path: Path) -> None
         one = tmp_path / f"one{i}.exr"
         _core._write_exr(one, frames[i])
         assert one.read_bytes() == p.read_bytes()
+
+
+def _float_colour(shape: tuple[int, ...], seed: int) -> np.ndarray:
+    """Colour in and out of [0, 1], +-inf, -0.0, and every float whose product with 255 is an exact
+    tie k + 0.5 (where round-half-even and round-half-away differ for even k)."""
+    rng = np.random.default_rng(seed)
+    rgb = rng.uniform(-0.2, 1.2, shape).astype(np.float32)
+    flat = rgb.reshape(-1)
+    k = np.arange(255, dtype=np.float32)
+    cand = ((k + np.float32(0.5)) / np.float32(255)).astype(np.float32)
+    cand = np.concatenate([cand, np.nextafter(cand, np.float32(0)), np.nextafter(cand, np.float32(1))])
+    ties = cand[cand * np.float32(255) == np.floor(cand * np.float32(255)) + np.float32(0.5)]
+    assert ties.size > 50
+    flat[: ties.size] = ties
+    flat[ties.size: ties.size + 4] = [np.inf, -np.inf, -0.0, 1.0]
+    return rgb
+
+
+def test_pngs_from_float_colour_hold_to_uint8s_bytes(tmp_path: Path) -> None:
+    from PIL import Image
+
+    rgb = _float_colour((3, 11, 29, 3), seed=4)
+    want = morphgs.Render(rgb, rgb[..., 0], rgb[..., 0], {}).to_uint8()
+    paths = [tmp_path / f"{i}.png" for i in range(3)]
+    _core._write_png_batch(paths, rgb)
+    for i, p in enumerate(paths):
+        np.testing.assert_array_equal(np.asarray(Image.open(p)), want[i])
+    # the same bytes as writing the uint8 frames
+    _core._write_png_batch([tmp_path / "u8.png"], want[:1])
+    assert (tmp_path / "u8.png").read_bytes() == paths[0].read_bytes()
+    _core._write_png(tmp_path / "one.png", rgb[2])
+    assert (tmp_path / "one.png").read_bytes() == paths[2].read_bytes()
+    with pytest.raises(TypeError, match="uint8 or float32"):
+        _core._write_png_batch([tmp_path / "x.png"], rgb[:1].astype(np.float64))
