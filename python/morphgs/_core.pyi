@@ -90,6 +90,7 @@ def _render(
     max_alpha: float = 0.99,
     sh_degree: int | None = None,
     antialiased: bool = False,
+    out: tuple[_F32, _F32, _F32] | None = None,
 ) -> tuple[_F32, _F32, _F32, dict[str, Any]]: ...
 def _project(
     scene: GaussianScene,

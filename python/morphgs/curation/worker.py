@@ -24,6 +24,7 @@ import numpy as np
 from morphgs.camera import Cameras
 from morphgs.curation.plan import PairJob, TrajectoryOptions, job_cameras, job_up, up_rule
 from morphgs.pair import Corruption, iter_pair_chunks
+from morphgs.rendering import RenderBuffers
 
 __all__ = ["OutputOptions", "PairWriter", "make_pair", "tmp_root"]
 
@@ -127,10 +128,15 @@ def make_pair(
     t_render = 0.0
     t_wait = 0.0
     pending: Future[None] | None = None
+    # two sets of output arrays in turn: chunk k renders into one while the writer thread still
+    # reads chunk k-1 from the other (chunk k-2's writing, the set's last user, was waited for),
+    # so no chunk pays for fresh pages
+    buffers = RenderBuffers(sets=2)
     try:
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="morphgs-writer") as pool:
             for start, clean, corrupted, secs in iter_pair_chunks(
-                    scene, corrupted_scene, corruption, cams, chunk=opts.chunk, background=opts.background):
+                    scene, corrupted_scene, corruption, cams, chunk=opts.chunk, background=opts.background,
+                    out=buffers):
                 t_render += secs
                 if pending is not None:
                     t0 = time.perf_counter()
