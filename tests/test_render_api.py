@@ -196,7 +196,7 @@ def test_save_writes_png_and_float_exr_per_frame(tmp_path: Path) -> None:
 
 def test_writers_reject_wrong_dtypes_and_shapes(tmp_path: Path) -> None:
     with pytest.raises(TypeError):
-        _write_png(tmp_path / "a.png", np.zeros((4, 4, 3), np.float32))
+        _write_png(tmp_path / "a.png", np.zeros((4, 4, 3), np.float64))  # uint8 or float32 colour only
     with pytest.raises(ValueError):
         _write_png(tmp_path / "a.png", np.zeros((4, 4, 2), np.uint8))
     with pytest.raises(ValueError):

@@ -19,7 +19,7 @@ import numpy.typing as npt
 from morphgs._core import GaussianScene, _render, _write_exr_batch, _write_png_batch
 from morphgs.camera import Camera, Cameras
 
-__all__ = ["Render", "render", "render_many"]
+__all__ = ["Render", "RenderBuffers", "render", "render_many"]
 
 CameraLike = Camera | Cameras | Sequence[Camera]
 
@@ -97,11 +97,44 @@ class Render:
         rgb, depth, alpha = self._frames()
         names = [f"{start + i:05d}" for i in range(rgb.shape[0])]
         pngs = [out / f"{n}.png" for n in names]
-        u8 = np.ascontiguousarray(self.to_uint8().reshape(rgb.shape))
-        _write_png_batch(pngs, u8)
+        # float32 colour: each PNG writer converts its own frame by to_uint8's rule
+        img = rgb if rgb.dtype == np.float32 else self.to_uint8().reshape(rgb.shape)
+        _write_png_batch(pngs, np.ascontiguousarray(img))
         _write_exr_batch([out / f"{n}.depth.exr" for n in names], np.ascontiguousarray(depth))
         _write_exr_batch([out / f"{n}.alpha.exr" for n in names], np.ascontiguousarray(alpha))
         return pngs
+
+
+class RenderBuffers:
+    """Output memory that `render_many(..., out=buffers)` renders into call after call.
+
+    A render into fresh arrays has the kernel clear every page of them on their first write
+    (memory the process just got is zeroed page by page; a 16-frame 832x480 chunk of a pair is
+    128 MB). Rendering into memory kept from an earlier call skips that: the renderer writes
+    every value, so nothing is cleared. The buffers grow to the largest batch seen.
+
+    `sets` sets of arrays are used in turn, one per call: a Render returned by a call stays valid
+    until `sets` more calls render into the same buffers (each set is overwritten when its turn
+    comes again). With `sets=2` one chunk can be written to disk by another thread while the
+    next is rendered (double buffering).
+    """
+
+    def __init__(self, sets: int = 1) -> None:
+        if not isinstance(sets, int) or sets < 1:
+            raise ValueError(f"sets must be a positive int, got {sets!r}")
+        empty = np.empty(0, np.float32)
+        self._sets = [[empty, empty, empty] for _ in range(sets)]
+        self._next = 0
+
+    def take(self, scenes: int, frames: int, height: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The next set as (rgb (S,F,H,W,3), depth (S,F,H,W), alpha (S,F,H,W)) float32 views."""
+        arrays = self._sets[self._next]
+        self._next = (self._next + 1) % len(self._sets)
+        n = scenes * frames * height * width
+        if arrays[1].size < n:  # grow (np.empty: the renderer writes every value)
+            arrays[:] = [np.empty(3 * n, np.float32), np.empty(n, np.float32), np.empty(n, np.float32)]
+        shape = (scenes, frames, height, width)
+        return arrays[0][: 3 * n].reshape(*shape, 3), arrays[1][:n].reshape(shape), arrays[2][:n].reshape(shape)
 
 
 def _as_cameras(cameras: CameraLike) -> tuple[Cameras, bool]:
@@ -139,12 +172,15 @@ def render_many(
     max_alpha: float = 0.99,
     sh_degree: int | None = None,
     antialiased: bool = False,
+    out: RenderBuffers | None = None,
 ) -> list[Render]:
     """Render several scenes along the same cameras in one parallel pass.
 
     Args:
         scenes: the scenes (e.g. a clean scene and its perturbed copy).
         cameras, background, max_alpha, sh_degree, antialiased: as in `render`.
+        out: render into these reusable buffers instead of new arrays (the same values); the
+            returned Renders are views of them, overwritten by a later call (see RenderBuffers).
 
     Returns:
         One Render per scene, shaped as `render` shapes it for `cameras`.
@@ -159,6 +195,9 @@ def render_many(
     _check_degree(scenes, sh_degree)
     if not (0.0 < float(max_alpha) <= 1.0):
         raise ValueError(f"max_alpha must be in (0, 1], got {max_alpha}")
+    if out is not None and not isinstance(out, RenderBuffers):
+        raise TypeError(f"out must be a RenderBuffers, got {type(out).__name__}")
+    arrays = None if out is None else out.take(len(scenes), len(cams), cams.height, cams.width)
     rgb, depth, alpha, stats = _render(
         scenes,
         np.ascontiguousarray(cams.world_to_camera, dtype=np.float64),
@@ -171,14 +210,15 @@ def render_many(
         max_alpha=float(max_alpha),
         sh_degree=sh_degree,
         antialiased=bool(antialiased),
+        out=arrays,
     )
-    out = []
+    renders = []
     for s in range(len(scenes)):
         if batched:
-            out.append(Render(rgb[s], depth[s], alpha[s], stats))
+            renders.append(Render(rgb[s], depth[s], alpha[s], stats))
         else:
-            out.append(Render(rgb[s, 0], depth[s, 0], alpha[s, 0], stats))
-    return out
+            renders.append(Render(rgb[s, 0], depth[s, 0], alpha[s, 0], stats))
+    return renders
 
 
 def render(

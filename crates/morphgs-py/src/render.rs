@@ -124,12 +124,14 @@ type RenderOut<'py> = (
 
 /// Render S scenes from F cameras sharing one image size, in one parallel pass (GIL released).
 ///
-/// Returns (rgb (S,F,H,W,3), depth (S,F,H,W), alpha (S,F,H,W), stats dict), float32.
+/// Returns (rgb (S,F,H,W,3), depth (S,F,H,W), alpha (S,F,H,W), stats dict), float32. With `out`
+/// (three writable C-contiguous float32 arrays of those shapes) the images are written into
+/// them (every value) and those arrays are returned.
 #[pyfunction]
 #[pyo3(signature = (scenes, world_to_camera, K, width, height, *, near = 0.01, far = 1e10,
                     background = [0.0, 0.0, 0.0], max_alpha = 0.99, sh_degree = None,
-                    antialiased = false))]
-#[allow(non_snake_case)]
+                    antialiased = false, out = None))]
+#[allow(non_snake_case, clippy::too_many_arguments)]
 fn _render<'py>(
     py: Python<'py>,
     scenes: &Bound<'py, PyList>,
@@ -143,6 +145,7 @@ fn _render<'py>(
     max_alpha: f32,
     sh_degree: Option<u8>,
     antialiased: bool,
+    out: Option<OutArrays<'py>>,
 ) -> PyResult<RenderOut<'py>> {
     let cams = cameras_from(&world_to_camera, &K, width, height, near, far)?;
     let handles: Vec<Bound<'py, PyGaussianScene>> = scenes
@@ -161,8 +164,31 @@ fn _render<'py>(
         .map(SceneBorrow::view)
         .collect::<PyResult<Vec<_>>>()?;
     let opts = options(background, max_alpha, sh_degree, antialiased)?;
-    let out = detach(py, || raster::render_batch(&views, &cams, &opts))?;
     let (s, f, h, w) = (views.len(), cams.len(), height as usize, width as usize);
+    if let Some((rgb, depth, alpha)) = out {
+        let stats = {
+            let shape = [s, f, h, w];
+            let mut rgb_w = writable(&rgb, "out rgb", &[s, f, h, w, 3])?;
+            let mut depth_w = writable(&depth, "out depth", &shape)?;
+            let mut alpha_w = writable(&alpha, "out alpha", &shape)?;
+            let slices = (
+                rgb_w.as_slice_mut(),
+                depth_w.as_slice_mut(),
+                alpha_w.as_slice_mut(),
+            );
+            let (Ok(rgb_s), Ok(depth_s), Ok(alpha_s)) = slices else {
+                return Err(PyValueError::new_err("out arrays must be C-contiguous"));
+            };
+            detach(py, || {
+                raster::render_batch_into(&views, &cams, &opts, rgb_s, depth_s, alpha_s)
+            })?
+        };
+        let rgb = rgb.cast_into::<PyArray5<f32>>()?;
+        let depth = depth.cast_into::<PyArray4<f32>>()?;
+        let alpha = alpha.cast_into::<PyArray4<f32>>()?;
+        return Ok((rgb, depth, alpha, stats_dict(py, &stats)?));
+    }
+    let out = detach(py, || raster::render_batch(&views, &cams, &opts))?;
     let bad = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
     let rgb = Array5::from_shape_vec((s, f, h, w, 3), out.rgb).map_err(bad)?;
     let depth = Array4::from_shape_vec((s, f, h, w), out.depth).map_err(bad)?;
@@ -173,6 +199,34 @@ fn _render<'py>(
         alpha.into_pyarray(py),
         stats_dict(py, &out.stats)?,
     ))
+}
+
+/// `_render`'s `out`: rgb, depth and alpha arrays to render into.
+type OutArrays<'py> = (
+    Bound<'py, PyUntypedArray>,
+    Bound<'py, PyUntypedArray>,
+    Bound<'py, PyUntypedArray>,
+);
+
+/// A writable float32 view of `a`, which must have exactly `shape` and be C-contiguous (a
+/// ValueError naming `name` otherwise; a TypeError for another dtype; the same array given
+/// twice cannot be borrowed twice and raises too).
+fn writable<'py>(
+    a: &Bound<'py, PyUntypedArray>,
+    name: &str,
+    shape: &[usize],
+) -> PyResult<numpy::PyReadwriteArrayDyn<'py, f32>> {
+    let arr = a
+        .cast::<numpy::PyArrayDyn<f32>>()
+        .map_err(|_| PyTypeError::new_err(format!("{name} must be a float32 array")))?;
+    if a.shape() != shape || !a.is_c_contiguous() {
+        return Err(PyValueError::new_err(format!(
+            "{name} must be a C-contiguous array of shape {shape:?}, got {:?}",
+            a.shape()
+        )));
+    }
+    arr.try_readwrite()
+        .map_err(|e| PyValueError::new_err(format!("{name} cannot be written: {e}")))
 }
 
 /// Project every Gaussian of a scene for one camera (SPEC §4 steps 1-5), as gsplat's
@@ -291,7 +345,8 @@ fn check_paths(paths: &[PathBuf], frames: usize) -> PyResult<()> {
     Ok(())
 }
 
-/// Write a uint8 image (H,W), (H,W,3) or (H,W,4) as PNG (atomically).
+/// Write a uint8 image (H,W), (H,W,3) or (H,W,4) as PNG (atomically); a float32 image is
+/// converted as `Render.to_uint8` does.
 #[pyfunction]
 fn _write_png(py: Python<'_>, path: PathBuf, image: &Bound<'_, PyUntypedArray>) -> PyResult<()> {
     _write_png_batch(py, vec![path], image, false)
@@ -303,7 +358,10 @@ fn _write_exr(py: Python<'_>, path: PathBuf, image: &Bound<'_, PyUntypedArray>) 
     _write_exr_batch(py, vec![path], image, false)
 }
 
-/// Write F uint8 images (F,H,W[,C]) as PNGs, in parallel; `paths` has F entries.
+/// Write F images (F,H,W[,C]) as PNGs, in parallel; `paths` has F entries. uint8 images are
+/// written as they are; float32 colour is converted frame by frame inside the parallel writers
+/// by `Render.to_uint8`'s rule, round(clip(v, 0, 1) * 255) with ties to even (the same bytes,
+/// without a batch-sized uint8 copy).
 #[pyfunction]
 #[pyo3(signature = (paths, images, batched = true))]
 fn _write_png_batch(
@@ -314,9 +372,14 @@ fn _write_png_batch(
 ) -> PyResult<()> {
     let (f, w, h, c) = image_dims(images, batched)?;
     check_paths(&paths, f)?;
+    if let Ok(floats) = images.cast::<numpy::PyArrayDyn<f32>>() {
+        let arr = floats.try_readonly()?;
+        let frames = split_frames(paths, slice_of(&arr, "images")?, f);
+        return detach(py, || image_out::write_png_batch_f32(&frames, w, h, c));
+    }
     let arr = images
         .cast::<numpy::PyArrayDyn<u8>>()
-        .map_err(|_| PyTypeError::new_err("PNG images must be uint8 arrays"))?
+        .map_err(|_| PyTypeError::new_err("PNG images must be uint8 or float32 arrays"))?
         .try_readonly()?;
     let frames = split_frames(paths, slice_of(&arr, "images")?, f);
     detach(py, || image_out::write_png_batch(&frames, w, h, c))

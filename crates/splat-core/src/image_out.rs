@@ -1,7 +1,7 @@
-//! Image files: 8-bit PNG (image crate) and float32 OpenEXR (exr crate), written atomically
+//! Image files: 8-bit PNG (image crate) and float32 OpenEXR (written by `exr_zip`, read by the
+//! exr crate), written atomically
 //! (a temporary beside the target, then a rename), one frame or many frames in parallel; PNG
 //! frames read back as 8-bit RGB (png crate), optionally only their top rows (a crop's worth).
-use std::io::Cursor;
 use std::path::{Path, PathBuf};
 
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
@@ -10,6 +10,8 @@ use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::ply::atomic_write;
+
+mod exr_zip;
 
 fn check_len(path: &Path, got: usize, width: u32, height: u32, channels: usize) -> Result<()> {
     let want = width as usize * height as usize * channels;
@@ -28,15 +30,24 @@ fn check_len(path: &Path, got: usize, width: u32, height: u32, channels: usize) 
     Ok(())
 }
 
-/// Float colour in [0, 1] to 8 bits: round(clip(v, 0, 1) * 255); NaN becomes 0.
+/// Float colour in [0, 1] to 8 bits: round(clip(v, 0, 1) * 255) in float32 with ties to even
+/// (numpy's `np.round`, so the same bytes as `Render.to_uint8`); NaN becomes 0.
 pub fn to_u8(values: &[f32]) -> Vec<u8> {
-    values
-        .iter()
-        .map(|&v| {
-            let c = if v > 0.0 { v.min(1.0) } else { 0.0 };
-            (c * 255.0).round() as u8
-        })
-        .collect()
+    let mut out = vec![0u8; values.len()];
+    to_u8_into(values, &mut out);
+    out
+}
+
+/// [`to_u8`] into `out` (of the same length).
+pub fn to_u8_into(values: &[f32], out: &mut [u8]) {
+    // x + 2^23 for x in [0, 255] rounds x to an integer (ties to even, the default rounding
+    // mode) and holds that integer in its low mantissa bits: no float-to-int conversion, so the
+    // loop runs in plain SSE2 lanes (`round_ties_even` would call libm per value)
+    const MAGIC: f32 = 8_388_608.0;
+    for (o, &v) in out.iter_mut().zip(values) {
+        let c = if v > 0.0 { v.min(1.0) } else { 0.0 }; // NaN -> 0
+        *o = ((c * 255.0 + MAGIC).to_bits() & 0xff) as u8;
+    }
 }
 
 /// Write an 8-bit PNG with 1 (grey), 3 (RGB) or 4 (RGBA) interleaved channels.
@@ -72,6 +83,7 @@ fn exr_channel_names(channels: usize) -> Vec<String> {
 
 /// Write a float32 OpenEXR (ZIP-compressed, lossless) with `channels` interleaved channels:
 /// 1 -> "Y", 3 -> "R","G","B", 4 -> "R","G","B","A", otherwise "C0", "C1", ...
+/// A single-part scanline file, 16 lines per chunk (see `exr_zip`).
 pub fn write_exr(
     path: &Path,
     width: u32,
@@ -79,10 +91,6 @@ pub fn write_exr(
     channels: usize,
     data: &[f32],
 ) -> Result<()> {
-    use exr::prelude::{
-        AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes, SmallVec,
-        WritableImage,
-    };
     if channels == 0 {
         return Err(Error::InvalidArgument(format!(
             "{}: an EXR needs at least one channel",
@@ -90,26 +98,13 @@ pub fn write_exr(
         )));
     }
     check_len(path, data.len(), width, height, channels)?;
-    let list: Vec<AnyChannel<FlatSamples>> = exr_channel_names(channels)
-        .into_iter()
-        .enumerate()
-        .map(|(c, name)| {
-            let plane: Vec<f32> = data.iter().skip(c).step_by(channels).copied().collect();
-            AnyChannel::new(name.as_str(), FlatSamples::F32(plane))
-        })
-        .collect();
-    let layer = Layer::new(
-        (width as usize, height as usize),
-        LayerAttributes::default(),
-        Encoding::SMALL_LOSSLESS,
-        AnyChannels::sort(SmallVec::from_vec(list)),
-    );
-    let mut bytes = Vec::new();
-    Image::from_layer(layer)
-        .write()
-        .non_parallel()
-        .to_buffered(Cursor::new(&mut bytes))
-        .map_err(|e| Error::io(path, std::io::Error::other(e.to_string())))?;
+    if i32::try_from(width).is_err() || i32::try_from(height).is_err() {
+        return Err(Error::InvalidArgument(format!(
+            "{}: an EXR side must be below 2^31, got {width}x{height}",
+            path.display()
+        )));
+    }
+    let bytes = exr_zip::encode(width, height, &exr_channel_names(channels), data);
     atomic_write(path, |w| w.write_all(&bytes))
 }
 
@@ -123,9 +118,10 @@ pub struct FloatImage {
 }
 
 /// Read the first layer of an OpenEXR file as float32 (half and uint samples are converted).
-/// Channels come back in the order `write_exr` names them ("Y"; "R","G","B"["A"]; "C0", ...);
-/// other names come back in the file's (alphabetical) order. Sizes are checked against
-/// `max_pixels` before the pixels are decoded, so a lying header cannot ask for a huge buffer.
+/// Channels come back in the order `write_exr` names them ("Y"; "R","G","B"["A"]; "C0", "C1",
+/// ..., "C10" in numeric order); other names come back in the file's (alphabetical) order.
+/// Sizes are checked against `max_pixels` before the pixels are decoded, so a lying header
+/// cannot ask for a huge buffer.
 pub fn read_exr(path: &Path, max_pixels: usize) -> Result<FloatImage> {
     use exr::prelude::{read, ReadChannels, ReadLayers};
     let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| exr_error(path, e))?;
@@ -165,12 +161,16 @@ pub fn read_exr(path: &Path, max_pixels: usize) -> Result<FloatImage> {
         .iter()
         .map(|c| (c.name.to_string(), c.sample_data.values_as_f32().collect()))
         .collect();
+    // "C10" after "C9" (the file holds names in byte order: C0, C1, C10, C11, C2, ...)
     let rank = |n: &str| match n {
-        "R" => 0,
-        "G" => 1,
-        "B" => 2,
-        "A" => 3,
-        _ => 4,
+        "R" => (0, 0),
+        "G" => (1, 0),
+        "B" => (2, 0),
+        "A" => (3, 0),
+        _ => match n.strip_prefix('C').map(str::parse::<u64>) {
+            Some(Ok(i)) if !n[1..].starts_with('+') => (4, i),
+            _ => (5, 0),
+        },
     };
     list.sort_by_key(|(n, _)| rank(n)); // stable: other names keep the file's order
     let channels = list.len();
@@ -341,6 +341,19 @@ pub fn write_png_batch(
     })
 }
 
+/// Write many float colour frames as 8-bit PNGs in parallel, each converted by [`to_u8`] inside
+/// its own work unit (no batch-sized 8-bit copy). Stops at the first error in frame order.
+pub fn write_png_batch_f32(
+    frames: &[Frame<'_, f32>],
+    width: u32,
+    height: u32,
+    channels: usize,
+) -> Result<()> {
+    for_each_frame(frames, |f| {
+        write_png(&f.path, width, height, channels, &to_u8(f.data))
+    })
+}
+
 /// Write many float EXRs of one size in parallel.
 pub fn write_exr_batch(
     frames: &[Frame<'_, f32>],
@@ -371,11 +384,33 @@ mod tests {
     use super::*;
 
     #[test]
-    fn to_u8_rounds_and_clips() {
+    fn to_u8_rounds_ties_to_even_and_clips() {
         assert_eq!(
-            to_u8(&[-1.0, 0.0, 0.5, 1.0 / 255.0 * 0.49, 1.0, 3.0, f32::NAN]),
-            [0, 0, 128, 0, 255, 255, 0]
+            to_u8(&[-1.0, 0.0, 0.5, 1.0 / 255.0 * 0.49, 1.0, 3.0, f32::NAN, -0.0]),
+            [0, 0, 128, 0, 255, 255, 0, 0]
         );
+        assert_eq!(to_u8(&[f32::INFINITY, f32::NEG_INFINITY]), [255, 0]);
+        // every float whose product with 255 is exactly k + 0.5 goes to the even neighbour
+        let mut ties = 0;
+        for k in 0..255u32 {
+            let t = k as f32 + 0.5;
+            let v = t / 255.0;
+            for v in [
+                v,
+                f32::from_bits(v.to_bits() - 1),
+                f32::from_bits(v.to_bits() + 1),
+            ] {
+                let p = v * 255.0;
+                let want = if p == t {
+                    2 * k.div_ceil(2)
+                } else {
+                    p.round() as u32
+                };
+                ties += u32::from(p == t);
+                assert_eq!(u32::from(to_u8(&[v])[0]), want, "{v} * 255 = {p}");
+            }
+        }
+        assert!(ties > 50, "only {ties} exact ties exercised");
     }
 
     #[test]
@@ -450,6 +485,111 @@ mod tests {
             read_png_rgb(&dir.path().join("missing.png"), None, 1 << 20),
             Err(Error::Io { .. })
         ));
+    }
+
+    /// Floats of every kind: smooth ramps (compressible), NaN with payloads, infinities, -0.0,
+    /// subnormals, and arbitrary bit patterns (incompressible chunks, stored raw).
+    fn awkward_floats(n: usize, seed: u32) -> Vec<f32> {
+        let mut state = seed.wrapping_mul(2_654_435_761).wrapping_add(1);
+        (0..n)
+            .map(|i| {
+                state ^= state << 13;
+                state ^= state >> 17;
+                state ^= state << 5;
+                match i % 11 {
+                    0 => f32::NAN,
+                    1 => f32::from_bits(0x7fc0_1234 ^ (state & 0x3f_ffff)),
+                    2 => f32::INFINITY,
+                    3 => f32::NEG_INFINITY,
+                    4 => -0.0,
+                    5 => f32::from_bits(state & 0x007f_ffff), // subnormal
+                    6 | 7 => f32::from_bits(state),
+                    _ => 1.5 + (i / 11) as f32 * 1e-3,
+                }
+            })
+            .collect()
+    }
+
+    fn bits(v: &[f32]) -> Vec<u32> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    #[test]
+    fn exr_round_trips_bit_exact_for_any_channel_count_and_size() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let sizes = [(1, 1), (5, 16), (7, 17), (13, 37), (64, 33)];
+        for channels in [1usize, 2, 3, 4, 5, 12] {
+            for (i, &(w, h)) in sizes.iter().enumerate() {
+                let data = awkward_floats(w * h * channels, (channels * 10 + i) as u32);
+                let e = dir.path().join(format!("c{channels}-{w}x{h}.exr"));
+                write_exr(&e, w as u32, h as u32, channels, &data).expect("write");
+                let back = read_exr(&e, 1 << 24).expect("read_exr");
+                assert_eq!((back.width, back.height), (w as u32, h as u32));
+                assert_eq!(back.channels, channels);
+                assert_eq!(bits(&back.data), bits(&data), "{channels} ch {w}x{h}");
+                // the exr crate's own reader sees the channel names write_exr documents
+                let img = exr::prelude::read_all_flat_layers_from_file(&e).expect("exr crate");
+                let layer = &img.layer_data[0];
+                let mut names: Vec<String> = layer
+                    .channel_data
+                    .list
+                    .iter()
+                    .map(|c| c.name.to_string())
+                    .collect();
+                let mut want = exr_channel_names(channels);
+                names.sort();
+                want.sort();
+                assert_eq!(names, want);
+                assert_eq!(
+                    layer.encoding.compression,
+                    exr::compression::Compression::ZIP16
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn smooth_exr_frames_are_compressed() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (w, h) = (96usize, 40usize);
+        let smooth: Vec<f32> = (0..w * h)
+            .map(|i| 2.0 + (i % w) as f32 * 0.01 + (i / w) as f32 * 0.02)
+            .collect();
+        let e = dir.path().join("smooth.exr");
+        write_exr(&e, w as u32, h as u32, 1, &smooth).expect("write");
+        let size = std::fs::metadata(&e).expect("stat").len() as usize;
+        assert!(size < w * h * 4 / 2, "{size} bytes for a smooth ramp");
+        assert_eq!(
+            bits(&read_exr(&e, 1 << 20).expect("read").data),
+            bits(&smooth)
+        );
+    }
+
+    #[test]
+    fn exr_batches_give_the_same_bytes_on_one_and_two_threads() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (w, h, f) = (40u32, 21u32, 5usize);
+        let data = awkward_floats(w as usize * h as usize * f, 7);
+        let per = data.len() / f;
+        let write = |threads: usize, tag: &str| -> Vec<Vec<u8>> {
+            let frames: Vec<Frame<'_, f32>> = (0..f)
+                .map(|i| Frame {
+                    path: dir.path().join(format!("{tag}{i}.exr")),
+                    data: &data[i * per..(i + 1) * per],
+                })
+                .collect();
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("pool");
+            pool.install(|| write_exr_batch(&frames, w, h, 1))
+                .expect("batch");
+            frames
+                .iter()
+                .map(|fr| std::fs::read(&fr.path).expect("read"))
+                .collect()
+        };
+        assert_eq!(write(1, "a"), write(2, "b"));
     }
 
     #[test]

@@ -24,6 +24,7 @@ import numpy as np
 from morphgs.camera import Cameras
 from morphgs.curation.plan import PairJob, TrajectoryOptions, job_cameras, job_up, up_rule
 from morphgs.pair import Corruption, iter_pair_chunks
+from morphgs.rendering import RenderBuffers
 
 __all__ = ["OutputOptions", "PairWriter", "make_pair", "tmp_root"]
 
@@ -75,13 +76,13 @@ class PairWriter:
         """Write a chunk (a batched Render) whose first frame is number `start`."""
         from morphgs import _core
 
-        u8 = _to_uint8(frames.rgb)
-        idx = range(start, start + len(u8))
+        idx = range(start, start + len(frames.rgb))
         if self.opts.video:
-            for frame in u8:
+            for frame in _to_uint8(frames.rgb):
                 self.videos[side].append_data(frame)
-        else:
-            _core._write_png_batch([self.folder / side / f"{i:05d}.png" for i in idx], u8)
+        else:  # float32 colour: converted to 8 bits frame by frame inside the parallel PNG writers
+            img = frames.rgb if frames.rgb.dtype == np.float32 else _to_uint8(frames.rgb)
+            _core._write_png_batch([self.folder / side / f"{i:05d}.png" for i in idx], np.ascontiguousarray(img))
         if self.opts.depth:
             _core._write_exr_batch([self.folder / side / f"{i:05d}.depth.exr" for i in idx],
                                    np.ascontiguousarray(frames.depth, dtype=np.float32))
@@ -127,10 +128,15 @@ def make_pair(
     t_render = 0.0
     t_wait = 0.0
     pending: Future[None] | None = None
+    # two sets of output arrays in turn: chunk k renders into one while the writer thread still
+    # reads chunk k-1 from the other (chunk k-2's writing, the set's last user, was waited for),
+    # so no chunk pays for fresh pages
+    buffers = RenderBuffers(sets=2)
     try:
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="morphgs-writer") as pool:
             for start, clean, corrupted, secs in iter_pair_chunks(
-                    scene, corrupted_scene, corruption, cams, chunk=opts.chunk, background=opts.background):
+                    scene, corrupted_scene, corruption, cams, chunk=opts.chunk, background=opts.background,
+                    out=buffers):
                 t_render += secs
                 if pending is not None:
                     t0 = time.perf_counter()

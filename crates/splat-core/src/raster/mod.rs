@@ -311,12 +311,94 @@ pub fn render_batch(
     cams: &[Camera],
     opts: &RenderOptions,
 ) -> Result<BatchImages> {
-    opts.validate()?;
-    let Some(first) = cams.first() else {
+    let Some((width, height, total)) = batch_size(scenes, cams, opts)? else {
         return Ok(BatchImages {
             scenes: scenes.len(),
             ..Default::default()
         });
+    };
+    // huge pages: the blend writes every pixel, so a 4 KiB page fault per 1024 values would
+    // cost more than the writes (the 49-frame 832x480 pair's images are 780 MB)
+    let mut rgb = crate::mem::zeroed_f32(total * 3);
+    let mut depth = crate::mem::zeroed_f32(total);
+    let mut alpha = crate::mem::zeroed_f32(total);
+    let stats = render_batch_into(scenes, cams, opts, &mut rgb, &mut depth, &mut alpha)?;
+    Ok(BatchImages {
+        scenes: scenes.len(),
+        frames: cams.len(),
+        width,
+        height,
+        rgb,
+        depth,
+        alpha,
+        stats,
+    })
+}
+
+/// [`render_batch`] into images the caller owns, laid out as [`BatchImages`]'s: `rgb` holds
+/// S x F x H x W x 3 values, `depth` and `alpha` S x F x H x W. Every value is written, so
+/// buffers recycled from an earlier call need no clearing (fresh pages cost the kernel a clear
+/// each on first write). Returns the stats summed over the images.
+pub fn render_batch_into(
+    scenes: &[SceneView<'_>],
+    cams: &[Camera],
+    opts: &RenderOptions,
+    rgb: &mut [f32],
+    depth: &mut [f32],
+    alpha: &mut [f32],
+) -> Result<RenderStats> {
+    let total = batch_size(scenes, cams, opts)?.map_or(0, |(_, _, t)| t);
+    if rgb.len() != total * 3 || depth.len() != total || alpha.len() != total {
+        return Err(Error::InvalidArgument(format!(
+            "output buffers hold {}, {} and {} values, expected {}, {total} and {total} for {} \
+             scenes x {} cameras",
+            rgb.len(),
+            depth.len(),
+            alpha.len(),
+            total * 3,
+            scenes.len(),
+            cams.len()
+        )));
+    }
+    let mut stats = RenderStats::default();
+    if total == 0 {
+        return Ok(stats);
+    }
+    let npix = cams[0].width as usize * cams[0].height as usize;
+    let maps = colour_maps(scenes, cams.len(), opts)?;
+    let pool = scratch::Pool::for_batch();
+    let per_unit: Vec<RenderStats> = if let Some(maps) = maps {
+        render_frames_sharing(scenes, cams, opts, &maps, &pool, rgb, depth, alpha)?
+    } else {
+        rgb.par_chunks_mut(npix * 3)
+            .zip(depth.par_chunks_mut(npix))
+            .zip(alpha.par_chunks_mut(npix))
+            .enumerate()
+            .map(|(u, ((rgb, depth), alpha))| {
+                let scene = &scenes[u / cams.len()];
+                let cam = &cams[u % cams.len()];
+                let colours = share::FrameColours::Off;
+                render_into_sharing(scene, cam, opts, rgb, depth, alpha, colours, &pool)
+            })
+            .collect::<Result<_>>()?
+    };
+    pool.retire();
+    for s in &per_unit {
+        stats.add(s);
+    }
+    Ok(stats)
+}
+
+/// Checks a batch (options, cameras of one size, scenes and their SH degrees) and gives its
+/// image size and its pixel count over all images (`None` without cameras).
+fn batch_size(
+    scenes: &[SceneView<'_>],
+    cams: &[Camera],
+    opts: &RenderOptions,
+) -> Result<Option<(u32, u32, usize)>> {
+    opts.validate()?;
+    let Some(first) = cams.first() else {
+        return Ok(None);
     };
     for c in cams {
         c.validate()?;
@@ -333,55 +415,18 @@ pub fn render_batch(
     }
     let npix = first.width as usize * first.height as usize;
     let units = scenes.len() * cams.len();
-    let total = npix
-        .checked_mul(units)
-        .and_then(|v| v.checked_mul(3))
-        .filter(|&v| v <= isize::MAX as usize / 4)
+    npix.checked_mul(units)
+        .filter(|&v| {
+            v.checked_mul(3)
+                .is_some_and(|v| v <= isize::MAX as usize / 4)
+        })
+        .map(|total| Some((first.width, first.height, total)))
         .ok_or_else(|| {
             Error::InvalidArgument(format!(
                 "{units} images of {}x{} are too large to hold in memory",
                 first.width, first.height
             ))
-        })?;
-    // huge pages: the blend writes every pixel, so a 4 KiB page fault per 1024 values would
-    // cost more than the writes (the 49-frame 832x480 pair's images are 780 MB)
-    let mut rgb = crate::mem::zeroed_f32(total);
-    let mut depth = crate::mem::zeroed_f32(npix * units);
-    let mut alpha = crate::mem::zeroed_f32(npix * units);
-    let maps = colour_maps(scenes, cams.len(), opts)?;
-    let pool = scratch::Pool::for_batch();
-    let per_unit: Vec<RenderStats> = if let Some(maps) = maps {
-        render_frames_sharing(
-            scenes, cams, opts, &maps, &pool, &mut rgb, &mut depth, &mut alpha,
-        )?
-    } else {
-        rgb.par_chunks_mut(npix * 3)
-            .zip(depth.par_chunks_mut(npix))
-            .zip(alpha.par_chunks_mut(npix))
-            .enumerate()
-            .map(|(u, ((rgb, depth), alpha))| {
-                let scene = &scenes[u / cams.len()];
-                let cam = &cams[u % cams.len()];
-                let colours = share::FrameColours::Off;
-                render_into_sharing(scene, cam, opts, rgb, depth, alpha, colours, &pool)
-            })
-            .collect::<Result<_>>()?
-    };
-    pool.retire();
-    let mut stats = RenderStats::default();
-    for s in &per_unit {
-        stats.add(s);
-    }
-    Ok(BatchImages {
-        scenes: scenes.len(),
-        frames: cams.len(),
-        width: first.width,
-        height: first.height,
-        rgb,
-        depth,
-        alpha,
-        stats,
-    })
+        })
 }
 
 /// For each scene after the first, its [`share::colour_map`] against the first (`None` for a
@@ -881,5 +926,43 @@ mod tests {
             RenderOptions::default().effective_sh_degree(4).ok(),
             Some(3)
         );
+    }
+
+    #[test]
+    fn render_batch_into_recycled_buffers_gives_the_bits_of_render_batch() {
+        let clean = scene_sh3(3000);
+        let keep: Vec<bool> = (0..clean.len()).map(|i| i % 3 != 1).collect();
+        let other = clean.filter(&keep);
+        let mut cams = vec![camera(), camera()];
+        cams[1].world_to_camera[0][3] = 0.4;
+        let mut away = camera(); // looks away from the cloud: every tile is background
+        away.world_to_camera[2][3] = -4.0;
+        cams.push(away);
+        let opts = RenderOptions {
+            background: [0.25, 0.5, 1.0],
+            ..Default::default()
+        };
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let both = [clean.view(), other.view()];
+        // two scenes share colours, one scene does not: both paths write every value
+        for views in [&both[..], &both[..1]] {
+            let want = render_batch(views, &cams, &opts).expect("batch");
+            let n = want.depth.len();
+            let (mut rgb, mut depth, mut alpha) =
+                (vec![f32::NAN; n * 3], vec![f32::NAN; n], vec![-7.0; n]);
+            for _ in 0..2 {
+                let stats =
+                    render_batch_into(views, &cams, &opts, &mut rgb, &mut depth, &mut alpha)
+                        .expect("into");
+                assert_eq!(bits(&rgb), bits(&want.rgb));
+                assert_eq!(bits(&depth), bits(&want.depth));
+                assert_eq!(bits(&alpha), bits(&want.alpha));
+                assert_eq!(stats.evaluations, want.stats.evaluations);
+            }
+            let err = render_batch_into(views, &cams, &opts, &mut rgb, &mut depth[1..], &mut alpha);
+            assert!(matches!(err, Err(Error::InvalidArgument(_))));
+        }
+        let none = render_batch_into(&both, &[], &opts, &mut [], &mut [], &mut []).expect("empty");
+        assert_eq!(none.frames, 0);
     }
 }
