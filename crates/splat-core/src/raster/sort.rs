@@ -138,26 +138,11 @@ fn gather_chunk_impl(
     mode: Mode,
 ) {
     const G: usize = footprint::GROUP;
-    // copy group g's splats into `dst` and its lanes into a group buffer
-    let load = |g: usize, group: &mut footprint::Group, dst: &mut [MaybeUninit<Splat>]| {
-        let kg = &k[g * G..(g * G + G).min(k.len())];
-        if kg.len() < G {
-            *group = footprint::Group::default();
-        }
-        for (l, (d, &(_, p))) in dst.iter_mut().zip(kg).enumerate() {
-            if let Some(&(_, ahead)) = k.get(g * G + l + PREFETCH_AHEAD) {
-                crate::mem::prefetch(part_ref(parts, ahead));
-            }
-            let s = part_item(parts, p);
-            group.set(l, &s);
-            d.write(s);
-        }
-    };
     let n_groups = k.len().div_ceil(G);
     let mut groups = [footprint::Group::default(), footprint::Group::default()];
     let mut dst_groups = dst.chunks_mut(G);
     if let Some(d) = dst_groups.next() {
-        load(0, &mut groups[0], d);
+        load_group(parts, k, 0, &mut groups[0], d);
     }
     for (g, (bg, mg)) in boxes.chunks_mut(G).zip(masks.chunks_mut(G)).enumerate() {
         // the next group's lanes are written a group ahead of their (vector) reads, so the
@@ -166,7 +151,7 @@ fn gather_chunk_impl(
         let (cur, next) = if g % 2 == 0 { (a, c) } else { (c, a) };
         if g + 1 < n_groups {
             if let Some(d) = dst_groups.next() {
-                load(g + 1, next, d);
+                load_group(parts, k, g + 1, next, d);
             }
         }
         let out = footprint::Out {
@@ -174,6 +159,30 @@ fn gather_chunk_impl(
             masks: mg,
         };
         cur.emit(tiles, mode, out, tall);
+    }
+}
+
+/// Copy group g's splats (keys `k[16 g..]`) into `dst` and their lanes into `group`.
+#[inline(always)]
+fn load_group(
+    parts: &[Vec<Splat>],
+    k: &[(u32, u32)],
+    g: usize,
+    group: &mut footprint::Group,
+    dst: &mut [MaybeUninit<Splat>],
+) {
+    const G: usize = footprint::GROUP;
+    let kg = &k[g * G..(g * G + G).min(k.len())];
+    if kg.len() < G {
+        *group = footprint::Group::default();
+    }
+    for (l, (d, &(_, p))) in dst.iter_mut().zip(kg).enumerate() {
+        if let Some(&(_, ahead)) = k.get(g * G + l + PREFETCH_AHEAD) {
+            crate::mem::prefetch(part_ref(parts, ahead));
+        }
+        let s = part_item(parts, p);
+        group.set(l, &s);
+        d.write(s);
     }
 }
 
