@@ -272,13 +272,6 @@ impl Group {
                 self.mx[l], self.my[l], self.rx[l], self.ry[l], tiles_x, tiles_y,
             );
         }
-        let mut cl = ConstLanes::default();
-        for l in 0..GROUP {
-            let c = consts(
-                self.mx[l], self.my[l], self.b[l], self.t[l], self.d[l], self.ia[l], x0[l], x1[l],
-            );
-            cl.set(l, &c, mode == Mode::Exact);
-        }
         let mut is_tall = [false; GROUP];
         let mut rows = [0.0f32; GROUP];
         for l in 0..GROUP {
@@ -286,20 +279,42 @@ impl Group {
             is_tall[l] = (h > MASK_ROWS as f32) | (x1[l] - x0[l] > MASK_COLS as f32);
             rows[l] = if is_tall[l] { 0.0 } else { h };
         }
-        let k_max = rows.iter().fold(0.0f32, |a, &b| fmax(a, b)) as usize;
-        // rows 0..k_max of every lane: row j's tiles x0 + i in bits 16 j + i
+        // row j's tiles x0 + i in bits 16 j + i (rows beyond the box's own stay empty)
         let mut masks = [0u64; GROUP];
-        for j in 0..k_max {
+        let mut cl = ConstLanes::default();
+        if mode == Mode::Box {
+            // the whole box, without the test's arithmetic
+            for j in 0..MASK_ROWS {
+                for l in 0..GROUP {
+                    let w = int_bits(x1[l] - x0[l]);
+                    let bits = if (j as f32) < rows[l] {
+                        (1u32 << w) - 1
+                    } else {
+                        0
+                    };
+                    masks[l] |= u64::from(bits) << (16 * j);
+                }
+            }
+        } else {
             for l in 0..GROUP {
-                let (a, e) = band(&cl.get(self, l), y0[l] + j as f32);
-                let (a, e) = (int_bits(a - x0[l]), int_bits(e - x0[l]));
-                // (rows beyond the box's own stay empty)
-                let bits = if (j as f32) < rows[l] {
-                    (1u32 << e) - (1u32 << a)
-                } else {
-                    0
-                };
-                masks[l] |= u64::from(bits) << (16 * j);
+                let c = consts(
+                    self.mx[l], self.my[l], self.b[l], self.t[l], self.d[l], self.ia[l], x0[l],
+                    x1[l],
+                );
+                cl.set(l, &c);
+            }
+            let k_max = rows.iter().fold(0.0f32, |a, &b| fmax(a, b)) as usize;
+            for j in 0..k_max {
+                for l in 0..GROUP {
+                    let (a, e) = band(&cl.get(self, l), y0[l] + j as f32);
+                    let (a, e) = (int_bits(a - x0[l]), int_bits(e - x0[l]));
+                    let bits = if (j as f32) < rows[l] {
+                        (1u32 << e) - (1u32 << a)
+                    } else {
+                        0
+                    };
+                    masks[l] |= u64::from(bits) << (16 * j);
+                }
             }
         }
         let mut packed = [0u64; GROUP];
@@ -322,7 +337,13 @@ impl Group {
         }
         for l in 0..n {
             if is_tall[l] {
-                tall_rows(&cl.get(self, l), y0[l], (y1[l] - y0[l]) as usize, tall);
+                let k = int_bits(y1[l] - y0[l]) as usize;
+                if mode == Mode::Box {
+                    let r = [x0[l], x1[l]].map(|v| int_bits(v) as u16);
+                    tall.extend(std::iter::repeat_n(r, k));
+                } else {
+                    tall_rows(&cl.get(self, l), y0[l], k, tall);
+                }
             }
         }
     }
@@ -373,14 +394,14 @@ struct ConstLanes {
 
 impl ConstLanes {
     #[inline(always)]
-    fn set(&mut self, l: usize, c: &Consts, exact: bool) {
+    fn set(&mut self, l: usize, c: &Consts) {
         self.h[l] = c.h;
         self.hh[l] = c.hh;
         self.dstar[l] = c.dstar;
         self.w[l] = c.w;
         self.m[l] = c.m;
         self.eps[l] = c.eps;
-        self.ok[l] = c.ok & exact;
+        self.ok[l] = c.ok;
         self.x0[l] = c.x0;
         self.x1[l] = c.x1;
     }
