@@ -22,6 +22,7 @@ mod blend_avx2;
 #[cfg(target_arch = "x86_64")]
 mod blend_avx512;
 pub mod diff;
+mod footprint;
 pub mod project;
 mod scratch;
 pub mod sh;
@@ -263,11 +264,13 @@ fn render_into_sharing(
         keys,
         tmp,
         &mut s.sorted,
-        &mut s.ranges,
+        &mut s.footprints,
         cam.tiles(),
+        footprint::Mode::current(),
     );
     let t2 = Instant::now();
-    s.bins.rebuild_from_ranges(&s.ranges, tiles_x, tiles_y)?;
+    s.bins
+        .rebuild_from_footprints(&s.footprints, tiles_x, tiles_y)?;
     stats.intersections = s.bins.intersections();
     let t3 = Instant::now();
     let params = blend::BlendParams {

@@ -10,7 +10,7 @@
 use std::sync::Mutex;
 
 use super::project::Splat;
-use super::sort::TileBins;
+use super::sort::{Footprints, TileBins};
 
 /// Bytes of capacity the pool keeps (two grid-5 1080p frames in flight need about 230 MB).
 const KEEP_BYTES: usize = 256 << 20;
@@ -23,9 +23,9 @@ pub(crate) struct FrameScratch {
     /// The sort's (depth bits, payload) keys and their scratch.
     pub(crate) keys: Vec<(u32, u32)>,
     pub(crate) tmp: Vec<(u32, u32)>,
-    /// The splats in depth order, and their tile ranges.
+    /// The splats in depth order, and their tile footprints.
     pub(crate) sorted: Vec<Splat>,
-    pub(crate) ranges: Vec<[u16; 4]>,
+    pub(crate) footprints: Footprints,
     pub(crate) bins: TileBins,
 }
 
@@ -35,7 +35,8 @@ impl FrameScratch {
         let splat = std::mem::size_of::<Splat>();
         let parts: usize = self.parts.iter().map(Vec::capacity).sum();
         (parts + self.sorted.capacity()) * splat
-            + (self.keys.capacity() + self.tmp.capacity() + self.ranges.capacity()) * 8
+            + (self.keys.capacity() + self.tmp.capacity()) * 8
+            + self.footprints.capacity_bytes()
             + self.bins.capacity_bytes()
     }
 }

@@ -6,8 +6,11 @@
 //! each chunk buckets its splats by tile (a counting sort, which keeps the depth order). A tile's
 //! list is the concatenation of its buckets over the chunks in order: front to back, ties by
 //! index, and independent of the thread count.
+use std::mem::MaybeUninit;
+
 use rayon::prelude::*;
 
+use super::footprint::{self, ChunkFootprints, Isa, Mode};
 use super::project::{Splat, PROJECT_CHUNK_BITS};
 use crate::error::{Error, Result};
 
@@ -23,55 +26,163 @@ const RADIX: usize = 1 << RADIX_BITS;
 /// which orders like the Gaussian index), so no concatenated copy is needed.
 #[cfg(test)]
 pub(crate) fn sort_by_depth(parts: &[Vec<Splat>]) -> Vec<Splat> {
-    let (mut keys, mut tmp, mut sorted, mut ranges) =
-        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-    sort_by_depth_into(parts, &mut keys, &mut tmp, &mut sorted, &mut ranges, (1, 1));
+    let (mut keys, mut tmp, mut sorted) = (Vec::new(), Vec::new(), Vec::new());
+    let mut fp = Footprints::default();
+    sort_by_depth_into(
+        parts,
+        &mut keys,
+        &mut tmp,
+        &mut sorted,
+        &mut fp,
+        (1, 1),
+        Mode::Box,
+    );
     sorted
+}
+
+/// The sorted splats' tile footprints, as the gather writes them for binning: each splat's
+/// box [x0, x1, y0, y1] (gsplat's tiles, [`tile_range`]) and the tiles of its box rows that
+/// the kernels' row test may reach ([`footprint`]; the whole box in [`Mode::Box`]): a tile
+/// mask per splat (tile (x0 + i, y0 + j) in bit 16 j + i), or [`footprint::TALL`] and each
+/// row's column range [tx0, tx1) in its binning chunk's `tall` list (splat by splat, row by
+/// row).
+#[derive(Default)]
+pub(crate) struct Footprints {
+    pub(crate) boxes: Vec<[u16; 4]>,
+    pub(crate) masks: Vec<u64>,
+    pub(crate) tall: Vec<Vec<[u16; 2]>>,
+}
+
+impl Footprints {
+    /// Bytes of capacity held.
+    pub(crate) fn capacity_bytes(&self) -> usize {
+        (self.boxes.capacity() + self.masks.capacity()) * 8
+            + self.tall.iter().map(|r| r.capacity() * 4).sum::<usize>()
+    }
 }
 
 /// Sorted splats gathered ahead of the one being copied (the gather reads splats at random).
 const PREFETCH_AHEAD: usize = 16;
 
-/// [`sort_by_depth`] into reused buffers (`keys` and `tmp` are scratch), also writing each
-/// sorted splat's tile range for a `tiles.0` x `tiles.1` grid to `ranges` (as
-/// [`TileBins::rebuild_from_ranges`] takes them): the gather has the splat at hand, so binning
-/// need not read the sorted splats again. A renderer keeps the buffers from frame to frame, so a
-/// frame writes into memory already mapped.
+/// [`sort_by_depth`] into reused buffers (`keys` and `tmp` are scratch), also writing the
+/// sorted splats' [`Footprints`] for a `tiles.0` x `tiles.1` grid (as
+/// [`TileBins::rebuild_from_footprints`] takes them): the gather has each splat at hand, so
+/// binning need not read the sorted splats again. A renderer keeps the buffers from frame to
+/// frame, so a frame writes into memory already mapped.
 pub(crate) fn sort_by_depth_into(
     parts: &[Vec<Splat>],
     keys: &mut Vec<(u32, u32)>,
     tmp: &mut Vec<(u32, u32)>,
     sorted: &mut Vec<Splat>,
-    ranges: &mut Vec<[u16; 4]>,
+    fp: &mut Footprints,
     tiles: (u32, u32),
+    mode: Mode,
 ) {
     sorted_keys(parts, keys, tmp);
     let n = keys.len();
     sorted.clear();
     sorted.reserve(n);
-    ranges.clear();
-    ranges.reserve(n);
-    let (tiles_x, tiles_y) = tiles;
+    let (boxes, masks) = (&mut fp.boxes, &mut fp.masks);
+    boxes.clear();
+    boxes.reserve(n);
+    masks.clear();
+    masks.reserve(n);
+    fp.tall.resize_with(n.div_ceil(BIN_CHUNK), Vec::new);
+    let isa = Isa::detect();
     sorted.spare_capacity_mut()[..n]
         .par_chunks_mut(BIN_CHUNK)
-        .zip(ranges.spare_capacity_mut()[..n].par_chunks_mut(BIN_CHUNK))
+        .zip(boxes.spare_capacity_mut()[..n].par_chunks_mut(BIN_CHUNK))
+        .zip(masks.spare_capacity_mut()[..n].par_chunks_mut(BIN_CHUNK))
+        .zip(fp.tall.par_iter_mut())
         .zip(keys.par_chunks(BIN_CHUNK))
-        .for_each(|((dst, rdst), k)| {
-            for (j, ((d, r), &(_, p))) in dst.iter_mut().zip(rdst).zip(k).enumerate() {
-                if let Some(&(_, ahead)) = k.get(j + PREFETCH_AHEAD) {
-                    crate::mem::prefetch(part_ref(parts, ahead));
-                }
-                let s = part_item(parts, p);
-                let (x0, x1, y0, y1) = tile_range(&s, tiles_x, tiles_y);
-                r.write([x0, x1, y0, y1].map(|v| v as u16));
-                d.write(s);
-            }
+        .for_each(|((((dst, bdst), mdst), tall), k)| {
+            tall.clear();
+            gather_chunk(isa, parts, k, dst, bdst, mdst, tall, tiles, mode);
         });
-    // SAFETY: the chunks above cover [0, n) of both buffers' spare capacity (reserved above),
-    // and every element of every chunk was written.
+    // SAFETY: the chunks above cover [0, n) of the three buffers' spare capacity (reserved
+    // above), and every element of every chunk was written.
     unsafe {
         sorted.set_len(n);
-        ranges.set_len(n);
+        boxes.set_len(n);
+        masks.set_len(n);
+    }
+}
+
+footprint::per_isa! {
+    /// One binning chunk of the gather: the splats of keys `k` into `dst`, their boxes and
+    /// tile masks into `boxes` and `masks`, tall ones' rows appended to `tall`, a group of
+    /// [`footprint::GROUP`] at a time.
+    #[allow(clippy::too_many_arguments)]
+    fn gather_chunk(
+        parts: &[Vec<Splat>],
+        k: &[(u32, u32)],
+        dst: &mut [MaybeUninit<Splat>],
+        boxes: &mut [MaybeUninit<[u16; 4]>],
+        masks: &mut [MaybeUninit<u64>],
+        tall: &mut Vec<[u16; 2]>,
+        tiles: (u32, u32),
+        mode: Mode,
+    ) => gather_chunk_impl
+}
+
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn gather_chunk_impl(
+    parts: &[Vec<Splat>],
+    k: &[(u32, u32)],
+    dst: &mut [MaybeUninit<Splat>],
+    boxes: &mut [MaybeUninit<[u16; 4]>],
+    masks: &mut [MaybeUninit<u64>],
+    tall: &mut Vec<[u16; 2]>,
+    tiles: (u32, u32),
+    mode: Mode,
+) {
+    const G: usize = footprint::GROUP;
+    let n_groups = k.len().div_ceil(G);
+    let mut groups = [footprint::Group::default(), footprint::Group::default()];
+    let mut dst_groups = dst.chunks_mut(G);
+    if let Some(d) = dst_groups.next() {
+        load_group(parts, k, 0, &mut groups[0], d);
+    }
+    for (g, (bg, mg)) in boxes.chunks_mut(G).zip(masks.chunks_mut(G)).enumerate() {
+        // the next group's lanes are written a group ahead of their (vector) reads, so the
+        // reads do not wait on the scalar stores
+        let [a, c] = &mut groups;
+        let (cur, next) = if g % 2 == 0 { (a, c) } else { (c, a) };
+        if g + 1 < n_groups {
+            if let Some(d) = dst_groups.next() {
+                load_group(parts, k, g + 1, next, d);
+            }
+        }
+        let out = footprint::Out {
+            boxes: bg,
+            masks: mg,
+        };
+        cur.emit(tiles, mode, out, tall);
+    }
+}
+
+/// Copy group g's splats (keys `k[16 g..]`) into `dst` and their lanes into `group`.
+#[inline(always)]
+fn load_group(
+    parts: &[Vec<Splat>],
+    k: &[(u32, u32)],
+    g: usize,
+    group: &mut footprint::Group,
+    dst: &mut [MaybeUninit<Splat>],
+) {
+    const G: usize = footprint::GROUP;
+    let kg = &k[g * G..(g * G + G).min(k.len())];
+    if kg.len() < G {
+        *group = footprint::Group::default();
+    }
+    for (l, (d, &(_, p))) in dst.iter_mut().zip(kg).enumerate() {
+        if let Some(&(_, ahead)) = k.get(g * G + l + PREFETCH_AHEAD) {
+            crate::mem::prefetch(part_ref(parts, ahead));
+        }
+        let s = part_item(parts, p);
+        group.set(l, &s);
+        d.write(s);
     }
 }
 
@@ -172,11 +283,10 @@ fn sorted_keys(parts: &[Vec<Splat>], keys: &mut Vec<(u32, u32)>, tmp: &mut Vec<(
 }
 
 /// Tiles touched by a splat's box: [x0, x1) x [y0, y1), as gsplat's `isect_tiles`.
-#[inline]
+#[cfg(test)]
 pub(crate) fn tile_range(s: &Splat, tiles_x: u32, tiles_y: u32) -> (u32, u32, u32, u32) {
     let t = TILE as f32;
     // clamping to [0, n] first lets floor be a truncation and ceil a truncation plus one
-    // (no libm calls on baseline x86-64); clamp and floor/ceil commute for integer bounds
     let floor = |v: f32, n: u32| v.clamp(0.0, n as f32) as u32;
     let ceil = |v: f32, n: u32| {
         let c = v.clamp(0.0, n as f32);
@@ -191,7 +301,7 @@ pub(crate) fn tile_range(s: &Splat, tiles_x: u32, tiles_y: u32) -> (u32, u32, u3
     )
 }
 
-// tile coordinates of a valid camera fit the u16 of `BinChunk::ranges`
+// tile coordinates of a valid camera fit the u16 of the boxes and row ranges
 const _: () = assert!(crate::camera::MAX_IMAGE_SIDE.div_ceil(TILE) <= u16::MAX as u32);
 
 #[derive(Default)]
@@ -200,36 +310,74 @@ struct BinChunk {
     offsets: Vec<u32>,
     /// Positions in the sorted splat array.
     items: Vec<u32>,
-    /// Each splat's tile range (x0, x1, y0, y1) when [`TileBins::rebuild`] computes them, so the
-    /// filling pass reads 8 bytes per splat instead of the splat's 64 again.
-    ranges: Vec<[u16; 4]>,
+    /// The splats' footprints when [`TileBins::rebuild`] computes them, so the filling pass
+    /// reads those instead of the splats again.
+    fp: ChunkFootprints,
+}
+
+/// Call `f(t)` for each tile t the footprint of a splat with box `b` and tile mask `mask`
+/// keeps (row by row, left to right), for a grid `tiles_x` tiles wide; a [`footprint::TALL`]
+/// splat's row ranges are next in `tall` from `*k` on. Returns the number of tiles.
+#[inline(always)]
+fn for_tiles(
+    b: [u16; 4],
+    mask: u64,
+    tall: &[[u16; 2]],
+    k: &mut usize,
+    tiles_x: u32,
+    mut f: impl FnMut(usize),
+) -> u64 {
+    let [x0, _, y0, y1] = b.map(u32::from);
+    if mask == footprint::TALL {
+        let mut n = 0;
+        for (ty, r) in (y0..y1).zip(&tall[*k..]) {
+            let row = (ty * tiles_x) as usize;
+            for tx in r[0]..r[1] {
+                f(row + tx as usize);
+            }
+            n += u64::from(r[1] - r[0]);
+        }
+        *k += (y1 - y0) as usize;
+        n
+    } else {
+        // one loop over the set bits: its exit is the only unpredictable branch of a splat
+        let base = (y0 * tiles_x + x0) as usize;
+        let mut m = mask;
+        while m != 0 {
+            let bit = m.trailing_zeros();
+            f(base + ((bit >> 4) * tiles_x + (bit & 15)) as usize);
+            m &= m - 1;
+        }
+        u64::from(mask.count_ones())
+    }
 }
 
 impl BinChunk {
-    /// Bucket the sorted splats `base..base + ranges.len()`, whose tile ranges are `ranges`,
-    /// by tile (a counting sort, so each bucket keeps the depth order).
-    fn fill(&mut self, base: usize, ranges: &[[u16; 4]], tiles_x: u32, tiles_y: u32) -> Result<()> {
+    /// Bucket the sorted splats `base..base + boxes.len()`, whose footprints are `boxes`,
+    /// `masks` and `tall` (see [`Footprints`]), by tile (a counting sort, so each bucket keeps
+    /// the depth order).
+    fn fill(
+        &mut self,
+        base: usize,
+        (boxes, masks, tall): (&[[u16; 4]], &[u64], &[[u16; 2]]),
+        tiles_x: u32,
+        tiles_y: u32,
+    ) -> Result<()> {
         let n_tiles = (tiles_x * tiles_y) as usize;
         // counts per tile in offsets[1..], then their exclusive prefix sums
         let offsets = &mut self.offsets;
         offsets.clear();
         offsets.resize(n_tiles + 1, 0);
         let mut total = 0u64;
-        for r in ranges {
-            let [x0, x1, y0, y1] = r.map(u32::from);
-            total += (x1 - x0) as u64 * (y1 - y0) as u64;
+        let mut k = 0;
+        for (&b, &mask) in boxes.iter().zip(masks) {
+            total += for_tiles(b, mask, tall, &mut k, tiles_x, |t| offsets[t + 1] += 1);
             if total > u32::MAX as u64 {
                 return Err(Error::InvalidArgument(format!(
                     "too many Gaussian-tile intersections (over {}): Gaussians cover \
                      unreasonably large screen areas",
                     u32::MAX
                 )));
-            }
-            for ty in y0..y1 {
-                let row = (ty * tiles_x) as usize + 1;
-                for tx in x0..x1 {
-                    offsets[row + tx as usize] += 1;
-                }
             }
         }
         for t in 0..n_tiles {
@@ -239,16 +387,14 @@ impl BinChunk {
         let items = &mut self.items;
         items.clear();
         items.resize(total as usize, 0);
-        for (j, r) in ranges.iter().enumerate() {
-            let [x0, x1, y0, y1] = r.map(u32::from);
-            for ty in y0..y1 {
-                let row = (ty * tiles_x) as usize;
-                for tx in x0..x1 {
-                    let cur = &mut cursor[row + tx as usize];
-                    items[*cur as usize] = (base + j) as u32;
-                    *cur += 1;
-                }
-            }
+        let mut k = 0;
+        for (j, (&b, &mask)) in boxes.iter().zip(masks).enumerate() {
+            let pos = (base + j) as u32;
+            for_tiles(b, mask, tall, &mut k, tiles_x, |t| {
+                let cur = &mut cursor[t];
+                items[*cur as usize] = pos;
+                *cur += 1;
+            });
         }
         Ok(())
     }
@@ -267,50 +413,68 @@ impl TileBins {
     #[cfg(test)]
     pub(crate) fn build(sorted: &[Splat], tiles_x: u32, tiles_y: u32) -> Result<Self> {
         let mut bins = TileBins::default();
-        bins.rebuild(sorted, tiles_x, tiles_y)?;
+        bins.rebuild_mode(sorted, tiles_x, tiles_y, Mode::Box)?;
         Ok(bins)
     }
 
-    /// [`TileBins::build`] reusing this value's buffers (an optimiser loop bins every step).
+    /// [`TileBins::build`] reusing this value's buffers (an optimiser loop bins every step),
+    /// with exact binning ([`Mode::current`]).
     pub(crate) fn rebuild(&mut self, sorted: &[Splat], tiles_x: u32, tiles_y: u32) -> Result<()> {
+        self.rebuild_mode(sorted, tiles_x, tiles_y, Mode::current())
+    }
+
+    /// [`TileBins::rebuild`] in the given mode.
+    pub(crate) fn rebuild_mode(
+        &mut self,
+        sorted: &[Splat],
+        tiles_x: u32,
+        tiles_y: u32,
+        mode: Mode,
+    ) -> Result<()> {
         self.tiles_x = tiles_x;
         self.tiles_y = tiles_y;
         self.chunks
             .resize_with(sorted.len().div_ceil(BIN_CHUNK), BinChunk::default);
+        let isa = Isa::detect();
         self.chunks
             .par_iter_mut()
             .zip(sorted.par_chunks(BIN_CHUNK))
             .enumerate()
             .try_for_each(|(c, (chunk, part))| {
-                let mut ranges = std::mem::take(&mut chunk.ranges);
-                ranges.clear();
-                ranges.extend(part.iter().map(|s| {
-                    let (x0, x1, y0, y1) = tile_range(s, tiles_x, tiles_y);
-                    [x0, x1, y0, y1].map(|v| v as u16)
-                }));
-                let r = chunk.fill(c * BIN_CHUNK, &ranges, tiles_x, tiles_y);
-                chunk.ranges = ranges;
+                let mut fp = std::mem::take(&mut chunk.fp);
+                footprint::of_splats(isa, part, (tiles_x, tiles_y), mode, &mut fp);
+                let r = chunk.fill(
+                    c * BIN_CHUNK,
+                    (&fp.boxes, &fp.masks, &fp.tall),
+                    tiles_x,
+                    tiles_y,
+                );
+                chunk.fp = fp;
                 r
             })
     }
 
-    /// [`TileBins::rebuild`] from the sorted splats' tile ranges (as [`sort_by_depth_into`]
+    /// [`TileBins::rebuild`] from the sorted splats' footprints (as [`sort_by_depth_into`]
     /// writes them): the same lists without reading the splats.
-    pub(crate) fn rebuild_from_ranges(
+    pub(crate) fn rebuild_from_footprints(
         &mut self,
-        ranges: &[[u16; 4]],
+        fp: &Footprints,
         tiles_x: u32,
         tiles_y: u32,
     ) -> Result<()> {
         self.tiles_x = tiles_x;
         self.tiles_y = tiles_y;
         self.chunks
-            .resize_with(ranges.len().div_ceil(BIN_CHUNK), BinChunk::default);
+            .resize_with(fp.boxes.len().div_ceil(BIN_CHUNK), BinChunk::default);
         self.chunks
             .par_iter_mut()
-            .zip(ranges.par_chunks(BIN_CHUNK))
+            .zip(fp.boxes.par_chunks(BIN_CHUNK))
+            .zip(fp.masks.par_chunks(BIN_CHUNK))
+            .zip(fp.tall.par_iter())
             .enumerate()
-            .try_for_each(|(c, (chunk, part))| chunk.fill(c * BIN_CHUNK, part, tiles_x, tiles_y))
+            .try_for_each(|(c, (((chunk, boxes), masks), tall))| {
+                chunk.fill(c * BIN_CHUNK, (boxes, masks, tall), tiles_x, tiles_y)
+            })
     }
 
     /// Sorted splats per binning chunk: splat p is binned by chunk p / BIN_CHUNK.
@@ -352,13 +516,15 @@ impl TileBins {
             .map(move |c| &c.items[c.offsets[t] as usize..c.offsets[t + 1] as usize])
     }
 
-    /// Bytes of every buffer (capacities), the tile ranges included.
+    /// Bytes of every buffer (capacities), the boxes and row ranges included.
     pub(crate) fn capacity_bytes(&self) -> usize {
         self.bytes()
             + self
                 .chunks
                 .iter()
-                .map(|c| c.ranges.capacity() * 8)
+                .map(|c| {
+                    (c.fp.boxes.capacity() + c.fp.masks.capacity()) * 8 + c.fp.tall.capacity() * 4
+                })
                 .sum::<usize>()
     }
 
@@ -453,19 +619,16 @@ mod tests {
         assert_eq!(bins.intersections(), 4 + 1);
     }
 
-    /// The gather's tile ranges are `tile_range` of each sorted splat, and binning from them
-    /// gives the lists binning the splats gives, over several binning chunks and with buffers
-    /// reused from a larger frame.
+    /// The gather's boxes are `tile_range` of each sorted splat, and binning from its
+    /// footprints gives the lists binning the splats gives, over several binning chunks and
+    /// with buffers reused from a larger frame; in box mode those are gsplat's lists, in exact
+    /// mode the same lists less some entries (the order kept).
     #[test]
-    fn binning_from_the_gathers_ranges_gives_the_same_lists() {
-        let mut h = 11u64;
-        let mut next = || {
-            h = h.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
-            (h >> 40) as f32 / (1u64 << 24) as f32
-        };
+    fn binning_from_the_gathers_footprints_gives_the_same_lists() {
+        let mut next = footprint::tests::rng(11);
         let (tx, ty) = (13, 9);
-        let (mut keys, mut tmp, mut sorted, mut ranges) =
-            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let (mut keys, mut tmp, mut sorted) = (Vec::new(), Vec::new(), Vec::new());
+        let mut fp = Footprints::default();
         let mut reused = TileBins::default();
         for n in [3 * BIN_CHUNK + 77, 1000] {
             // projection chunks hold at most 1 << PROJECT_CHUNK_BITS splats
@@ -478,36 +641,55 @@ mod tests {
                 .map(|&m| {
                     (0..m)
                         .map(|_| {
-                            let mut s = splat(1.0 + next() * 8.0, next() * 240.0 - 20.0, 0.0);
-                            s.xy[1] = next() * 170.0 - 15.0;
-                            s.radius = [(next() * 40.0).ceil(), (next() * 30.0).ceil()];
+                            let mut s = footprint::tests::random_splat(&mut next, 200.0, 140.0);
+                            s.depth = 1.0 + next() * 8.0;
+                            s.radius = s.radius.map(|r| r.min(40.0));
                             s
                         })
                         .collect()
                 })
                 .collect();
-            sort_by_depth_into(
-                &parts,
-                &mut keys,
-                &mut tmp,
-                &mut sorted,
-                &mut ranges,
-                (tx, ty),
-            );
-            assert_eq!(sorted, sort_by_depth(&parts));
-            for (s, r) in sorted.iter().zip(&ranges) {
-                let (x0, x1, y0, y1) = tile_range(s, tx, ty);
-                assert_eq!(*r, [x0, x1, y0, y1].map(|v| v as u16));
+            let mut exact_total = 0;
+            for mode in [Mode::Box, Mode::Exact] {
+                sort_by_depth_into(
+                    &parts,
+                    &mut keys,
+                    &mut tmp,
+                    &mut sorted,
+                    &mut fp,
+                    (tx, ty),
+                    mode,
+                );
+                assert!(sorted == sort_by_depth(&parts));
+                for (s, b) in sorted.iter().zip(&fp.boxes) {
+                    let (x0, x1, y0, y1) = tile_range(s, tx, ty);
+                    assert_eq!(*b, [x0, x1, y0, y1].map(|v| v as u16));
+                }
+                let mut want = TileBins::default();
+                want.rebuild_mode(&sorted, tx, ty, mode).expect("bins");
+                reused.rebuild_from_footprints(&fp, tx, ty).expect("bins");
+                assert_eq!(reused.n_chunks(), want.n_chunks());
+                assert_eq!(reused.intersections(), want.intersections());
+                let boxed = TileBins::build(&sorted, tx, ty).expect("bins");
+                assert!(boxed.intersections() > n as u64);
+                for t in 0..(tx * ty) as usize {
+                    let list = |b: &TileBins| b.lists(t).flatten().copied().collect::<Vec<u32>>();
+                    assert_eq!(list(&reused), list(&want), "tile {t}");
+                    let (got, all) = (list(&want), list(&boxed));
+                    if mode == Mode::Box {
+                        assert_eq!(got, all, "tile {t}");
+                    } else {
+                        // a subsequence of gsplat's list
+                        let mut it = all.iter();
+                        assert!(got.iter().all(|g| it.any(|a| a == g)), "tile {t}");
+                    }
+                }
+                if mode == Mode::Exact {
+                    exact_total = want.intersections();
+                    assert!(exact_total < boxed.intersections());
+                }
             }
-            let want = TileBins::build(&sorted, tx, ty).expect("bins");
-            reused.rebuild_from_ranges(&ranges, tx, ty).expect("bins");
-            assert_eq!(reused.n_chunks(), want.n_chunks());
-            assert_eq!(reused.intersections(), want.intersections());
-            assert!(want.intersections() > n as u64);
-            for t in 0..(tx * ty) as usize {
-                let list = |b: &TileBins| b.lists(t).flatten().copied().collect::<Vec<u32>>();
-                assert_eq!(list(&reused), list(&want), "tile {t}");
-            }
+            assert!(exact_total > 0);
         }
     }
 }
