@@ -290,7 +290,15 @@ fn blend_tile_impl<'a, const FMA: bool, const COUNT: bool>(
                     let e = opacity_exp::<FMA>(sigma, ln_op);
                     let alpha = select(e < max_alpha, e, max_alpha);
                     let t = trow[l];
-                    let valid = (alpha >= ALPHA_THRESHOLD) & (t > 0.0);
+                    let above = alpha >= ALPHA_THRESHOLD;
+                    let valid = above & (t > 0.0);
+                    // alpha 0 below the threshold, where a lane takes nothing (same bits): far
+                    // from a footprint alpha falls to about 4e-38 and alpha t would often be
+                    // subnormal, a microcode assist per multiply (16% of this kernel's frame
+                    // CPU on a trained scene). The explicit kernels keep the plain product:
+                    // their blocks and half rows stay near the footprint, and zeroing there
+                    // measured no gain (docs/rendering.md, fifth pass: subnormals)
+                    let alpha = select(above, alpha, 0.0);
                     if COUNT {
                         useful += valid as u64;
                     }
