@@ -132,10 +132,26 @@ pub(super) const EXP_C_LO: f32 = -2.121_944_4e-4 / 16.0;
 /// gives an alpha below the threshold instead of needing its own test.
 #[inline(always)]
 pub(super) fn opacity_exp<const FMA: bool>(sigma: f32, ln_op: f32) -> f32 {
-    let sigma = if sigma.to_bits() < SIGMA_CLAMP.to_bits() {
+    opacity_exp_clamped::<FMA>(sigma, ln_op, SIGMA_CLAMP)
+}
+
+/// The plain forward kernel's sigma clamp: alpha = opacity e^-sigma >= e^-(64 + 5.55) = 6e-31
+/// (opacities below 1/255 are culled), so alpha T (|T| >= 1e-4 in every lane) stays a normal
+/// float. With the clamp at 80 alpha falls to about 4e-38 far from a footprint and alpha T is
+/// then often subnormal, a microcode assist per multiply: 15% of this kernel's frame CPU on a
+/// trained scene (docs/rendering.md, issue 21's fifth pass: subnormals). Same bits: at
+/// sigma >= 64 alpha is below 1/255 with either clamp, and such a lane changes nothing. The
+/// explicit kernels keep 80: their blocks and half rows stay near the footprint, and they
+/// measured no subnormal cost.
+const FWD_SIGMA_CLAMP: f32 = 64.0;
+
+/// [`opacity_exp`] with sigma clamped to `clamp` (at most [`SIGMA_CLAMP`]).
+#[inline(always)]
+fn opacity_exp_clamped<const FMA: bool>(sigma: f32, ln_op: f32, clamp: f32) -> f32 {
+    let sigma = if sigma.to_bits() < clamp.to_bits() {
         sigma
     } else {
-        SIGMA_CLAMP
+        clamp
     };
     let u = sigma - ln_op;
     let t = fmadd::<FMA>(-u, EXP_K16, EXP_MAGIC);
@@ -287,7 +303,8 @@ fn blend_tile_impl<'a, const FMA: bool, const COUNT: bool>(
                 for l in 0..LANES {
                     // sigma = 0.5 a dx^2 + b dx dy + 0.5 c dy^2
                     let sigma = fmadd::<FMA>(bdy, dxs[l], adx2[l]) + cdy2;
-                    let e = opacity_exp::<FMA>(sigma, ln_op);
+                    // sigma clamped at 64, not 80 (same bits, see FWD_SIGMA_CLAMP)
+                    let e = opacity_exp_clamped::<FMA>(sigma, ln_op, FWD_SIGMA_CLAMP);
                     let alpha = select(e < max_alpha, e, max_alpha);
                     let t = trow[l];
                     let valid = (alpha >= ALPHA_THRESHOLD) & (t > 0.0);
