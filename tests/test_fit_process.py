@@ -94,7 +94,12 @@ def test_resume_after_sigkill_gives_the_same_bytes(dataset: Path, tmp_path: Path
 
 
 def test_ctrl_c_writes_a_checkpoint_and_the_run_resumes(dataset: Path, tmp_path: Path) -> None:
-    cfg = small_config(300, "mcmc")
+    # The CLI child cannot be slowed down, and the first sign of progress it leaves is the
+    # checkpoint at step 100, so the run must outlast it by far: at 600+ steps/s a 300-step run
+    # could finish before the SIGINT arrived. One evaluation, at the end, keeps it cheap.
+    steps = 3000
+    cfg = small_config(steps, "mcmc", output={"eval_every": steps, "checkpoint_every": 100,
+                                               "preview_every": steps, "progress_every": 0.0})
     straight = _finish(_start(dataset, tmp_path / "straight", cfg, "random"))
     run = tmp_path / "interrupted"
     env = dict(os.environ, MORPHGS_NUM_THREADS="2")
@@ -108,7 +113,7 @@ def test_ctrl_c_writes_a_checkpoint_and_the_run_resumes(dataset: Path, tmp_path:
     assert "rerun the same command to resume" in err
     # the interrupt wrote a checkpoint at the step it stopped at (rows never run ahead of it)
     rows = _losses(run)
-    assert 0 < len(rows) < 300
+    assert 0 < len(rows) < steps
     resumed = _finish(_start(dataset, run, cfg, "random"))
     assert Path(resumed["ply"]).read_bytes() == Path(straight["ply"]).read_bytes()
     assert _losses(run) == _losses(tmp_path / "straight")
