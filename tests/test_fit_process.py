@@ -95,9 +95,9 @@ def test_resume_after_sigkill_gives_the_same_bytes(dataset: Path, tmp_path: Path
 
 def test_ctrl_c_writes_a_checkpoint_and_the_run_resumes(dataset: Path, tmp_path: Path) -> None:
     # The CLI child cannot be slowed down, and the first sign of progress it leaves is the
-    # checkpoint at step 100, so the run must outlast it by far: at 600+ steps/s a 300-step run
-    # could finish before the SIGINT arrived. One evaluation, at the end, keeps it cheap.
-    steps = 3000
+    # checkpoint at step 100, so the run outlasts it by 900 steps (over a second at 600+
+    # steps/s); one evaluation, at the end, keeps it cheap.
+    steps = 1000
     cfg = small_config(steps, "mcmc", output={"eval_every": steps, "checkpoint_every": 100,
                                                "preview_every": steps, "progress_every": 0.0})
     straight = _finish(_start(dataset, tmp_path / "straight", cfg, "random"))
@@ -105,7 +105,8 @@ def test_ctrl_c_writes_a_checkpoint_and_the_run_resumes(dataset: Path, tmp_path:
     env = dict(os.environ, MORPHGS_NUM_THREADS="2")
     p = subprocess.Popen([sys.executable, "-m", "morphgs.cli", "fit", str(dataset), "--out", str(run), "--config",
                           str(_toml(tmp_path, cfg)), "--init", "random", "--no-progress"],
-                         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=_ctrl_c_as_in_a_terminal)
     _wait_for_checkpoint_and_rows(run, p, 10)
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=60)
@@ -117,6 +118,13 @@ def test_ctrl_c_writes_a_checkpoint_and_the_run_resumes(dataset: Path, tmp_path:
     resumed = _finish(_start(dataset, run, cfg, "random"))
     assert Path(resumed["ply"]).read_bytes() == Path(straight["ply"]).read_bytes()
     assert _losses(run) == _losses(tmp_path / "straight")
+
+
+def _ctrl_c_as_in_a_terminal() -> None:
+    """SIGINT's default action in the child, as a terminal's foreground job has it: pytest run as a
+    background job of a non-interactive shell (`nohup make test &`) ignores SIGINT, children
+    inherit that, and Python then never raises KeyboardInterrupt."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def _toml(tmp: Path, cfg: dict) -> Path:
