@@ -872,6 +872,20 @@ fn prefetch_slot(slots: &[[f32; slot::LEN]], i: usize) {
     let _ = (slots, i);
 }
 
+/// Hint the CPU to load the cache line of `base + i` (a prefetch never faults, so the address
+/// need not be valid; the callers' are).
+#[inline(always)]
+fn prefetch_ptr(base: *const f32, i: usize) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch reads nothing architecturally and never faults.
+    unsafe {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(i).cast());
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (base, i);
+}
+
 fn check_colors(c: &[f32], n: usize) -> Result<()> {
     if c.len() != n * 3 {
         return Err(Error::InvalidArgument(format!(
@@ -1049,6 +1063,40 @@ impl<'a> Scatter<'a> {
             }),
             densify: densify.map(|d| d.raw(size)),
             _life: std::marker::PhantomData,
+        }
+    }
+
+    /// Ask for the lines [`Scatter::put_lane`] will update for Gaussian i (a read-modify-write
+    /// of a dozen arrays at random-ish rows: cache misses otherwise).
+    #[inline(always)]
+    fn prefetch(&self, i: usize, degree: u8) {
+        for (b, k) in [
+            (self.means, 3),
+            (self.quats, 4),
+            (self.log_scales, 3),
+            (self.logits, 1),
+            (self.scales, 3),
+            (self.opacities, 1),
+        ] {
+            prefetch_ptr(b, i * k);
+        }
+        if self.given_colors {
+            prefetch_ptr(self.colors, i * 3);
+        } else {
+            prefetch_ptr(self.sh0, i * 3);
+            let used = ((degree as usize + 1) * (degree as usize + 1) - 1) * 3;
+            let at = i * self.sh_rest_k * 3;
+            for o in (0..used).step_by(16).chain((used > 0).then_some(used - 1)) {
+                prefetch_ptr(self.sh_rest, at + o);
+            }
+        }
+        if let Some(v) = self.view {
+            for (b, k) in v.iter().zip([2, 2, 3, 3, 1, 1]) {
+                prefetch_ptr(*b, i * k);
+            }
+        }
+        if let Some(d) = &self.densify {
+            d.prefetch(i);
         }
     }
 
