@@ -553,7 +553,7 @@ fn odd_scene(n: usize, degree: u8, seed: u64) -> Scene {
 /// A splat conic (positive definite mostly, sometimes not) and summed slots of any sign.
 fn odd_inputs(next: &mut impl FnMut() -> f32, i: usize) -> (Splat, [f32; slot::LEN]) {
     let (a, c) = (0.01 + 3.0 * next(), 0.01 + 3.0 * next());
-    let b = (next() - 0.5) * if i % 11 == 0 { 8.0 } else { 0.5 };
+    let b = (next() - 0.5) * if i.is_multiple_of(11) { 8.0 } else { 0.5 };
     let s = Splat {
         conic: [a, b, c],
         ..Default::default()
@@ -562,7 +562,7 @@ fn odd_inputs(next: &mut impl FnMut() -> f32, i: usize) -> (Splat, [f32; slot::L
     for v in acc.iter_mut() {
         *v = (next() - 0.5) * 4.0;
     }
-    if i % 13 == 0 {
+    if i.is_multiple_of(13) {
         acc = [0.0; slot::LEN]; // a Gaussian no pixel sent a gradient
     }
     (s, acc)
