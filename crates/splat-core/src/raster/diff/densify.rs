@@ -89,6 +89,14 @@ pub(super) struct Raw {
 }
 
 impl Raw {
+    /// Ask for Gaussian i's statistics ahead of [`Raw::add`].
+    #[inline(always)]
+    pub(super) fn prefetch(&self, i: usize) {
+        for b in [self.grad2d, self.grad2d_abs, self.count, self.max_radius] {
+            super::prefetch_ptr(b, i);
+        }
+    }
+
     /// Add one view's statistics of Gaussian i.
     ///
     /// # Safety

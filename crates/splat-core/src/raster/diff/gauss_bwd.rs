@@ -7,13 +7,18 @@
 //!
 //! Forward quantities are recomputed from the stored parameters as the forward computes them
 //! (float32, camera-space mean in float64), as gsplat's kernel does.
+#[cfg(test)]
 use super::sh_bwd::sh_vjp;
+#[cfg(test)]
 use super::slot;
 use crate::fastmath;
-use crate::raster::project::{Projector, Splat, EPS2D};
+use crate::raster::project::Projector;
+#[cfg(test)]
+use crate::raster::project::{Splat, EPS2D};
 use crate::scene::SceneView;
 
-/// Everything one Gaussian's backward produces.
+/// Everything one Gaussian's backward produces (of the scalar reference [`gauss_backward`]).
+#[cfg(test)]
 #[derive(Debug, Clone, Copy, Default)]
 pub(crate) struct GaussGrad {
     pub means: [f32; 3],
@@ -76,7 +81,10 @@ pub(crate) fn scales_into(log_scales: &[f32], out: &mut Vec<f32>) {
 /// Values per task of [`scales_into`].
 const SCALE_CHUNK: usize = 3 << 12;
 
-/// Backward of Gaussian `i`, whose depth-sorted splat is `s`, from its summed blend slot.
+/// Backward of Gaussian `i`, whose depth-sorted splat is `s`, from its summed blend slot: the
+/// one-Gaussian reference of the block version the backward runs
+/// ([`super::gauss_block::block_backward`], which a test holds to it bit for bit).
+#[cfg(test)]
 pub(crate) fn gauss_backward(
     ctx: &GaussCtx<'_>,
     i: usize,

@@ -40,6 +40,7 @@ mod blend_bwd_avx2;
 #[cfg(target_arch = "x86_64")]
 mod blend_bwd_avx512;
 mod densify;
+mod gauss_block;
 mod gauss_bwd;
 mod sh_bwd;
 #[cfg(test)]
@@ -554,7 +555,6 @@ impl Workspace {
             colors,
             pose: view.as_ref().is_some_and(|v| v.viewmat.is_some()),
         };
-        let pose = ctx.pose;
         let mut view = view;
         if let Some(v) = view.as_deref_mut() {
             v.reset(n);
@@ -567,6 +567,7 @@ impl Workspace {
             (sv.cam.width, sv.cam.height),
         );
         let (acc, part_off, pos) = (&self.acc, &self.part_off, &self.pos);
+        let simd = sv.blend.simd;
         // per projection chunk (a fixed partition of the Gaussians) the camera-gradient sum of
         // its Gaussians in index order; the chunks are then added in order
         let pose_parts: Vec<[f64; gauss_bwd::POSE_LEN]> = self
@@ -575,23 +576,10 @@ impl Workspace {
             .zip(self.part_ids.par_iter())
             .enumerate()
             .map(|(c, (ss, ids))| {
-                let mut part = [0.0f64; gauss_bwd::POSE_LEN];
                 let pos = &pos[part_off[c]..part_off[c] + ss.len()];
-                for (j, ((s, &i), &p)) in ss.iter().zip(ids).zip(pos).enumerate() {
-                    // the sums lie in depth order: fetch ahead (a cache miss each otherwise)
-                    if let Some(&ahead) = pos.get(j + ACC_PREFETCH) {
-                        prefetch_slot(acc, ahead as usize);
-                    }
-                    let g = gauss_bwd::gauss_backward(&ctx, i as usize, s, &acc[p as usize]);
-                    if pose {
-                        for (a, &v) in part.iter_mut().zip(&g.pose) {
-                            *a += v as f64;
-                        }
-                    }
-                    // SAFETY: every Gaussian index occurs once among the visible splats.
-                    unsafe { scatter.put(i as usize, s, &g, sv.degree) };
-                }
-                part
+                // SAFETY: every Gaussian index occurs once among the visible splats, so in
+                // one part only.
+                unsafe { gauss_block::part_backward(simd, &ctx, ss, ids, pos, acc, &scatter) }
             })
             .collect();
         if let Some(m) = view.and_then(|v| v.viewmat.as_mut()) {
@@ -867,9 +855,6 @@ impl Workspace {
 /// How many slots ahead the slot sums prefetch the running sums they add to.
 const REDUCE_PREFETCH: usize = 16;
 
-/// How many Gaussians ahead the per-Gaussian pass prefetches its slot sums.
-const ACC_PREFETCH: usize = 12;
-
 /// Hint the CPU to load slot `i` of `slots` (both cache lines it may span).
 #[inline(always)]
 fn prefetch_slot(slots: &[[f32; slot::LEN]], i: usize) {
@@ -885,6 +870,20 @@ fn prefetch_slot(slots: &[[f32; slot::LEN]], i: usize) {
     }
     #[cfg(not(target_arch = "x86_64"))]
     let _ = (slots, i);
+}
+
+/// Hint the CPU to load the cache line of `base + i` (a prefetch never faults, so the address
+/// need not be valid; the callers' are).
+#[inline(always)]
+fn prefetch_ptr(base: *const f32, i: usize) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch reads nothing architecturally and never faults.
+    unsafe {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(i).cast());
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (base, i);
 }
 
 fn check_colors(c: &[f32], n: usize) -> Result<()> {
@@ -1067,53 +1066,108 @@ impl<'a> Scatter<'a> {
         }
     }
 
-    /// Add Gaussian i's gradients (set its view gradients, add its statistics).
+    /// Ask for the lines [`Scatter::put_lane`] will update for Gaussian i (a read-modify-write
+    /// of a dozen arrays at random-ish rows: cache misses otherwise).
+    #[inline(always)]
+    fn prefetch(&self, i: usize, degree: u8) {
+        for (b, k) in [
+            (self.means, 3),
+            (self.quats, 4),
+            (self.log_scales, 3),
+            (self.logits, 1),
+            (self.scales, 3),
+            (self.opacities, 1),
+        ] {
+            prefetch_ptr(b, i * k);
+        }
+        if self.given_colors {
+            prefetch_ptr(self.colors, i * 3);
+        } else {
+            prefetch_ptr(self.sh0, i * 3);
+            let used = ((degree as usize + 1) * (degree as usize + 1) - 1) * 3;
+            let at = i * self.sh_rest_k * 3;
+            for o in (0..used).step_by(16).chain((used > 0).then_some(used - 1)) {
+                prefetch_ptr(self.sh_rest, at + o);
+            }
+        }
+        if let Some(v) = self.view {
+            for (b, k) in v.iter().zip([2, 2, 3, 3, 1, 1]) {
+                prefetch_ptr(*b, i * k);
+            }
+        }
+        if let Some(d) = &self.densify {
+            d.prefetch(i);
+        }
+    }
+
+    /// Add the gradients of Gaussian i, lane `l` of a block (set its view gradients, add its
+    /// statistics).
     ///
     /// # Safety
     /// No other call may use the same `i` concurrently; `i` is below the buffers' Gaussian
     /// count (checked against the scene before the pass).
-    unsafe fn put(&self, i: usize, s: &Splat, g: &gauss_bwd::GaussGrad, degree: u8) {
+    #[inline(always)]
+    unsafe fn put_lane(
+        &self,
+        i: usize,
+        s: &Splat,
+        g: &gauss_block::GradLanes,
+        l: usize,
+        degree: u8,
+    ) {
         #[inline(always)]
-        unsafe fn add(base: *mut f32, at: usize, vals: &[f32]) {
+        unsafe fn add<const K: usize>(
+            base: *mut f32,
+            at: usize,
+            vals: &[gauss_block::Lane; K],
+            l: usize,
+        ) {
             for (k, x) in vals.iter().enumerate() {
                 // SAFETY: the caller keeps at + k inside the buffer.
-                unsafe { *base.add(at + k) += x };
+                unsafe { *base.add(at + k) += x[l] };
             }
         }
         #[inline(always)]
-        unsafe fn set(base: *mut f32, at: usize, vals: &[f32]) {
+        unsafe fn set<const K: usize>(
+            base: *mut f32,
+            at: usize,
+            vals: &[gauss_block::Lane; K],
+            l: usize,
+        ) {
             for (k, x) in vals.iter().enumerate() {
                 // SAFETY: as above
-                unsafe { *base.add(at + k) = *x };
+                unsafe { *base.add(at + k) = x[l] };
             }
         }
         // SAFETY: every offset below is Gaussian i's entry of a buffer sized for the scene.
         unsafe {
-            add(self.means, i * 3, &g.means);
-            add(self.quats, i * 4, &g.quats);
-            add(self.log_scales, i * 3, &g.log_scales);
-            add(self.logits, i, &[g.opacity_logit]);
-            add(self.scales, i * 3, &g.scales);
-            add(self.opacities, i, &[g.opacity]);
+            add(self.means, i * 3, &g.means, l);
+            add(self.quats, i * 4, &g.quats, l);
+            add(self.log_scales, i * 3, &g.log_scales, l);
+            add(self.logits, i, &[g.opacity_logit], l);
+            add(self.scales, i * 3, &g.scales, l);
+            add(self.opacities, i, &[g.opacity], l);
             if self.given_colors {
-                add(self.colors, i * 3, &g.color);
+                add(self.colors, i * 3, &g.rgb, l);
             } else {
-                add(self.sh0, i * 3, &g.sh[0]);
+                add(self.sh0, i * 3, &g.sh[0], l);
                 let nb = (degree as usize + 1) * (degree as usize + 1);
                 for b in 1..nb {
-                    add(self.sh_rest, (i * self.sh_rest_k + b - 1) * 3, &g.sh[b]);
+                    add(self.sh_rest, (i * self.sh_rest_k + b - 1) * 3, &g.sh[b], l);
                 }
             }
             if let Some(v) = self.view {
-                set(v[0], i * 2, &g.means2d);
-                set(v[1], i * 2, &g.means2d_abs);
-                set(v[2], i * 3, &g.conic);
-                set(v[3], i * 3, &g.rgb);
-                set(v[4], i, &[g.opacity_eff]);
-                set(v[5], i, &[g.depth]);
+                set(v[0], i * 2, &g.means2d, l);
+                set(v[1], i * 2, &g.means2d_abs, l);
+                set(v[2], i * 3, &g.conic, l);
+                set(v[3], i * 3, &g.rgb, l);
+                set(v[4], i, &[g.opacity_eff], l);
+                set(v[5], i, &[g.depth], l);
             }
             if let Some(d) = &self.densify {
-                d.add(i, g.means2d, g.means2d_abs, s.radius);
+                let m2 = [g.means2d[0][l], g.means2d[1][l]];
+                let ma = [g.means2d_abs[0][l], g.means2d_abs[1][l]];
+                d.add(i, m2, ma, s.radius);
             }
         }
     }

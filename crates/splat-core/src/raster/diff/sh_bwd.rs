@@ -1,6 +1,7 @@
 //! Vector-Jacobian product of the SH colour (SPEC §4 step 5; gsplat's
 //! `sh_coeffs_to_color_fast_vjp`): gradients of the coefficients and of the unnormalised view
 //! direction mean - camera centre (which flows into the mean).
+#[cfg(test)]
 use crate::raster::sh;
 
 /// Gradient of the first `(degree+1)^2` basis functions at the unit direction (x, y, z),
@@ -57,6 +58,9 @@ pub(crate) fn basis_grad(degree: u8, dir: [f32; 3], out: &mut [[f32; 3]; 16]) {
 ///
 /// Returns the coefficient gradients in `v_coef[k]` for k < (degree+1)^2 and the gradient of
 /// the unnormalised direction d (= mean - camera centre), given |d| = `dn` and d / |d| = `dir`.
+/// (The scalar reference's form; the backward runs the same operations on lane arrays in
+/// `gauss_block`.)
+#[cfg(test)]
 #[inline]
 pub(crate) fn sh_vjp(
     degree: u8,
