@@ -274,6 +274,7 @@ impl PyDiffRasterizer {
                 .as_ref()
                 .map(|a| slice_of(a, "v_alpha"))
                 .transpose()?,
+            skip_background: false,
         };
         let n = scene.len();
         let k = scene.sh_rest_k();

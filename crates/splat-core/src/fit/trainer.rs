@@ -390,6 +390,8 @@ impl Trainer {
         };
         let grads = ImageGrads {
             rgb: Some(&self.v_rgb),
+            // the fit has no background parameter
+            skip_background: true,
             ..ImageGrads::default()
         };
         self.ws.backward(

@@ -385,10 +385,14 @@ pub(crate) fn bwd_tile_generic<'a>(
 
 /// Fill a tile's [`PixIn`] from the image gradients and the forward's saved tile state, and
 /// return the tile's share of dL/d(background) (in float64, summed over its pixels in row-major
-/// order).
+/// order; zeros without `want_bg`, which skips that serial sum).
 ///
 /// `depth_grad` is dL/d(depth image); with `expected_depth` it refers to D / max(A, 1e-10)
 /// and is turned into gradients of the accumulated depth D and of the alpha A here.
+///
+/// A row's 16 pixels are computed as lanes (the same operations, in the same order, as one
+/// pixel at a time), by the build `simd` names.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn tile_inputs(
     x0: usize,
     y0: usize,
@@ -398,48 +402,130 @@ pub(crate) fn tile_inputs(
     grads: &super::ImageGrads<'_>,
     background: [f32; 3],
     expected_depth: bool,
+    want_bg: bool,
+    simd: Simd,
     pix: &mut PixIn,
 ) -> [f64; 3] {
-    *pix = PixIn::default();
-    let mut v_bg = [0.0f64; 3];
+    let args = (x0, y0, width, height);
+    match simd {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `Simd::resolve` only yields Avx512 when the CPU has these features.
+        Simd::Avx512 => unsafe {
+            tile_inputs_avx512(args, saved, grads, background, expected_depth, want_bg, pix)
+        },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `Simd::resolve` only yields Avx2 when the CPU has AVX2 and FMA.
+        Simd::Avx2 => unsafe {
+            tile_inputs_avx2(args, saved, grads, background, expected_depth, want_bg, pix)
+        },
+        _ => tile_inputs_impl(args, saved, grads, background, expected_depth, want_bg, pix),
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2,fma")]
+unsafe fn tile_inputs_avx512(
+    args: (usize, usize, usize, usize),
+    saved: &TileOut,
+    grads: &super::ImageGrads<'_>,
+    background: [f32; 3],
+    expected_depth: bool,
+    want_bg: bool,
+    pix: &mut PixIn,
+) -> [f64; 3] {
+    tile_inputs_impl(args, saved, grads, background, expected_depth, want_bg, pix)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn tile_inputs_avx2(
+    args: (usize, usize, usize, usize),
+    saved: &TileOut,
+    grads: &super::ImageGrads<'_>,
+    background: [f32; 3],
+    expected_depth: bool,
+    want_bg: bool,
+    pix: &mut PixIn,
+) -> [f64; 3] {
+    tile_inputs_impl(args, saved, grads, background, expected_depth, want_bg, pix)
+}
+
+#[inline(always)]
+fn tile_inputs_impl(
+    (x0, y0, width, height): (usize, usize, usize, usize),
+    saved: &TileOut,
+    grads: &super::ImageGrads<'_>,
+    background: [f32; 3],
+    expected_depth: bool,
+    want_bg: bool,
+    pix: &mut PixIn,
+) -> [f64; 3] {
     let cols = LANES.min(width - x0);
-    for r in 0..LANES.min(height - y0) {
-        for l in 0..cols {
-            let i = (y0 + r) * width + x0 + l;
-            let t = saved.t[r][l].abs();
-            let a = 1.0 - t;
-            let mut g = [0.0f32; 4];
-            if let Some(v) = grads.rgb {
-                g[..3].copy_from_slice(&v[i * 3..i * 3 + 3]);
+    let rows = LANES.min(height - y0);
+    if cols < LANES || rows < LANES {
+        // pixels outside the image keep zero inputs
+        *pix = PixIn::default();
+    }
+    let mut v_bg = [0.0f64; 3];
+    for r in 0..rows {
+        let row = (y0 + r) * width + x0;
+        let mut g = [[0.0f32; LANES]; 4];
+        let mut ga = [0.0f32; LANES];
+        let mut gd = [0.0f32; LANES];
+        if let Some(v) = grads.rgb {
+            for (l, p) in v[row * 3..(row + cols) * 3].chunks_exact(3).enumerate() {
+                g[0][l] = p[0];
+                g[1][l] = p[1];
+                g[2][l] = p[2];
             }
-            let mut ga = grads.alpha.map_or(0.0, |v| v[i]);
-            let gd = grads.depth.map_or(0.0, |v| v[i]);
-            if expected_depth {
-                // depth = D / max(A, 1e-10)
+        }
+        if let Some(v) = grads.alpha {
+            ga[..cols].copy_from_slice(&v[row..row + cols]);
+        }
+        if let Some(v) = grads.depth {
+            gd[..cols].copy_from_slice(&v[row..row + cols]);
+        }
+        let (st, sd) = (&saved.t[r], &saved.d[r]);
+        let mut t = [0.0f32; LANES];
+        for l in 0..LANES {
+            t[l] = st[l].abs();
+        }
+        if expected_depth {
+            // depth = D / max(A, 1e-10)
+            for l in 0..LANES {
+                let a = 1.0 - t[l];
                 let am = a.max(1e-10);
-                g[3] = gd / am;
-                if a > 1e-10 {
-                    ga -= gd * (saved.d[r][l] / am) / am;
-                }
-            } else {
-                g[3] = gd;
+                g[3][l] = gd[l] / am;
+                let less = ga[l] - gd[l] * (sd[l] / am) / am;
+                ga[l] = if a > 1e-10 { less } else { ga[l] };
             }
-            let cf = [
-                saved.c[0][r][l],
-                saved.c[1][r][l],
-                saved.c[2][r][l],
-                saved.d[r][l],
-            ];
-            let gbg = g[0] * background[0] + g[1] * background[1] + g[2] * background[2];
-            let mut q = t * (gbg - ga);
-            let (b, j) = block_lane(r, l);
+        } else {
+            g[3] = gd;
+        }
+        let mut q = [0.0f32; LANES];
+        for l in 0..LANES {
+            let gbg = g[0][l] * background[0] + g[1][l] * background[1] + g[2][l] * background[2];
+            let mut v = t[l] * (gbg - ga[l]);
+            v += g[0][l] * saved.c[0][r][l];
+            v += g[1][l] * saved.c[1][r][l];
+            v += g[2][l] * saved.c[2][r][l];
+            v += g[3][l] * sd[l];
+            q[l] = v;
+        }
+        // lanes (r, 4k..4k + 4) are lanes 4 (r % 4).. of block 4 (r / 4) + k (`block_lane`)
+        let j = 4 * (r % 4);
+        for k in 0..cols.div_ceil(4) {
+            let (b, n) = (4 * (r / 4) + k, (cols - 4 * k).min(4));
             for c in 0..4 {
-                q += g[c] * cf[c];
-                pix.g[c][b][j] = g[c];
+                pix.g[c][b][j..j + n].copy_from_slice(&g[c][4 * k..4 * k + n]);
             }
-            pix.q[b][j] = q;
-            for c in 0..3 {
-                v_bg[c] += g[c] as f64 * t as f64;
+            pix.q[b][j..j + n].copy_from_slice(&q[4 * k..4 * k + n]);
+        }
+        if want_bg {
+            for l in 0..cols {
+                for c in 0..3 {
+                    v_bg[c] += g[c][l] as f64 * t[l] as f64;
+                }
             }
         }
     }

@@ -110,6 +110,9 @@ pub struct ImageGrads<'a> {
     pub rgb: Option<&'a [f32]>,
     pub depth: Option<&'a [f32]>,
     pub alpha: Option<&'a [f32]>,
+    /// Leave [`Gradients::background`] as it is: skips a serial float64 sum over the pixels,
+    /// for callers with no background parameter (the fit's trainer).
+    pub skip_background: bool,
 }
 
 /// Gradients of the stored parameters (SPEC §1 layout), accumulated (+=) by every backward
@@ -765,6 +768,10 @@ impl Workspace {
             .into_par_iter()
             .map(|t| {
                 let (x0, y0) = ((t % tiles_x) * LANES, (t / tiles_x) * LANES);
+                let empty = bins.lists(t).all(|l| l.is_empty());
+                if empty && grads.skip_background {
+                    return (0, [0.0; 3]);
+                }
                 let mut pix = blend_bwd::PixIn::default();
                 let bg = blend_bwd::tile_inputs(
                     x0,
@@ -775,9 +782,11 @@ impl Workspace {
                     grads,
                     sv.blend.background,
                     expected,
+                    !grads.skip_background,
+                    sv.blend.simd,
                     &mut pix,
                 );
-                if bins.lists(t).all(|l| l.is_empty()) {
+                if empty {
                     return (0, bg);
                 }
                 let mut out = TileSink {

@@ -134,6 +134,7 @@ fn backward_bits(s: &Scene, cam: &Camera, opts: &DiffOptions, seed: u64) -> (Vec
                 rgb: Some(&r),
                 depth: Some(&d),
                 alpha: Some(&a),
+                skip_background: false,
             },
             &mut g,
             None,
@@ -273,6 +274,7 @@ fn explicit_kernels_give_the_generic_kernels_slots_tile_by_tile() {
             rgb: Some(&r),
             depth: Some(&d),
             alpha: Some(&a),
+            skip_background: false,
         };
         let tiles_x = ws.bins.tiles_x as usize;
         for t in 0..ws.tiles.len() {
@@ -287,6 +289,8 @@ fn explicit_kernels_give_the_generic_kernels_slots_tile_by_tile() {
                 &grads,
                 sv.blend.background,
                 true,
+                true,
+                sv.blend.simd,
                 &mut pix,
             );
             let lists = || ws.bins.lists(t);
@@ -704,6 +708,7 @@ fn backward_matches_the_scalar_reference(simd: Simd) {
             rgb: Some(&r),
             depth: Some(&d),
             alpha: Some(&a),
+            skip_background: false,
         };
         ws.backward(&view, cols, &ig, &mut g, Some(&mut vg), None)
             .expect("backward");
@@ -796,4 +801,171 @@ fn backward_matches_the_scalar_reference(simd: Simd) {
             Some(vm.map(f64::to_bits))
         );
     }
+}
+
+/// `tile_inputs` as it was written one pixel at a time (row-major, the background sum in
+/// float64 in pixel order): the lane version must give the same bits.
+fn tile_inputs_reference(
+    (x0, y0, width, height): (usize, usize, usize, usize),
+    saved: &crate::raster::blend::TileOut,
+    grads: &ImageGrads<'_>,
+    background: [f32; 3],
+    expected_depth: bool,
+) -> (blend_bwd::PixIn, [f64; 3]) {
+    let mut pix = blend_bwd::PixIn::default();
+    let mut v_bg = [0.0f64; 3];
+    for r in 0..LANES.min(height - y0) {
+        for l in 0..LANES.min(width - x0) {
+            let i = (y0 + r) * width + x0 + l;
+            let t = saved.t[r][l].abs();
+            let a = 1.0 - t;
+            let mut g = [0.0f32; 4];
+            if let Some(v) = grads.rgb {
+                g[..3].copy_from_slice(&v[i * 3..i * 3 + 3]);
+            }
+            let mut ga = grads.alpha.map_or(0.0, |v| v[i]);
+            let gd = grads.depth.map_or(0.0, |v| v[i]);
+            if expected_depth {
+                let am = a.max(1e-10);
+                g[3] = gd / am;
+                if a > 1e-10 {
+                    ga -= gd * (saved.d[r][l] / am) / am;
+                }
+            } else {
+                g[3] = gd;
+            }
+            let cf = [
+                saved.c[0][r][l],
+                saved.c[1][r][l],
+                saved.c[2][r][l],
+                saved.d[r][l],
+            ];
+            let gbg = g[0] * background[0] + g[1] * background[1] + g[2] * background[2];
+            let mut q = t * (gbg - ga);
+            let (b, j) = blend_bwd::block_lane(r, l);
+            for c in 0..4 {
+                q += g[c] * cf[c];
+                pix.g[c][b][j] = g[c];
+            }
+            pix.q[b][j] = q;
+            for c in 0..3 {
+                v_bg[c] += g[c] as f64 * t as f64;
+            }
+        }
+    }
+    (pix, v_bg)
+}
+
+fn pix_bits(p: &blend_bwd::PixIn) -> Vec<u32> {
+    let mut v: Vec<u32> =
+        p.g.iter()
+            .flatten()
+            .flatten()
+            .map(|x| x.to_bits())
+            .collect();
+    v.extend(p.q.iter().flatten().map(|x| x.to_bits()));
+    v
+}
+
+#[test]
+fn tile_inputs_lanes_give_the_per_pixel_bits_on_every_build() {
+    // edge tiles (61x45), each image gradient present or absent, expected or accumulated depth
+    let s = scene(3000, 1, 21);
+    let cam = camera(61, 45);
+    let opts = DiffOptions {
+        render: RenderOptions {
+            background: [0.3, 0.1, 0.7],
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let mut ws = Workspace::default();
+    forward(&mut ws, &s, &cam, &opts);
+    let sv = ws.saved.expect("saved");
+    let (r, d, a) = image_grads(&cam, 5);
+    let tiles_x = ws.bins.tiles_x as usize;
+    let (w, h) = (61usize, 45usize);
+    let mut checked = 0;
+    for (rgb, depth, alpha) in [
+        (true, true, true),
+        (true, false, false),
+        (false, true, true),
+    ] {
+        let grads = ImageGrads {
+            rgb: rgb.then_some(&r[..]),
+            depth: depth.then_some(&d[..]),
+            alpha: alpha.then_some(&a[..]),
+            skip_background: false,
+        };
+        for expected in [false, true] {
+            for t in 0..ws.tiles.len() {
+                let (x0, y0) = ((t % tiles_x) * LANES, (t / tiles_x) * LANES);
+                let (want, want_bg) = tile_inputs_reference(
+                    (x0, y0, w, h),
+                    &ws.tiles[t],
+                    &grads,
+                    sv.blend.background,
+                    expected,
+                );
+                for simd in [Simd::Avx512, Simd::Avx2, Simd::Scalar] {
+                    let mut pix = blend_bwd::PixIn::default();
+                    // a reused PixIn holding other values must be overwritten everywhere
+                    pix.q[3][3] = 7.0;
+                    let bg = blend_bwd::tile_inputs(
+                        x0,
+                        y0,
+                        w,
+                        h,
+                        &ws.tiles[t],
+                        &grads,
+                        sv.blend.background,
+                        expected,
+                        true,
+                        simd.resolve(),
+                        &mut pix,
+                    );
+                    assert_eq!(pix_bits(&pix), pix_bits(&want), "tile {t} {simd:?}");
+                    assert_eq!(bg.map(f64::to_bits), want_bg.map(f64::to_bits));
+                    checked += 1;
+                }
+            }
+        }
+    }
+    assert!(checked > 100);
+}
+
+#[test]
+fn skipping_the_background_gradient_leaves_every_other_gradient_bit() {
+    let s = scene(3000, 2, 8);
+    let cam = camera(70, 50);
+    let opts = DiffOptions {
+        render: RenderOptions {
+            background: [0.3, 0.1, 0.7],
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let (r, _, _) = image_grads(&cam, 6);
+    let run = |skip: bool| {
+        let mut ws = Workspace::default();
+        forward(&mut ws, &s, &cam, &opts);
+        let mut g = Gradients::default();
+        g.reset(s.len(), s.sh_rest_k(), false);
+        let mut dens = DensifyStats::default();
+        dens.reset(s.len());
+        let grads = ImageGrads {
+            rgb: Some(&r),
+            skip_background: skip,
+            ..ImageGrads::default()
+        };
+        ws.backward(&s.view(), None, &grads, &mut g, None, Some(&mut dens))
+            .expect("backward");
+        let bg = std::mem::take(&mut g.background);
+        (grad_bits(&g, &dens), bg)
+    };
+    let (with, bg) = run(false);
+    let (without, none) = run(true);
+    assert_eq!(with, without);
+    assert!(bg.iter().any(|&v| v != 0.0));
+    assert_eq!(none, [0.0; 3]);
 }
