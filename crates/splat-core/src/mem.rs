@@ -86,8 +86,7 @@ impl OutputPool {
         let mut evicted = Vec::new();
         if let Ok(mut held) = self.held.try_lock() {
             let mut total: usize = held.iter().map(bytes).sum::<usize>() + bytes(&buf);
-            while !held.is_empty() && (total > self.keep_bytes || held.len() >= self.keep_buffers)
-            {
+            while !held.is_empty() && (total > self.keep_bytes || held.len() >= self.keep_buffers) {
                 let old = held.remove(0);
                 total -= bytes(&old);
                 evicted.push(old);
@@ -100,9 +99,9 @@ impl OutputPool {
 
     /// Idle buffers and their bytes.
     pub fn held(&self) -> (usize, usize) {
-        self.held.try_lock().map_or((0, 0), |h| {
-            (h.len(), h.iter().map(|v| v.len() * 4).sum())
-        })
+        self.held
+            .try_lock()
+            .map_or((0, 0), |h| (h.len(), h.iter().map(|v| v.len() * 4).sum()))
     }
 }
 
