@@ -305,7 +305,8 @@ impl Dst {
     /// `i` lies inside the buffer, and no other thread writes or reads position `i`.
     #[inline(always)]
     unsafe fn write(self, i: usize, k: (u32, u32)) {
-        self.0.add(i).write(k);
+        // SAFETY: the caller's contract.
+        unsafe { self.0.add(i).write(k) };
     }
 }
 
@@ -380,6 +381,8 @@ struct BinChunk {
     offsets: Vec<u32>,
     /// Positions in the sorted splat array.
     items: Vec<u32>,
+    /// The filling pass's next position per tile (kept to reuse its memory).
+    cursor: Vec<u32>,
     /// The splats' footprints when [`TileBins::rebuild`] computes them, so the filling pass
     /// reads those instead of the splats again.
     fp: ChunkFootprints,
@@ -453,19 +456,28 @@ impl BinChunk {
         for t in 0..n_tiles {
             offsets[t + 1] += offsets[t];
         }
-        let mut cursor: Vec<u32> = offsets[..n_tiles].to_vec();
+        let cursor = &mut self.cursor;
+        cursor.clear();
+        cursor.extend_from_slice(&offsets[..n_tiles]);
+        // every entry is written below, so the list needs no zero-fill first
+        let total = total as usize;
         let items = &mut self.items;
         items.clear();
-        items.resize(total as usize, 0);
+        items.reserve(total);
+        let slots = &mut items.spare_capacity_mut()[..total];
         let mut k = 0;
         for (j, (&b, &mask)) in boxes.iter().zip(masks).enumerate() {
             let pos = (base + j) as u32;
             for_tiles(b, mask, tall, &mut k, tiles_x, |t| {
                 let cur = &mut cursor[t];
-                items[*cur as usize] = pos;
+                slots[*cur as usize].write(pos);
                 *cur += 1;
             });
         }
+        // SAFETY: this pass visits the tiles the counting pass counted, splat by splat (the
+        // same footprints), so tile t's cursor runs over [offsets[t], offsets[t + 1]) and those
+        // ranges tile [0, total): every one of the `total` reserved entries was written once.
+        unsafe { items.set_len(total) };
         Ok(())
     }
 }
@@ -602,7 +614,7 @@ impl TileBins {
     pub(crate) fn bytes(&self) -> usize {
         self.chunks
             .iter()
-            .map(|c| (c.offsets.capacity() + c.items.capacity()) * 4)
+            .map(|c| (c.offsets.capacity() + c.items.capacity() + c.cursor.capacity()) * 4)
             .sum()
     }
 
