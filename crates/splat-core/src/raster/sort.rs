@@ -456,28 +456,25 @@ impl BinChunk {
         for t in 0..n_tiles {
             offsets[t + 1] += offsets[t];
         }
-        let cursor = &mut self.cursor;
-        cursor.clear();
-        cursor.extend_from_slice(&offsets[..n_tiles]);
-        // every entry is written below, so the list needs no zero-fill first
-        let total = total as usize;
+        self.cursor.clear();
+        self.cursor.extend_from_slice(&offsets[..n_tiles]);
+        let cursor = &mut self.cursor[..];
+        // the zero-fill is not needed for the values (every entry is written below) but it
+        // pays: it brings the chunk's list into cache sequentially, so the scattered writes
+        // below hit it (writing into the reserved memory directly made garden's bin stage 10%
+        // slower, 1 thread, 6 interleaved processes each)
         let items = &mut self.items;
         items.clear();
-        items.reserve(total);
-        let slots = &mut items.spare_capacity_mut()[..total];
+        items.resize(total as usize, 0);
         let mut k = 0;
         for (j, (&b, &mask)) in boxes.iter().zip(masks).enumerate() {
             let pos = (base + j) as u32;
             for_tiles(b, mask, tall, &mut k, tiles_x, |t| {
                 let cur = &mut cursor[t];
-                slots[*cur as usize].write(pos);
+                items[*cur as usize] = pos;
                 *cur += 1;
             });
         }
-        // SAFETY: this pass visits the tiles the counting pass counted, splat by splat (the
-        // same footprints), so tile t's cursor runs over [offsets[t], offsets[t + 1]) and those
-        // ranges tile [0, total): every one of the `total` reserved entries was written once.
-        unsafe { items.set_len(total) };
         Ok(())
     }
 }
