@@ -261,96 +261,25 @@ fn sorted_keys(parts: &[Vec<Splat>], keys: &mut Vec<(u32, u32)>, tmp: &mut Vec<(
     }
     tmp.truncate(n);
     tmp.resize(n, (0, 0));
-    let blocks = rayon::current_num_threads()
-        .min(n / SCATTER_BLOCK_MIN)
-        .max(1);
     for (pass, h) in hist.chunks_exact_mut(RADIX).enumerate() {
         // a digit all keys share needs no pass (the exponent bits of depths of one scale)
         if h.contains(&n) {
             continue;
         }
         let shift = pass as u32 * RADIX_BITS;
-        if blocks > 1 {
-            scatter_blocks(keys, tmp, shift, blocks);
-        } else {
-            let mut sum = 0;
-            for c in h.iter_mut() {
-                let v = *c;
-                *c = sum;
-                sum += v;
-            }
-            for k in keys.iter() {
-                let b = ((k.0 >> shift) as usize) & (RADIX - 1);
-                tmp[h[b]] = *k;
-                h[b] += 1;
-            }
+        let mut sum = 0;
+        for c in h.iter_mut() {
+            let v = *c;
+            *c = sum;
+            sum += v;
+        }
+        for k in keys.iter() {
+            let b = ((k.0 >> shift) as usize) & (RADIX - 1);
+            tmp[h[b]] = *k;
+            h[b] += 1;
         }
         std::mem::swap(keys, tmp);
     }
-}
-
-/// Keys per block of a parallel radix pass, at least (smaller sorts run one block).
-const SCATTER_BLOCK_MIN: usize = 16384;
-
-/// A pointer the blocks of [`scatter_blocks`] write through, each to its own positions.
-#[derive(Clone, Copy)]
-struct Dst(*mut (u32, u32));
-// SAFETY: the blocks write disjoint positions (see scatter_blocks) and nothing reads the buffer
-// until they are all joined.
-unsafe impl Send for Dst {}
-unsafe impl Sync for Dst {}
-
-impl Dst {
-    /// # Safety
-    /// `i` lies inside the buffer, and no other thread writes or reads position `i`.
-    #[inline(always)]
-    unsafe fn write(self, i: usize, k: (u32, u32)) {
-        // SAFETY: the caller's contract.
-        unsafe { self.0.add(i).write(k) };
-    }
-}
-
-/// One stable radix pass on the digit at `shift`, from `keys` into `tmp` (the same length),
-/// in `blocks` parallel blocks: each block counts its keys' digits, a block's keys of digit d
-/// go after every key of a smaller digit and after the earlier blocks' keys of digit d (offsets
-/// digit-major, block-minor), and each block scatters its own keys in order. That is the
-/// serial pass's order by construction, for any number of blocks.
-fn scatter_blocks(keys: &[(u32, u32)], tmp: &mut [(u32, u32)], shift: u32, blocks: usize) {
-    debug_assert_eq!(keys.len(), tmp.len());
-    let per = keys.len().div_ceil(blocks);
-    let digit = |k: &(u32, u32)| ((k.0 >> shift) as usize) & (RADIX - 1);
-    let mut offsets: Vec<Vec<usize>> = keys
-        .par_chunks(per)
-        .map(|b| {
-            let mut h = vec![0usize; RADIX];
-            for k in b {
-                h[digit(k)] += 1;
-            }
-            h
-        })
-        .collect();
-    let mut sum = 0;
-    for d in 0..RADIX {
-        for h in offsets.iter_mut() {
-            let v = h[d];
-            h[d] = sum;
-            sum += v;
-        }
-    }
-    debug_assert_eq!(sum, keys.len());
-    let dst = Dst(tmp.as_mut_ptr());
-    keys.par_chunks(per)
-        .zip(offsets.into_par_iter())
-        .for_each(|(b, mut o)| {
-            for k in b {
-                let d = digit(k);
-                // SAFETY: block j's keys of digit d go to [o_jd, o_jd + count_jd), ranges that
-                // tile [0, n) over all (d, j) (the prefix sums above): each position is
-                // written once, by one block, inside `tmp`.
-                unsafe { dst.write(o[d], *k) };
-                o[d] += 1;
-            }
-        });
 }
 
 /// Tiles touched by a splat's box: [x0, x1) x [y0, y1), as gsplat's `isect_tiles`.
@@ -644,64 +573,6 @@ mod tests {
         let sorted = sort_by_depth(&[s]);
         let order: Vec<f32> = sorted.iter().map(|s| s.xy[0]).collect();
         assert_eq!(order, [4.0, 1.0, 3.0, 2.0, 0.0, 5.0]);
-    }
-
-    /// The block-parallel radix pass gives the serial pass's order for any number of blocks,
-    /// and the whole sort the same order in thread pools of any size.
-    #[test]
-    fn parallel_radix_passes_give_the_serial_order() {
-        let mut h = 3u64;
-        let mut next = || {
-            h = h.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
-            (h >> 33) as u32
-        };
-        // few distinct values per digit: long runs of ties in every pass
-        let keys: Vec<(u32, u32)> = (0..50_001u32)
-            .map(|i| ((next() % 37) * 0x0020_0801 + (next() % 3), i))
-            .collect();
-        for shift in [0, RADIX_BITS, 2 * RADIX_BITS] {
-            let mut want = keys.clone();
-            want.sort_by_key(|k| (k.0 >> shift) & (RADIX as u32 - 1)); // stable
-            for blocks in 1..=5 {
-                let mut tmp = vec![(0, 0); keys.len()];
-                scatter_blocks(&keys, &mut tmp, shift, blocks);
-                assert!(tmp == want, "shift {shift}, {blocks} blocks");
-            }
-        }
-        // projection chunks of at most 2^PROJECT_CHUNK_BITS splats
-        let parts: Vec<Vec<Splat>> = [1 << PROJECT_CHUNK_BITS; 8]
-            .iter()
-            .chain(&[5])
-            .scan(0u32, |id, &n| {
-                let part = (0..n)
-                    .map(|_| {
-                        *id += 1;
-                        let d = f32::from_bits(0x3c00_0000 + (next() % 4096) * 0x3001);
-                        splat(d, *id as f32, 0.0)
-                    })
-                    .collect();
-                Some(part)
-            })
-            .collect();
-        let mut want: Vec<(u32, f32)> = parts
-            .iter()
-            .flatten()
-            .map(|s| (s.depth.to_bits(), s.xy[0]))
-            .collect();
-        want.sort_by_key(|w| w.0);
-        let want: Vec<f32> = want.iter().map(|w| w.1).collect();
-        for threads in [1, 2, 3] {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .expect("pool");
-            let got: Vec<f32> = pool
-                .install(|| sort_by_depth(&parts))
-                .iter()
-                .map(|s| s.xy[0])
-                .collect();
-            assert!(got == want, "{threads} threads");
-        }
     }
 
     #[test]
