@@ -535,21 +535,18 @@ impl FrameOut {
                 alpha.fill(0.0);
                 continue;
             };
-            // whole 16-lane rows first (plain loops the compiler vectorises), then the copies
-            // of the row's first `cols` pixels; the same operations per pixel as before
-            let t: [f32; LANES] = std::array::from_fn(|l| tile.t[r][l].abs());
-            let a: [f32; LANES] = std::array::from_fn(|l| 1.0 - t[l]);
-            alpha.copy_from_slice(&a[..cols]);
-            if self.expected_depth {
-                let d: [f32; LANES] = std::array::from_fn(|l| tile.d[r][l] / a[l].max(1e-10));
-                depth.copy_from_slice(&d[..cols]);
-            } else {
-                depth.copy_from_slice(&tile.d[r][..cols]);
-            }
-            let c: [[f32; LANES]; 3] =
-                std::array::from_fn(|ch| std::array::from_fn(|l| tile.c[ch][r][l] + t[l] * bg[ch]));
-            for (l, px) in rgb.chunks_exact_mut(3).enumerate() {
-                px.copy_from_slice(&[c[0][l], c[1][l], c[2][l]]);
+            for l in 0..cols {
+                let t = tile.t[r][l].abs();
+                for ch in 0..3 {
+                    rgb[l * 3 + ch] = tile.c[ch][r][l] + t * bg[ch];
+                }
+                let a = 1.0 - t;
+                alpha[l] = a;
+                depth[l] = if self.expected_depth {
+                    tile.d[r][l] / a.max(1e-10)
+                } else {
+                    tile.d[r][l]
+                };
             }
         }
     }
