@@ -158,8 +158,10 @@ mod tests {
         pool.give(a);
         assert_eq!(pool.held(), (1, 400));
         // too small (a 100-value buffer never serves 101) and too large (nor 49)
-        assert_ne!(pool.take(101).as_ptr(), ptr);
-        assert_ne!(pool.take(49).as_ptr(), ptr);
+        let (big, small) = (pool.take(101), pool.take(49));
+        assert!(big.as_ptr() != ptr && small.as_ptr() != ptr);
+        assert_eq!((big.len(), small.len()), (101, 49));
+        drop((big, small));
         assert_eq!(pool.held(), (1, 400));
         // a fitting request gets it back, stale values and all, cut to its length
         let b = pool.take(60);
