@@ -2,7 +2,7 @@
 //! inspection) and the PNG / EXR writers. The Python API lives in `morphgs/rendering.py`.
 use std::path::PathBuf;
 
-use numpy::ndarray::{Array1, Array2, Array4, Array5};
+use numpy::ndarray::{Array1, Array2};
 use numpy::{
     IntoPyArray, PyArray1, PyArray2, PyArray4, PyArray5, PyArrayMethods, PyReadonlyArray2,
     PyReadonlyArray3, PyUntypedArray, PyUntypedArrayMethods,
@@ -188,17 +188,58 @@ fn _render<'py>(
         let alpha = alpha.cast_into::<PyArray4<f32>>()?;
         return Ok((rgb, depth, alpha, stats_dict(py, &stats)?));
     }
-    let out = detach(py, || raster::render_batch(&views, &cams, &opts))?;
-    let bad = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
-    let rgb = Array5::from_shape_vec((s, f, h, w, 3), out.rgb).map_err(bad)?;
-    let depth = Array4::from_shape_vec((s, f, h, w), out.depth).map_err(bad)?;
-    let alpha = Array4::from_shape_vec((s, f, h, w), out.alpha).map_err(bad)?;
+    // the images go into buffers of released outputs where there are some (every value is
+    // written), and the arrays hand their buffers back when Python releases them
+    let n = s * f * h * w;
+    let pool = &splat_core::mem::OUTPUTS;
+    let (mut rgb, mut depth, mut alpha) = (pool.take(n * 3), pool.take(n), pool.take(n));
+    let stats = detach(py, || {
+        raster::render_batch_into(&views, &cams, &opts, &mut rgb, &mut depth, &mut alpha)
+    });
+    let stats = match stats {
+        Ok(st) => st,
+        Err(e) => {
+            for b in [rgb, depth, alpha] {
+                pool.give(b);
+            }
+            return Err(e);
+        }
+    };
+    let shape = [s, f, h, w];
     Ok((
-        rgb.into_pyarray(py),
-        depth.into_pyarray(py),
-        alpha.into_pyarray(py),
-        stats_dict(py, &out.stats)?,
+        pooled_array(py, rgb, numpy::ndarray::Ix5(s, f, h, w, 3))?,
+        pooled_array(py, depth, numpy::ndarray::Dim(shape))?,
+        pooled_array(py, alpha, numpy::ndarray::Dim(shape))?,
+        stats_dict(py, &stats)?,
     ))
+}
+
+/// The owner of a returned image array's memory: when Python releases the array (and every
+/// view of it), its buffer goes back to [`splat_core::mem::OUTPUTS`] for the next render.
+#[pyclass(frozen, module = "morphgs._core")]
+struct PooledBuffer {
+    data: Vec<f32>,
+}
+
+impl Drop for PooledBuffer {
+    fn drop(&mut self) {
+        splat_core::mem::OUTPUTS.give(std::mem::take(&mut self.data));
+    }
+}
+
+/// A writable numpy array of `shape` over `data` (C order), owned by a [`PooledBuffer`].
+fn pooled_array<'py, D: numpy::ndarray::Dimension>(
+    py: Python<'py>,
+    data: Vec<f32>,
+    shape: D,
+) -> PyResult<Bound<'py, numpy::PyArray<f32, D>>> {
+    let owner = Bound::new(py, PooledBuffer { data })?;
+    let view = numpy::ndarray::ArrayView::from_shape(shape, &owner.get().data[..])
+        .map_err(|e| PyValueError::new_err(e.to_string()))?;
+    // SAFETY: the array's base is `owner`, which holds `data` unchanged (a frozen class: the
+    // vector is never reallocated, nor touched by Rust) until the array and all its views are
+    // gone; only then does the buffer go back to the pool.
+    Ok(unsafe { numpy::PyArray::borrow_from_array(&view, owner.clone().into_any()) })
 }
 
 /// `_render`'s `out`: rgb, depth and alpha arrays to render into.

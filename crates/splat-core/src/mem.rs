@@ -21,6 +21,90 @@ pub fn zeroed_f32(len: usize) -> Vec<f32> {
     v
 }
 
+/// Output arrays of finished renders, kept for the next ones (see [`OutputPool`]).
+pub static OUTPUTS: OutputPool = OutputPool::new(OUTPUT_KEEP_BYTES, OUTPUT_KEEP_BUFFERS);
+
+/// Bytes of idle output buffers [`OUTPUTS`] keeps: three 1920x1080 frames (41.5 MB each with
+/// their colour, depth and alpha planes), or 16 garden-sized ones.
+pub const OUTPUT_KEEP_BYTES: usize = 128 << 20;
+/// Idle buffers [`OUTPUTS`] keeps at most (the oldest go first).
+pub const OUTPUT_KEEP_BUFFERS: usize = 24;
+
+/// Float buffers handed back by the owners of released outputs (the binding's numpy arrays
+/// return theirs when Python drops the last view), reused by the next outputs of a similar size.
+///
+/// A fresh output costs the kernel a page fault and a page clear per 4 KiB on its first write
+/// (a 1920x1080 frame is 41.5 MB), or the allocator a memset when it recycles heap memory for
+/// `calloc`; a reused buffer costs neither. Its values are whatever the last render left:
+/// only for writers that write every value (the renderer does). Bounded: at most `keep_bytes`
+/// and `keep_buffers` idle buffers; a buffer that would exceed them evicts the oldest. Only
+/// `try_lock`: a busy lock, or one a `fork` left locked in a child, means a fresh buffer.
+pub struct OutputPool {
+    held: std::sync::Mutex<Vec<Vec<f32>>>,
+    keep_bytes: usize,
+    keep_buffers: usize,
+}
+
+impl OutputPool {
+    pub const fn new(keep_bytes: usize, keep_buffers: usize) -> OutputPool {
+        OutputPool {
+            held: std::sync::Mutex::new(Vec::new()),
+            keep_bytes,
+            keep_buffers,
+        }
+    }
+
+    /// A buffer of `len` floats for a writer that writes every one: the smallest idle buffer
+    /// holding between `len` and `2 len` values (cut to `len`; the values are stale), else a
+    /// fresh [`zeroed_f32`].
+    pub fn take(&self, len: usize) -> Vec<f32> {
+        let found = self.held.try_lock().ok().and_then(|mut held| {
+            let best = held
+                .iter()
+                .enumerate()
+                .filter(|(_, v)| v.len() >= len && v.len() / 2 <= len)
+                .min_by_key(|(_, v)| v.len())
+                .map(|(i, _)| i)?;
+            Some(held.remove(best))
+        });
+        match found {
+            Some(mut v) => {
+                v.truncate(len);
+                v
+            }
+            None => zeroed_f32(len),
+        }
+    }
+
+    /// Keep `buf` for a later [`OutputPool::take`] (evicting the oldest idle buffers to stay
+    /// within the bounds; one larger than the byte bound alone is dropped).
+    pub fn give(&self, buf: Vec<f32>) {
+        let bytes = |v: &Vec<f32>| v.len() * std::mem::size_of::<f32>();
+        if buf.is_empty() || bytes(&buf) > self.keep_bytes {
+            return;
+        }
+        let mut evicted = Vec::new();
+        if let Ok(mut held) = self.held.try_lock() {
+            let mut total: usize = held.iter().map(bytes).sum::<usize>() + bytes(&buf);
+            while !held.is_empty() && (total > self.keep_bytes || held.len() >= self.keep_buffers) {
+                let old = held.remove(0);
+                total -= bytes(&old);
+                evicted.push(old);
+            }
+            held.push(buf);
+        }
+        // the evicted buffers are freed here, after the lock is released
+        drop(evicted);
+    }
+
+    /// Idle buffers and their bytes.
+    pub fn held(&self) -> (usize, usize) {
+        self.held
+            .try_lock()
+            .map_or((0, 0), |h| (h.len(), h.iter().map(|v| v.len() * 4).sum()))
+    }
+}
+
 #[cfg(target_os = "linux")]
 fn advise_huge(ptr: *mut u8, bytes: usize) {
     const PAGE: usize = 4096;
@@ -62,5 +146,45 @@ mod tests {
             assert_eq!(v.len(), len);
             assert!(v.iter().all(|&x| x == 0.0));
         }
+    }
+
+    #[test]
+    fn output_pool_reuses_buffers_of_similar_size_within_its_bounds() {
+        let pool = super::OutputPool::new(1000 * 4, 3);
+        let mut a = pool.take(100);
+        assert!(a.iter().all(|&x| x == 0.0));
+        a.fill(7.0);
+        let ptr = a.as_ptr();
+        pool.give(a);
+        assert_eq!(pool.held(), (1, 400));
+        // too small (a 100-value buffer never serves 101) and too large (nor 49)
+        let (big, small) = (pool.take(101), pool.take(49));
+        assert!(big.as_ptr() != ptr && small.as_ptr() != ptr);
+        assert_eq!((big.len(), small.len()), (101, 49));
+        drop((big, small));
+        assert_eq!(pool.held(), (1, 400));
+        // a fitting request gets it back, stale values and all, cut to its length
+        let b = pool.take(60);
+        assert_eq!((b.as_ptr(), b.len()), (ptr, 60));
+        assert!(b.iter().all(|&x| x == 7.0));
+        assert_eq!(pool.held(), (0, 0));
+        // bounds: at most 3 buffers and 1000 values; the oldest go first
+        for n in [10, 20, 30, 40] {
+            pool.give(vec![0.0; n]);
+        }
+        assert_eq!(pool.held(), (3, (20 + 30 + 40) * 4));
+        pool.give(vec![0.0; 950]);
+        assert_eq!(pool.held(), (2, (40 + 950) * 4));
+        pool.give(vec![0.0; 1001]);
+        assert_eq!(pool.held(), (2, (40 + 950) * 4));
+        pool.give(vec![1.0; 600]);
+        assert_eq!(pool.held(), (1, 600 * 4));
+        // the smallest fitting buffer is taken
+        pool.give(vec![2.0; 900]);
+        assert_eq!(pool.held(), (1, 900 * 4));
+        pool.give(vec![1.0; 40]);
+        pool.give(vec![3.0; 30]);
+        assert_eq!(pool.take(30)[0], 3.0);
+        assert_eq!(pool.held(), (2, (900 + 40) * 4));
     }
 }

@@ -310,6 +310,8 @@ struct BinChunk {
     offsets: Vec<u32>,
     /// Positions in the sorted splat array.
     items: Vec<u32>,
+    /// The filling pass's next position per tile (kept to reuse its memory).
+    cursor: Vec<u32>,
     /// The splats' footprints when [`TileBins::rebuild`] computes them, so the filling pass
     /// reads those instead of the splats again.
     fp: ChunkFootprints,
@@ -383,7 +385,13 @@ impl BinChunk {
         for t in 0..n_tiles {
             offsets[t + 1] += offsets[t];
         }
-        let mut cursor: Vec<u32> = offsets[..n_tiles].to_vec();
+        self.cursor.clear();
+        self.cursor.extend_from_slice(&offsets[..n_tiles]);
+        let cursor = &mut self.cursor[..];
+        // the zero-fill is not needed for the values (every entry is written below) but it
+        // pays: it brings the chunk's list into cache sequentially, so the scattered writes
+        // below hit it (writing into the reserved memory directly made garden's bin stage 10%
+        // slower, 1 thread, 6 interleaved processes each)
         let items = &mut self.items;
         items.clear();
         items.resize(total as usize, 0);
@@ -532,7 +540,7 @@ impl TileBins {
     pub(crate) fn bytes(&self) -> usize {
         self.chunks
             .iter()
-            .map(|c| (c.offsets.capacity() + c.items.capacity()) * 4)
+            .map(|c| (c.offsets.capacity() + c.items.capacity() + c.cursor.capacity()) * 4)
             .sum()
     }
 
