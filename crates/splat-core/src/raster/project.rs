@@ -240,12 +240,12 @@ impl Projector {
             // the SH): most Gaussians of a large scene are culled here
             // the scales only for a block with a mean between the near and far planes
             let mut g = Lanes::default();
-            deinterleave(scene.means, i0, n, &mut g.mean);
-            if !self.any_in_depth(&g) {
+            deinterleave::<X, _>(scene.means, i0, n, &mut g.mean);
+            if !self.any_in_depth::<X>(&g) {
                 i0 += n;
                 continue;
             }
-            deinterleave(scene.log_scales, i0, n, &mut g.ls);
+            deinterleave::<X, _>(scene.log_scales, i0, n, &mut g.ls);
             let sc = self.screen(&g);
             // the survivors' indices, compacted without branches
             let mut idx = [0usize; BLOCK];
@@ -271,9 +271,9 @@ impl Projector {
                 for &i in &idx[..m] {
                     colours.prefetch(i);
                 }
-                deinterleave(scene.quats, i0, n, &mut g.q);
-                deinterleave(scene.sh0, i0, n, &mut g.sh0);
-                deinterleave(
+                deinterleave::<X, _>(scene.quats, i0, n, &mut g.q);
+                deinterleave::<X, _>(scene.sh0, i0, n, &mut g.sh0);
+                deinterleave::<X, _>(
                     scene.opacity_logits,
                     i0,
                     n,
@@ -348,7 +348,14 @@ impl Projector {
     /// [`Projector::screen`] computes it (the same bits): a block of Gaussians all behind the
     /// camera or beyond the far plane needs nothing but its means read.
     #[inline(always)]
-    fn any_in_depth(&self, g: &Lanes) -> bool {
+    fn any_in_depth<const X: bool>(&self, g: &Lanes) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if X {
+            // SAFETY: `X` is true only in the build compiled for AVX-512 (on a CPU that has it)
+            return unsafe {
+                avx512::any_in_depth(&self.rot[2], self.trans[2], self.near, self.far, &g.mean)
+            };
+        }
         let (rot, tr) = (&self.rot[2], self.trans[2]);
         let mut any = false;
         for l in 0..BLOCK {
@@ -370,26 +377,24 @@ impl Projector {
     fn screen(&self, g: &Lanes) -> ScreenLanes {
         let mut o = ScreenLanes::default();
         let (rot, tr) = (&self.rot, &self.trans);
-        let mut pc = [[0.0f64; BLOCK]; 3];
-        for (r, p) in pc.iter_mut().enumerate() {
-            for l in 0..BLOCK {
-                p[l] = rot[r][0] * g.mean[0][l] as f64
-                    + rot[r][1] * g.mean[1][l] as f64
-                    + rot[r][2] * g.mean[2][l] as f64
-                    + tr[r];
-            }
-        }
         let mut x = [0.0f32; BLOCK];
         let mut y = [0.0f32; BLOCK];
+        // one loop per lane for the float64 part (LLVM scattered a row-by-row form into a
+        // stack array and stalled reading it back)
         for l in 0..BLOCK {
+            let m = [
+                g.mean[0][l] as f64,
+                g.mean[1][l] as f64,
+                g.mean[2][l] as f64,
+            ];
+            let pc =
+                [0, 1, 2].map(|r| rot[r][0] * m[0] + rot[r][1] * m[1] + rot[r][2] * m[2] + tr[r]);
             // also rejects NaN depths
-            o.ok[l] = (pc[2][l] > self.near)
-                & (pc[2][l] < self.far)
-                & pc[0][l].is_finite()
-                & pc[1][l].is_finite();
-            x[l] = pc[0][l] as f32;
-            y[l] = pc[1][l] as f32;
-            o.z[l] = pc[2][l] as f32;
+            o.ok[l] =
+                (pc[2] > self.near) & (pc[2] < self.far) & pc[0].is_finite() & pc[1].is_finite();
+            x[l] = pc[0] as f32;
+            y[l] = pc[1] as f32;
+            o.z[l] = pc[2] as f32;
         }
         for l in 0..BLOCK {
             o.ok[l] &= fin(g.ls[0][l]) & fin(g.ls[1][l]) & fin(g.ls[2][l]);
@@ -653,7 +658,18 @@ const DENSE: usize = 8;
 /// Lane l of `dst[c]` = `src[(i0 + l) * C + c]` for the `n <= BLOCK` Gaussians from `i0` (a
 /// full block as one contiguous slice, so the compiler can shuffle it into lanes).
 #[inline(always)]
-fn deinterleave<const C: usize>(src: &[f32], i0: usize, n: usize, dst: &mut [[f32; BLOCK]; C]) {
+fn deinterleave<const X: bool, const C: usize>(
+    src: &[f32],
+    i0: usize,
+    n: usize,
+    dst: &mut [[f32; BLOCK]; C],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if X && n == BLOCK && matches!(C, 1 | 3 | 4) {
+        // SAFETY: `X` is true only in the build compiled for AVX-512 (on a CPU that has it)
+        unsafe { avx512::deinterleave(&src[i0 * C..(i0 + BLOCK) * C], dst) };
+        return;
+    }
     if n == BLOCK {
         let v = &src[i0 * C..(i0 + BLOCK) * C];
         for l in 0..BLOCK {
@@ -833,6 +849,103 @@ fn transpose(f: &[[f32; BLOCK]; 16], rows: &mut Rows) {
 mod avx512 {
     use super::{Rows, BLOCK};
     use std::arch::x86_64::*;
+
+    /// [`super::Projector::any_in_depth`]: the same float64 operations in the same order (no
+    /// fused multiply-add), 8 lanes per vector (LLVM's own code for it read the lane arrays
+    /// across their stores, stalling on store forwarding).
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    pub(super) unsafe fn any_in_depth(
+        rot: &[f64; 3],
+        tr: f64,
+        near: f64,
+        far: f64,
+        mean: &[[f32; BLOCK]; 3],
+    ) -> bool {
+        let mut any = 0u8;
+        for h in 0..2 {
+            // SAFETY: lanes 8 h .. 8 h + 8 of each 16-lane array
+            let ld =
+                |c: usize| _mm512_cvtps_pd(unsafe { _mm256_loadu_ps(mean[c].as_ptr().add(8 * h)) });
+            let z = _mm512_add_pd(
+                _mm512_add_pd(
+                    _mm512_add_pd(
+                        _mm512_mul_pd(_mm512_set1_pd(rot[0]), ld(0)),
+                        _mm512_mul_pd(_mm512_set1_pd(rot[1]), ld(1)),
+                    ),
+                    _mm512_mul_pd(_mm512_set1_pd(rot[2]), ld(2)),
+                ),
+                _mm512_set1_pd(tr),
+            );
+            let m = _mm512_cmp_pd_mask::<_CMP_GT_OQ>(z, _mm512_set1_pd(near));
+            any |= _mm512_mask_cmp_pd_mask::<_CMP_LT_OQ>(m, z, _mm512_set1_pd(far));
+        }
+        any != 0
+    }
+
+    /// [`super::deinterleave`] of a full block `v` (16 Gaussians of C = 1, 3 or 4 values) in
+    /// two-source permutes.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    pub(super) unsafe fn deinterleave<const C: usize>(v: &[f32], dst: &mut [[f32; BLOCK]; C]) {
+        assert_eq!(v.len(), C * BLOCK);
+        // SAFETY: v holds C * 16 floats (asserted); the index tables hold 16 i32 each; each
+        // `dst[c]` holds 16 floats
+        let ld = |k: usize| unsafe { _mm512_loadu_ps(v.as_ptr().add(16 * k)) };
+        let ix = |t: &[i32; 16]| unsafe { _mm512_loadu_epi32(t.as_ptr()) };
+        let st = |d: &mut [f32; BLOCK], x: __m512| unsafe { _mm512_storeu_ps(d.as_mut_ptr(), x) };
+        match C {
+            1 => st(&mut dst[0], ld(0)),
+            3 => {
+                let (a, b, c) = (ld(0), ld(1), ld(2));
+                for (d, [i1, i2]) in dst.iter_mut().zip(&IDX3) {
+                    let t = _mm512_permutex2var_ps(a, ix(i1), b);
+                    st(d, _mm512_permutex2var_ps(t, ix(i2), c));
+                }
+            }
+            4 => {
+                let (a, b, c, e) = (ld(0), ld(1), ld(2), ld(3));
+                for (d, i) in dst.iter_mut().zip(&IDX4) {
+                    let lo = _mm512_permutex2var_ps(a, ix(i), b);
+                    let hi = _mm512_permutex2var_ps(c, ix(i), e);
+                    st(d, _mm512_mask_blend_ps(0xFF00, lo, hi));
+                }
+            }
+            _ => unreachable!("deinterleave of {C} values"),
+        }
+    }
+
+    /// Value c of lane l of a 3-value block is at 3 l + c: lanes up to 10 come from the first
+    /// two vectors (first table), the others from the third (second table, indices 16 + p - 32).
+    const IDX3: [[[i32; 16]; 2]; 3] = [idx3(0), idx3(1), idx3(2)];
+    const fn idx3(c: usize) -> [[i32; 16]; 2] {
+        let mut o = [[0i32; 16]; 2];
+        let mut l = 0;
+        while l < 16 {
+            let p = 3 * l + c;
+            if p < 32 {
+                o[0][l] = p as i32;
+                o[1][l] = l as i32;
+            } else {
+                o[1][l] = (p - 16) as i32;
+            }
+            l += 1;
+        }
+        o
+    }
+
+    /// Value c of lane l of a 4-value block is at 4 l + c: lanes 0-7 from the first two
+    /// vectors, lanes 8-15 from the last two, the same indices modulo 32.
+    const IDX4: [[i32; 16]; 4] = [idx4(0), idx4(1), idx4(2), idx4(3)];
+    const fn idx4(c: usize) -> [i32; 16] {
+        let mut o = [0i32; 16];
+        let mut l = 0;
+        while l < 16 {
+            o[l] = ((4 * l + c) % 32) as i32;
+            l += 1;
+        }
+        o
+    }
 
     /// [`super::transpose`] in 64 shuffles (unpacks of floats, then of pairs, then 128-bit
     /// blocks twice).
@@ -1208,5 +1321,26 @@ mod tests {
         // SAFETY: the CPU has AVX-512 (checked above).
         unsafe { avx512::transpose(&f, &mut got) };
         assert_eq!(got.0, want.0);
+    }
+
+    /// The AVX-512 loads of a full block into lanes are the plain ones (1, 3 and 4 values per
+    /// Gaussian, at an offset).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx512_deinterleave_is_the_plain_one() {
+        if Simd::Avx512.resolve() != Simd::Avx512 {
+            return;
+        }
+        let src: Vec<f32> = (0..200).map(|v| v as f32 * 0.5 - 7.0).collect();
+        fn both<const C: usize>(src: &[f32]) {
+            let (mut want, mut got) = ([[0.0; BLOCK]; C], [[0.0; BLOCK]; C]);
+            deinterleave::<false, C>(src, 3, BLOCK, &mut want);
+            deinterleave::<true, C>(src, 3, BLOCK, &mut got);
+            assert_eq!(got, want, "{C} values");
+            assert_eq!(want[C - 1][BLOCK - 1], src[(3 + BLOCK) * C - 1]);
+        }
+        both::<1>(&src);
+        both::<3>(&src);
+        both::<4>(&src);
     }
 }
