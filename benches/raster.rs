@@ -10,6 +10,7 @@
 //!     MORPHGS_FIXTURES=/path/to/fixtures cargo bench -p splat-core --bench raster
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use splat_core::camera::Camera;
+use splat_core::raster::project::project_frame;
 use splat_core::raster::{render_into, RenderOptions, RenderStats, Simd};
 use splat_core::Scene;
 
@@ -84,5 +85,43 @@ fn bench_grid5(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench_garden, bench_grid5);
+/// The projection stage alone, one thread: garden camera 0 (SH degree 0, and with SH degree 3
+/// coefficients added, as the fit's scene has) and grid-5 at 1920x1080.
+fn bench_project(c: &mut Criterion) {
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("pool");
+    let (scene, cams) = garden(1);
+    let mut sh3 = scene.clone();
+    sh3.sh_degree = 3;
+    let k = sh3.sh_rest_k() * 3;
+    sh3.sh_rest = (0..scene.len() * k)
+        .map(|i| {
+            ((i as u32).wrapping_mul(2_654_435_761) >> 8) as f32 / (1u32 << 24) as f32 * 0.2 - 0.1
+        })
+        .collect();
+    let (grid, gcams) = garden(5);
+    let cases = [
+        ("garden_sh0", &scene, cams[0]),
+        ("garden_sh3", &sh3, cams[0]),
+        ("grid5_1920x1080", &grid, resized(&gcams[0], 1920, 1080)),
+    ];
+    let opts = RenderOptions::default();
+    let mut g = c.benchmark_group("project_1thread");
+    g.sample_size(20);
+    for (name, s, cam) in cases {
+        let mut parts = Vec::new();
+        let view = s.view();
+        let visible = project_frame(&view, &cam, &opts, &mut parts).expect("project");
+        println!("project {name}: {} Gaussians, {visible} visible", s.len());
+        g.throughput(Throughput::Elements(s.len() as u64));
+        g.bench_function(name, |b| {
+            b.iter(|| one.install(|| project_frame(&view, &cam, &opts, &mut parts)))
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench_garden, bench_grid5, bench_project);
 criterion_main!(benches);

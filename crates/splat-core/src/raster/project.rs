@@ -4,7 +4,7 @@
 use rayon::prelude::*;
 
 use super::share::{ChunkColours, FrameColours};
-use super::{sh, RenderOptions};
+use super::{sh, RenderOptions, Simd};
 use crate::camera::Camera;
 use crate::fastmath;
 use crate::scene::SceneView;
@@ -65,6 +65,9 @@ pub(crate) struct Projector {
     pub(crate) rot_gain: f32,
     pub(crate) antialiased: bool,
     pub(crate) sh_degree: u8,
+    /// The build of the projection to run (the render options' kernel level, resolved for this
+    /// CPU: every build gives the same bits, and `MORPHGS_SIMD` picks the plain one too).
+    pub(crate) simd: Simd,
 }
 
 impl Projector {
@@ -113,6 +116,7 @@ impl Projector {
             rot_gain: spectral_norm_bound(&rot),
             antialiased: opts.antialiased,
             sh_degree,
+            simd: opts.simd.resolve(),
         }
     }
 
@@ -130,7 +134,18 @@ impl Projector {
         if !fp.ok[0] {
             return None;
         }
-        self.finish(scene, i, &sc, &fp, 0, &mut ChunkColours::Off)
+        let mut out = Vec::with_capacity(1);
+        let ok = self.finish_block::<false>(
+            scene,
+            &[i],
+            &g,
+            &sc,
+            &fp,
+            &mut ChunkColours::Off,
+            &mut out,
+            None,
+        );
+        ok[0].then(|| (out[0], fp.opacity[0]))
     }
 
     /// Project Gaussians `lo..hi` and append the visible splats to `out` in index order.
@@ -162,25 +177,22 @@ impl Projector {
         colours: &mut ChunkColours<'_>,
     ) {
         #[cfg(target_arch = "x86_64")]
-        {
-            if std::is_x86_feature_detected!("avx512f")
-                && std::is_x86_feature_detected!("avx512dq")
-                && std::is_x86_feature_detected!("avx512vl")
-                && std::is_x86_feature_detected!("avx2")
-            {
-                // SAFETY: the CPU has these features (checked just above).
-                return unsafe { self.project_range_avx512(scene, lo, hi, out, ids, colours) };
-            }
-            if std::is_x86_feature_detected!("avx2") {
-                // SAFETY: the CPU has AVX2 (checked just above).
-                return unsafe { self.project_range_avx2(scene, lo, hi, out, ids, colours) };
-            }
+        match self.simd {
+            // SAFETY: `Simd::resolve` gives Avx512 only on a CPU with AVX-512 F, VL, DQ and
+            // BW, and AVX2 is checked here (the features this build enables).
+            Simd::Avx512 if std::is_x86_feature_detected!("avx2") => unsafe {
+                self.project_range_avx512(scene, lo, hi, out, ids, colours)
+            },
+            // SAFETY: `Simd::resolve` gives Avx2 only on a CPU with AVX2 and FMA.
+            Simd::Avx2 => unsafe { self.project_range_avx2(scene, lo, hi, out, ids, colours) },
+            _ => self.project_range_impl::<false>(scene, lo, hi, out, ids, colours),
         }
-        self.project_range_impl(scene, lo, hi, out, ids, colours)
+        #[cfg(not(target_arch = "x86_64"))]
+        self.project_range_impl::<false>(scene, lo, hi, out, ids, colours)
     }
 
     #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx512bw,avx2")]
     fn project_range_avx512(
         &self,
         scene: &SceneView<'_>,
@@ -190,7 +202,7 @@ impl Projector {
         ids: Option<&mut Vec<u32>>,
         colours: &mut ChunkColours<'_>,
     ) {
-        self.project_range_impl(scene, lo, hi, out, ids, colours)
+        self.project_range_impl::<true>(scene, lo, hi, out, ids, colours)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -204,12 +216,12 @@ impl Projector {
         ids: Option<&mut Vec<u32>>,
         colours: &mut ChunkColours<'_>,
     ) {
-        self.project_range_impl(scene, lo, hi, out, ids, colours)
+        self.project_range_impl::<false>(scene, lo, hi, out, ids, colours)
     }
 
     /// `ids`, when given, receives the Gaussian index of every splat pushed to `out`.
     #[inline(always)]
-    fn project_range_impl(
+    fn project_range_impl<const X: bool>(
         &self,
         scene: &SceneView<'_>,
         lo: usize,
@@ -218,7 +230,9 @@ impl Projector {
         mut ids: Option<&mut Vec<u32>>,
         colours: &mut ChunkColours<'_>,
     ) {
-        let mut survivors: Vec<usize> = Vec::with_capacity(hi - lo);
+        // survivors of sparse blocks waiting for a block of their own, in index order
+        let mut pending = [0usize; 2 * BLOCK];
+        let mut np = 0;
         let mut i0 = lo;
         while i0 < hi {
             let n = BLOCK.min(hi - i0);
@@ -226,54 +240,122 @@ impl Projector {
             // the SH): most Gaussians of a large scene are culled here
             // the scales only for a block with a mean between the near and far planes
             let mut g = Lanes::default();
-            for l in 0..n {
-                g.set_mean(l, scene, i0 + l);
+            deinterleave::<X, _>(scene.means, i0, n, &mut g.mean);
+            if !self.any_in_depth::<X>(&g) {
+                i0 += n;
+                continue;
             }
-            if self.any_in_depth(&g) {
-                for l in 0..n {
-                    g.set_scales(l, scene, i0 + l);
+            deinterleave::<X, _>(scene.log_scales, i0, n, &mut g.ls);
+            let sc = self.screen(&g);
+            // the survivors' indices, compacted without branches
+            let mut idx = [0usize; BLOCK];
+            let mut m = 0;
+            for (l, &ok) in sc.ok.iter().enumerate().take(n) {
+                idx[m] = i0 + l;
+                m += ok as usize;
+            }
+            if m >= DENSE {
+                // most of the block survives: stage 2 on it as it is (its stage 1 lanes and
+                // contiguous loads) rather than gathering the survivors and redoing stage 1;
+                // the pending survivors come first, to keep the index order
+                if np > 0 {
+                    self.project_survivors::<X>(
+                        scene,
+                        &pending[..np],
+                        out,
+                        ids.as_deref_mut(),
+                        colours,
+                    );
+                    np = 0;
                 }
-                let sc = self.screen(&g);
-                survivors.extend((0..n).filter(|&l| sc.ok[l]).map(|l| i0 + l));
+                for &i in &idx[..m] {
+                    colours.prefetch(i);
+                }
+                deinterleave::<X, _>(scene.quats, i0, n, &mut g.q);
+                deinterleave::<X, _>(scene.sh0, i0, n, &mut g.sh0);
+                deinterleave::<X, _>(
+                    scene.opacity_logits,
+                    i0,
+                    n,
+                    std::array::from_mut(&mut g.logit),
+                );
+                let fp = self.footprint(&g, &sc);
+                let block: [usize; BLOCK] = std::array::from_fn(|l| i0 + l);
+                self.finish_block::<X>(
+                    scene,
+                    &block[..n],
+                    &g,
+                    &sc,
+                    &fp,
+                    colours,
+                    out,
+                    ids.as_deref_mut(),
+                );
+            } else {
+                pending[np..np + BLOCK].copy_from_slice(&idx);
+                np += m;
+                if np >= BLOCK {
+                    self.project_survivors::<X>(
+                        scene,
+                        &pending[..BLOCK],
+                        out,
+                        ids.as_deref_mut(),
+                        colours,
+                    );
+                    pending.copy_within(BLOCK..2 * BLOCK, 0);
+                    np -= BLOCK;
+                }
             }
             i0 += n;
         }
+        if np > 0 {
+            self.project_survivors::<X>(scene, &pending[..np], out, ids, colours);
+        }
+    }
+
+    /// Stages 2 and 3 for up to 16 stage-1 survivors `block` gathered into one block (stage 1
+    /// again for them: its lanes are not kept).
+    #[inline(always)]
+    fn project_survivors<const X: bool>(
+        &self,
+        scene: &SceneView<'_>,
+        block: &[usize],
+        out: &mut Vec<Splat>,
+        ids: Option<&mut Vec<u32>>,
+        colours: &mut ChunkColours<'_>,
+    ) {
         let k = scene.sh_rest_k() * 3;
-        for block in survivors.chunks(BLOCK) {
-            // stage 3 reads each survivor's SH (180 bytes at degree 3, the first touch of
-            // them) or its shared colour at random: ask for them before stage 2's arithmetic
-            for &i in block {
-                if !colours.prefetch(i) && k > 0 {
-                    let rest = &scene.sh_rest[i * k..i * k + k];
-                    for j in (0..k).step_by(16).chain([k - 1]) {
-                        crate::mem::prefetch(&rest[j]);
-                    }
-                }
-            }
-            let mut g = Lanes::default();
-            for (l, &i) in block.iter().enumerate() {
-                g.set(l, scene, i);
-            }
-            let sc = self.screen(&g);
-            let fp = self.footprint(&g, &sc);
-            for (l, &i) in block.iter().enumerate() {
-                if fp.ok[l] {
-                    if let Some((s, _)) = self.finish(scene, i, &sc, &fp, l, colours) {
-                        out.push(s);
-                        if let Some(ids) = ids.as_deref_mut() {
-                            ids.push(i as u32);
-                        }
-                    }
+        // stage 3 reads each survivor's SH (180 bytes at degree 3, the first touch of
+        // them) or its shared colour at random: ask for them before stage 2's arithmetic
+        for &i in block {
+            if !colours.prefetch(i) && k > 0 {
+                let rest = &scene.sh_rest[i * k..i * k + k];
+                for j in (0..k).step_by(16).chain([k - 1]) {
+                    crate::mem::prefetch(&rest[j]);
                 }
             }
         }
+        let mut g = Lanes::default();
+        for (l, &i) in block.iter().enumerate() {
+            g.set(l, scene, i);
+        }
+        let sc = self.screen(&g);
+        let fp = self.footprint(&g, &sc);
+        self.finish_block::<X>(scene, block, &g, &sc, &fp, colours, out, ids);
     }
 
     /// Whether any lane's camera-space z lies between the near and far planes, computed as
     /// [`Projector::screen`] computes it (the same bits): a block of Gaussians all behind the
     /// camera or beyond the far plane needs nothing but its means read.
     #[inline(always)]
-    fn any_in_depth(&self, g: &Lanes) -> bool {
+    fn any_in_depth<const X: bool>(&self, g: &Lanes) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if X {
+            // SAFETY: `X` is true only in the build compiled for AVX-512 (on a CPU that has it)
+            return unsafe {
+                avx512::any_in_depth(&self.rot[2], self.trans[2], self.near, self.far, &g.mean)
+            };
+        }
         let (rot, tr) = (&self.rot[2], self.trans[2]);
         let mut any = false;
         for l in 0..BLOCK {
@@ -295,26 +377,24 @@ impl Projector {
     fn screen(&self, g: &Lanes) -> ScreenLanes {
         let mut o = ScreenLanes::default();
         let (rot, tr) = (&self.rot, &self.trans);
-        let mut pc = [[0.0f64; BLOCK]; 3];
-        for (r, p) in pc.iter_mut().enumerate() {
-            for l in 0..BLOCK {
-                p[l] = rot[r][0] * g.mean[0][l] as f64
-                    + rot[r][1] * g.mean[1][l] as f64
-                    + rot[r][2] * g.mean[2][l] as f64
-                    + tr[r];
-            }
-        }
         let mut x = [0.0f32; BLOCK];
         let mut y = [0.0f32; BLOCK];
+        // one loop per lane for the float64 part (LLVM scattered a row-by-row form into a
+        // stack array and stalled reading it back)
         for l in 0..BLOCK {
+            let m = [
+                g.mean[0][l] as f64,
+                g.mean[1][l] as f64,
+                g.mean[2][l] as f64,
+            ];
+            let pc =
+                [0, 1, 2].map(|r| rot[r][0] * m[0] + rot[r][1] * m[1] + rot[r][2] * m[2] + tr[r]);
             // also rejects NaN depths
-            o.ok[l] = (pc[2][l] > self.near)
-                & (pc[2][l] < self.far)
-                & pc[0][l].is_finite()
-                & pc[1][l].is_finite();
-            x[l] = pc[0][l] as f32;
-            y[l] = pc[1][l] as f32;
-            o.z[l] = pc[2][l] as f32;
+            o.ok[l] =
+                (pc[2] > self.near) & (pc[2] < self.far) & pc[0].is_finite() & pc[1].is_finite();
+            x[l] = pc[0] as f32;
+            y[l] = pc[1] as f32;
+            o.z[l] = pc[2] as f32;
         }
         for l in 0..BLOCK {
             o.ok[l] &= fin(g.ls[0][l]) & fin(g.ls[1][l]) & fin(g.ls[2][l]);
@@ -445,60 +525,120 @@ impl Projector {
         o
     }
 
-    /// Stage 3 for lane `l` (Gaussian `i`): the SH colour along the view direction and the
-    /// splat's blend constants; `None` when a stored value is non-finite.
+    /// Stage 3 for a block of survivors (`block[l]` in lane l, `g`, `sc` and `fp` their
+    /// stages' lanes): the SH colour along the view direction (the basis in lanes, the sum per
+    /// Gaussian; or the colour another scene recorded this frame) and the splats' blend
+    /// constants in lanes; the finite splats go to `out` (and their indices to `ids`) in lane
+    /// order. Returns the lanes written, as a mask. A lane is dropped when any stored value of
+    /// its Gaussian is non-finite: stage 2 rejects non-finite means, scales, opacities, DC
+    /// colours and quaternions (a quaternion with a non-finite value has a non-finite norm),
+    /// this stage the higher SH bands, including those the render does not use.
     #[inline(always)]
-    fn finish(
+    #[allow(clippy::too_many_arguments)]
+    fn finish_block<const X: bool>(
         &self,
         scene: &SceneView<'_>,
-        i: usize,
+        block: &[usize],
+        g: &Lanes,
         sc: &ScreenLanes,
         fp: &FootLanes,
-        l: usize,
         colours: &mut ChunkColours<'_>,
-    ) -> Option<(Splat, f32)> {
-        let q = &scene.quats[i * 4..i * 4 + 4];
-        let rgb = match colours.lookup(i) {
-            // another scene's Gaussian with this mean and these SH bits (so finite SH) got
-            // this colour this frame
-            Some(rgb) => {
-                if !all_finite(q) {
-                    return None;
+        out: &mut Vec<Splat>,
+        ids: Option<&mut Vec<u32>>,
+    ) -> [bool; BLOCK] {
+        let n = block.len();
+        let mut ok = [false; BLOCK];
+        ok[..n].copy_from_slice(&fp.ok[..n]);
+        let degree = self.sh_degree;
+        // colour along the view direction mean - camera centre, first for every lane
+        let mut basis = [[0.0f32; BLOCK]; 16];
+        if degree > 0 {
+            let mut dir = [[0.0f32; BLOCK]; 3];
+            for l in 0..BLOCK {
+                let d = [0, 1, 2].map(|c| (g.mean[c][l] as f64 - self.center[c]) as f32);
+                let dn = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                for c in 0..3 {
+                    dir[c][l] = if dn > 0.0 { d[c] / dn } else { 0.0 };
                 }
-                rgb
             }
-            None => {
-                let mean = &scene.means[i * 3..i * 3 + 3];
-                let sh0 = &scene.sh0[i * 3..i * 3 + 3];
-                // colour along the view direction mean - camera centre
-                let (dir, _) = self.view_dir([mean[0], mean[1], mean[2]]);
-                let k = scene.sh_rest_k() * 3;
-                let rest = &scene.sh_rest[i * k..i * k + k];
-                // every stored value must be finite, including SH bands this render does not use
-                if !all_finite(rest) || !all_finite(q) {
-                    return None;
+            sh::basis_lanes(degree, &dir, &mut basis);
+        } else {
+            basis[0] = [0.282_094_8; BLOCK];
+        }
+        let mut rgb = [[0.0f32; BLOCK]; 3];
+        for ch in 0..3 {
+            for l in 0..BLOCK {
+                // (degree 0's colour, as `sh::color_from_basis` computes it)
+                rgb[ch][l] = (basis[0][l] * g.sh0[ch][l] + 0.5).max(0.0);
+            }
+        }
+        let k = scene.sh_rest_k() * 3;
+        for l in 0..n {
+            if !ok[l] {
+                continue;
+            }
+            let i = block[l];
+            let c = match colours.lookup(i) {
+                // another scene's Gaussian with this mean and these SH bits (so finite SH) got
+                // this colour this frame
+                Some(c) => c,
+                None => {
+                    let rest = &scene.sh_rest[i * k..i * k + k];
+                    // every stored value must be finite, including SH bands this render does
+                    // not use
+                    if !all_finite(rest) {
+                        ok[l] = false;
+                        continue;
+                    }
+                    let c = if degree > 0 {
+                        let b = std::array::from_fn(|j| basis[j][l]);
+                        let sh0 = [g.sh0[0][l], g.sh0[1][l], g.sh0[2][l]];
+                        sh::color_from_basis(degree, &b, sh0, rest)
+                    } else {
+                        [rgb[0][l], rgb[1][l], rgb[2][l]]
+                    };
+                    colours.record(i, c);
+                    c
                 }
-                let rgb = sh::color(self.sh_degree, dir, sh0, rest);
-                colours.record(i, rgb);
-                rgb
+            };
+            for ch in 0..3 {
+                rgb[ch][l] = c[ch];
             }
-        };
-        let conic = [fp.conic[0][l], fp.conic[1][l], fp.conic[2][l]];
-        let level = fp.ln_over[l] * 1.0001 + 1e-4;
-        let splat = Splat {
-            xy: [sc.xy[0][l], sc.xy[1][l]],
-            conic,
-            ln_opacity: fastmath::ln(fp.opacity[l]),
-            rgb,
-            depth: sc.z[l],
-            radius: [fp.radius[0][l], fp.radius[1][l]],
-            two_a_level: 2.0 * conic[0] * level,
-            conic_det: conic[0] * conic[2] - conic[1] * conic[1],
-            inv_a: 1.0 / conic[0],
+        }
+        // the splats' 16 values in lanes, in `Splat`'s field order
+        let mut f = [[0.0f32; BLOCK]; 16];
+        for l in 0..BLOCK {
+            let conic = [fp.conic[0][l], fp.conic[1][l], fp.conic[2][l]];
+            let level = fp.ln_over[l] * 1.0001 + 1e-4;
+            f[0][l] = sc.xy[0][l];
+            f[1][l] = sc.xy[1][l];
+            f[2][l] = conic[0];
+            f[3][l] = conic[1];
+            f[4][l] = conic[2];
+            f[5][l] = fastmath::ln(fp.opacity[l]);
+            f[6][l] = rgb[0][l];
+            f[7][l] = rgb[1][l];
+            f[8][l] = rgb[2][l];
+            f[9][l] = sc.z[l];
+            f[10][l] = fp.radius[0][l];
+            f[11][l] = fp.radius[1][l];
+            f[12][l] = 2.0 * conic[0] * level;
+            f[13][l] = conic[0] * conic[2] - conic[1] * conic[1];
+            f[14][l] = 1.0 / conic[0];
             // sqrt(2 level a / det) = sqrt(2 level Sigma_yy), the robust form
-            half_height: (2.0 * level * fp.c11[l]).sqrt(),
-        };
-        splat_is_finite(&splat).then_some((splat, fp.opacity[l]))
+            f[15][l] = (2.0 * level * fp.c11[l]).sqrt();
+        }
+        let mut big = [0u32; BLOCK];
+        for v in &f {
+            for l in 0..BLOCK {
+                big[l] = big[l].max(v[l].to_bits() & 0x7FFF_FFFF);
+            }
+        }
+        for l in 0..BLOCK {
+            ok[l] &= big[l] < 0x7F80_0000;
+        }
+        write_splats::<X>(&f, &ok, block, out, ids);
+        ok
     }
 }
 
@@ -510,6 +650,41 @@ fn fin(v: f32) -> bool {
 
 /// Gaussians per vectorised block of the projection.
 const BLOCK: usize = 16;
+
+/// Stage-1 survivors from which a block goes to stage 2 as it is rather than gathered with
+/// other blocks' survivors.
+const DENSE: usize = 8;
+
+/// Lane l of `dst[c]` = `src[(i0 + l) * C + c]` for the `n <= BLOCK` Gaussians from `i0` (a
+/// full block as one contiguous slice, so the compiler can shuffle it into lanes).
+#[inline(always)]
+fn deinterleave<const X: bool, const C: usize>(
+    src: &[f32],
+    i0: usize,
+    n: usize,
+    dst: &mut [[f32; BLOCK]; C],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if X && n == BLOCK && matches!(C, 1 | 3 | 4) {
+        // SAFETY: `X` is true only in the build compiled for AVX-512 (on a CPU that has it)
+        unsafe { avx512::deinterleave(&src[i0 * C..(i0 + BLOCK) * C], dst) };
+        return;
+    }
+    if n == BLOCK {
+        let v = &src[i0 * C..(i0 + BLOCK) * C];
+        for l in 0..BLOCK {
+            for c in 0..C {
+                dst[c][l] = v[l * C + c];
+            }
+        }
+    } else {
+        for l in 0..n {
+            for c in 0..C {
+                dst[c][l] = src[(i0 + l) * C + c];
+            }
+        }
+    }
+}
 
 /// A block's stored inputs, one array per value so loops over lanes vectorise. Unused lanes
 /// hold zeros (their results are ignored).
@@ -523,22 +698,6 @@ struct Lanes {
 }
 
 impl Lanes {
-    /// Load Gaussian `i`'s mean into lane `l`.
-    #[inline(always)]
-    fn set_mean(&mut self, l: usize, scene: &SceneView<'_>, i: usize) {
-        for c in 0..3 {
-            self.mean[c][l] = scene.means[i * 3 + c];
-        }
-    }
-
-    /// Load Gaussian `i`'s log-scales into lane `l` (with its mean, all that stage 1 reads).
-    #[inline(always)]
-    fn set_scales(&mut self, l: usize, scene: &SceneView<'_>, i: usize) {
-        for c in 0..3 {
-            self.ls[c][l] = scene.log_scales[i * 3 + c];
-        }
-    }
-
     /// Load Gaussian `i` into lane `l`.
     #[inline(always)]
     fn set(&mut self, l: usize, scene: &SceneView<'_>, i: usize) {
@@ -628,25 +787,207 @@ fn all_finite(v: &[f32]) -> bool {
     v.iter().fold(0u32, |m, x| m.max(x.to_bits() & 0x7FFF_FFFF)) < 0x7F80_0000
 }
 
-fn splat_is_finite(s: &Splat) -> bool {
-    all_finite(&[
-        s.xy[0],
-        s.xy[1],
-        s.conic[0],
-        s.conic[1],
-        s.conic[2],
-        s.rgb[0],
-        s.rgb[1],
-        s.rgb[2],
-        s.radius[0],
-        s.radius[1],
-        s.ln_opacity,
-        s.depth,
-        s.two_a_level,
-        s.inv_a,
-        s.conic_det,
-        s.half_height,
-    ])
+/// Append lane l's splat (`f[c][l]` its c-th value in field order) to `out`, and `block[l]` to
+/// `ids`, for every lane with `ok[l]`, in lane order. `X`: the caller is compiled for AVX-512
+/// (the transposition in shuffles; the same values either way).
+#[inline(always)]
+fn write_splats<const X: bool>(
+    f: &[[f32; BLOCK]; 16],
+    ok: &[bool; BLOCK],
+    block: &[usize],
+    out: &mut Vec<Splat>,
+    ids: Option<&mut Vec<u32>>,
+) {
+    let mut rows = Rows([[0.0; 16]; BLOCK]);
+    #[cfg(target_arch = "x86_64")]
+    if X {
+        // SAFETY: `X` is true only in the build compiled for AVX-512 (`project_range_avx512`,
+        // called on a CPU that has it).
+        unsafe { avx512::transpose(f, &mut rows) };
+    } else {
+        transpose(f, &mut rows);
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    transpose(f, &mut rows);
+    // every lane written to the next free slot, which only a kept lane takes (no branches)
+    out.reserve(BLOCK);
+    let (n, len) = (block.len(), out.len());
+    let spare = &mut out.spare_capacity_mut()[..BLOCK];
+    let mut m = 0;
+    for l in 0..n {
+        // SAFETY: a row holds a `Splat`'s 16 floats in field order (`Splat` is `repr(C)`, 16
+        // f32 fields, 64 bytes, no padding).
+        spare[m].write(unsafe { std::mem::transmute::<[f32; 16], Splat>(rows.0[l]) });
+        m += ok[l] as usize;
+    }
+    // SAFETY: the first m spare slots were written above.
+    unsafe { out.set_len(len + m) };
+    if let Some(ids) = ids {
+        for (l, &i) in block.iter().enumerate() {
+            if ok[l] {
+                ids.push(i as u32);
+            }
+        }
+    }
+}
+
+/// Splats as rows of 16 floats, aligned as `Splat`.
+#[repr(C, align(64))]
+struct Rows([[f32; 16]; BLOCK]);
+
+/// `rows[l][c] = f[c][l]`.
+#[inline(always)]
+fn transpose(f: &[[f32; BLOCK]; 16], rows: &mut Rows) {
+    for (l, row) in rows.0.iter_mut().enumerate() {
+        for (c, v) in row.iter_mut().enumerate() {
+            *v = f[c][l];
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    use super::{Rows, BLOCK};
+    use std::arch::x86_64::*;
+
+    /// [`super::Projector::any_in_depth`]: the same float64 operations in the same order (no
+    /// fused multiply-add), 8 lanes per vector (LLVM's own code for it read the lane arrays
+    /// across their stores, stalling on store forwarding).
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    pub(super) unsafe fn any_in_depth(
+        rot: &[f64; 3],
+        tr: f64,
+        near: f64,
+        far: f64,
+        mean: &[[f32; BLOCK]; 3],
+    ) -> bool {
+        let mut any = 0u8;
+        for h in 0..2 {
+            // SAFETY: lanes 8 h .. 8 h + 8 of each 16-lane array
+            let ld =
+                |c: usize| _mm512_cvtps_pd(unsafe { _mm256_loadu_ps(mean[c].as_ptr().add(8 * h)) });
+            let z = _mm512_add_pd(
+                _mm512_add_pd(
+                    _mm512_add_pd(
+                        _mm512_mul_pd(_mm512_set1_pd(rot[0]), ld(0)),
+                        _mm512_mul_pd(_mm512_set1_pd(rot[1]), ld(1)),
+                    ),
+                    _mm512_mul_pd(_mm512_set1_pd(rot[2]), ld(2)),
+                ),
+                _mm512_set1_pd(tr),
+            );
+            let m = _mm512_cmp_pd_mask::<_CMP_GT_OQ>(z, _mm512_set1_pd(near));
+            any |= _mm512_mask_cmp_pd_mask::<_CMP_LT_OQ>(m, z, _mm512_set1_pd(far));
+        }
+        any != 0
+    }
+
+    /// [`super::deinterleave`] of a full block `v` (16 Gaussians of C = 1, 3 or 4 values) in
+    /// two-source permutes.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    pub(super) unsafe fn deinterleave<const C: usize>(v: &[f32], dst: &mut [[f32; BLOCK]; C]) {
+        assert_eq!(v.len(), C * BLOCK);
+        // SAFETY: v holds C * 16 floats (asserted); the index tables hold 16 i32 each; each
+        // `dst[c]` holds 16 floats
+        let ld = |k: usize| unsafe { _mm512_loadu_ps(v.as_ptr().add(16 * k)) };
+        let ix = |t: &[i32; 16]| unsafe { _mm512_loadu_epi32(t.as_ptr()) };
+        let st = |d: &mut [f32; BLOCK], x: __m512| unsafe { _mm512_storeu_ps(d.as_mut_ptr(), x) };
+        match C {
+            1 => st(&mut dst[0], ld(0)),
+            3 => {
+                let (a, b, c) = (ld(0), ld(1), ld(2));
+                for (d, [i1, i2]) in dst.iter_mut().zip(&IDX3) {
+                    let t = _mm512_permutex2var_ps(a, ix(i1), b);
+                    st(d, _mm512_permutex2var_ps(t, ix(i2), c));
+                }
+            }
+            4 => {
+                let (a, b, c, e) = (ld(0), ld(1), ld(2), ld(3));
+                for (d, i) in dst.iter_mut().zip(&IDX4) {
+                    let lo = _mm512_permutex2var_ps(a, ix(i), b);
+                    let hi = _mm512_permutex2var_ps(c, ix(i), e);
+                    st(d, _mm512_mask_blend_ps(0xFF00, lo, hi));
+                }
+            }
+            _ => unreachable!("deinterleave of {C} values"),
+        }
+    }
+
+    /// Value c of lane l of a 3-value block is at 3 l + c: lanes up to 10 come from the first
+    /// two vectors (first table), the others from the third (second table, indices 16 + p - 32).
+    const IDX3: [[[i32; 16]; 2]; 3] = [idx3(0), idx3(1), idx3(2)];
+    const fn idx3(c: usize) -> [[i32; 16]; 2] {
+        let mut o = [[0i32; 16]; 2];
+        let mut l = 0;
+        while l < 16 {
+            let p = 3 * l + c;
+            if p < 32 {
+                o[0][l] = p as i32;
+                o[1][l] = l as i32;
+            } else {
+                o[1][l] = (p - 16) as i32;
+            }
+            l += 1;
+        }
+        o
+    }
+
+    /// Value c of lane l of a 4-value block is at 4 l + c: lanes 0-7 from the first two
+    /// vectors, lanes 8-15 from the last two, the same indices modulo 32.
+    const IDX4: [[i32; 16]; 4] = [idx4(0), idx4(1), idx4(2), idx4(3)];
+    const fn idx4(c: usize) -> [i32; 16] {
+        let mut o = [0i32; 16];
+        let mut l = 0;
+        while l < 16 {
+            o[l] = ((4 * l + c) % 32) as i32;
+            l += 1;
+        }
+        o
+    }
+
+    /// [`super::transpose`] in 64 shuffles (unpacks of floats, then of pairs, then 128-bit
+    /// blocks twice).
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    pub(super) unsafe fn transpose(f: &[[f32; BLOCK]; 16], rows: &mut Rows) {
+        // SAFETY: each `f[c]` holds 16 floats
+        let r: [__m512; 16] = std::array::from_fn(|c| unsafe { _mm512_loadu_ps(f[c].as_ptr()) });
+        let mut t = [_mm512_setzero_ps(); 16];
+        for i in 0..8 {
+            t[2 * i] = _mm512_unpacklo_ps(r[2 * i], r[2 * i + 1]);
+            t[2 * i + 1] = _mm512_unpackhi_ps(r[2 * i], r[2 * i + 1]);
+        }
+        let pd = |v: __m512| _mm512_castps_pd(v);
+        let ps = |v: __m512d| _mm512_castpd_ps(v);
+        let mut u = [_mm512_setzero_ps(); 16];
+        for i in 0..4 {
+            let b = 4 * i;
+            u[b] = ps(_mm512_unpacklo_pd(pd(t[b]), pd(t[b + 2])));
+            u[b + 1] = ps(_mm512_unpackhi_pd(pd(t[b]), pd(t[b + 2])));
+            u[b + 2] = ps(_mm512_unpacklo_pd(pd(t[b + 1]), pd(t[b + 3])));
+            u[b + 3] = ps(_mm512_unpackhi_pd(pd(t[b + 1]), pd(t[b + 3])));
+        }
+        // u[4 i + j] holds, in each 128-bit block, column j of rows 4 i .. 4 i + 4
+        for h in 0..2 {
+            for j in 0..4 {
+                let (a, b) = (u[8 * h + j], u[8 * h + 4 + j]);
+                t[8 * h + j] = _mm512_shuffle_f32x4::<0x88>(a, b);
+                t[8 * h + 4 + j] = _mm512_shuffle_f32x4::<0xdd>(a, b);
+            }
+        }
+        for j in 0..8 {
+            let (a, b) = (t[j], t[8 + j]);
+            let lo = _mm512_shuffle_f32x4::<0x88>(a, b);
+            let hi = _mm512_shuffle_f32x4::<0xdd>(a, b);
+            // SAFETY: each row holds 16 floats, 64-byte aligned (`Rows` is)
+            unsafe {
+                _mm512_store_ps(rows.0[j].as_mut_ptr(), lo);
+                _mm512_store_ps(rows.0[8 + j].as_mut_ptr(), hi);
+            }
+        }
+    }
 }
 
 /// Gaussians per projection work unit, as a shift: chunk c holds Gaussians
@@ -698,6 +1039,24 @@ pub(crate) fn project_visible_into(
         FrameColours::Off => parts.for_each(|(c, out)| run(c, out, ChunkColours::Off)),
     }
     chunks
+}
+
+/// The renderer's projection stage alone, for benchmarks: the visible splats of one view
+/// (no shared colours), chunk c's in Gaussian-index order in `parts[c]` (reused buffers, as the
+/// renderer's); returns the number of visible splats.
+pub fn project_frame(
+    scene: &SceneView<'_>,
+    cam: &Camera,
+    opts: &RenderOptions,
+    parts: &mut Vec<Vec<Splat>>,
+) -> crate::Result<usize> {
+    cam.validate()?;
+    opts.validate()?;
+    scene.validate()?;
+    let degree = opts.effective_sh_degree(scene.sh_degree)?;
+    let proj = Projector::new(cam, opts, degree);
+    let chunks = project_visible_into(scene, &proj, FrameColours::Off, parts);
+    Ok(parts[..chunks].iter().map(Vec::len).sum())
 }
 
 /// [`project_visible`] into reused buffers, with the Gaussian index of every splat:
@@ -831,49 +1190,157 @@ mod tests {
             .collect()
     }
 
-    /// Blocks of 16 with survivor compaction, in every build the CPU runs, give the splats of
-    /// projecting each Gaussian alone, bit for bit, whatever the neighbours in its block.
+    /// The projection of one Gaussian as the code before the vectorised stage 3 computed it
+    /// (stages 1 and 2 in a one-lane block, then the colour and the splat per Gaussian, in
+    /// scalar code): the reference the block code must match bit for bit.
+    fn reference(proj: &Projector, scene: &SceneView<'_>, i: usize) -> Option<Splat> {
+        let mut g = Lanes::default();
+        g.set(0, scene, i);
+        let sc = proj.screen(&g);
+        let fp = proj.footprint(&g, &sc);
+        if !(sc.ok[0] && fp.ok[0]) {
+            return None;
+        }
+        let (l, q) = (0, &scene.quats[i * 4..i * 4 + 4]);
+        let mean = &scene.means[i * 3..i * 3 + 3];
+        let (dir, _) = proj.view_dir([mean[0], mean[1], mean[2]]);
+        let k = scene.sh_rest_k() * 3;
+        let rest = &scene.sh_rest[i * k..i * k + k];
+        if !rest.iter().chain(q).all(|v| v.is_finite()) {
+            return None;
+        }
+        let rgb = sh::color(proj.sh_degree, dir, &scene.sh0[i * 3..i * 3 + 3], rest);
+        let conic = [fp.conic[0][l], fp.conic[1][l], fp.conic[2][l]];
+        let level = fp.ln_over[l] * 1.0001 + 1e-4;
+        let s = Splat {
+            xy: [sc.xy[0][l], sc.xy[1][l]],
+            conic,
+            ln_opacity: fastmath::ln(fp.opacity[l]),
+            rgb,
+            depth: sc.z[l],
+            radius: [fp.radius[0][l], fp.radius[1][l]],
+            two_a_level: 2.0 * conic[0] * level,
+            conic_det: conic[0] * conic[2] - conic[1] * conic[1],
+            inv_a: 1.0 / conic[0],
+            half_height: (2.0 * level * fp.c11[l]).sqrt(),
+        };
+        bits(&[s])
+            .iter()
+            .all(|b| b & 0x7FFF_FFFF < 0x7F80_0000)
+            .then_some(s)
+    }
+
+    /// Blocks of 16 with survivor compaction and the vectorised stage 3, in every build
+    /// (AVX-512, AVX2, plain: `RenderOptions::simd` picks it), give the reference's splats bit
+    /// for bit, whatever the neighbours in a block: SH degrees 0-3 (and degree 0 rendered from
+    /// a degree-3 scene), antialiasing on and off, Gaussians behind the camera, beyond a far
+    /// plane, clamped to the frustum, culled by opacity and with non-finite values in every
+    /// field; the one-Gaussian path and the recorded shared colours agree too.
     #[test]
-    fn vectorised_range_gives_the_one_by_one_splats_bit_for_bit() {
+    fn vectorised_range_gives_the_reference_splats_bit_for_bit() {
         let mut m = [[0.0; 4]; 4];
         for (i, row) in m.iter_mut().enumerate() {
             row[i] = 1.0;
         }
-        let cam = Camera::new(300.0, 280.0, 160.0, 110.0, 333, 217, m);
-        for degree in [0, 3] {
-            let s = scene(5000, degree);
-            for antialiased in [false, true] {
-                let opts = RenderOptions {
-                    antialiased,
-                    ..Default::default()
-                };
-                let proj = Projector::new(&cam, &opts, degree);
-                let view = s.view();
+        let near = Camera::new(300.0, 280.0, 160.0, 110.0, 333, 217, m);
+        let far = Camera { far: 6.5, ..near };
+        for (scene_degree, degree) in [(0, 0), (1, 1), (2, 2), (3, 3), (3, 0)] {
+            let s = scene(5000, scene_degree);
+            let view = s.view();
+            for (cam, antialiased) in [(near, false), (near, true), (far, false)] {
+                let want_proj = Projector::new(
+                    &cam,
+                    &RenderOptions {
+                        antialiased,
+                        ..Default::default()
+                    },
+                    degree,
+                );
                 let want: Vec<Splat> = (0..s.len())
-                    .filter_map(|i| proj.project_with_opacity(&view, i).map(|p| p.0))
+                    .filter_map(|i| reference(&want_proj, &view, i))
                     .collect();
                 assert!(want.len() > 500 && want.len() < 4500, "{}", want.len());
-                // ranges that start and end inside 16-Gaussian blocks
-                let ranges = [(0, 7), (7, 1000), (1000, 4093), (4093, 5000)];
-                let mut got = Vec::new();
-                for (lo, hi) in ranges {
-                    proj.project_range(&view, lo, hi, &mut got, None);
+                let one: Vec<Splat> = (0..s.len())
+                    .filter_map(|i| want_proj.project_with_opacity(&view, i).map(|p| p.0))
+                    .collect();
+                assert_eq!(bits(&one), bits(&want), "degree {degree}, one by one");
+                for simd in [Simd::Avx512, Simd::Avx2, Simd::Scalar] {
+                    if simd.resolve() != simd {
+                        continue;
+                    }
+                    let opts = RenderOptions {
+                        antialiased,
+                        simd,
+                        ..Default::default()
+                    };
+                    let proj = Projector::new(&cam, &opts, degree);
+                    // ranges that start and end inside 16-Gaussian blocks
+                    let ranges = [(0, 7), (7, 1000), (1000, 4093), (4093, 5000)];
+                    let mut got = Vec::new();
+                    let mut ids = Vec::new();
+                    let mut slots = super::super::share::slots(s.len());
+                    for (lo, hi) in ranges {
+                        let mut cc = ChunkColours::Record(&mut slots[lo..hi], lo, 7);
+                        proj.project_range_sharing(
+                            &view,
+                            lo,
+                            hi,
+                            &mut got,
+                            Some(&mut ids),
+                            &mut cc,
+                        );
+                    }
+                    let what = format!("degree {degree}/{scene_degree}, {}", simd.name());
+                    assert_eq!(bits(&got), bits(&want), "{what}");
+                    // the indices, and every visible Gaussian's colour recorded
+                    let want_ids: Vec<u32> = (0..s.len() as u32)
+                        .filter(|&i| reference(&want_proj, &view, i as usize).is_some())
+                        .collect();
+                    assert_eq!(ids, want_ids, "{what}");
+                    for (sp, &i) in got.iter().zip(&ids) {
+                        let slot = slots[i as usize];
+                        assert_eq!(slot[3], 7, "{what}");
+                        assert_eq!(&slot[..3], &sp.rgb.map(f32::to_bits), "{what}");
+                    }
                 }
-                assert_eq!(bits(&got), bits(&want), "degree {degree}");
-                // the plain build too
-                let mut plain = Vec::new();
-                for (lo, hi) in ranges {
-                    proj.project_range_impl(
-                        &view,
-                        lo,
-                        hi,
-                        &mut plain,
-                        None,
-                        &mut ChunkColours::Off,
-                    );
-                }
-                assert_eq!(bits(&plain), bits(&want), "degree {degree}, plain build");
             }
         }
+    }
+
+    /// The AVX-512 transposition of splat lanes into rows is the plain one.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx512_transpose_is_the_plain_one() {
+        if Simd::Avx512.resolve() != Simd::Avx512 {
+            return;
+        }
+        let f: [[f32; BLOCK]; 16] =
+            std::array::from_fn(|c| std::array::from_fn(|l| (c * 100 + l) as f32));
+        let (mut want, mut got) = (Rows([[0.0; 16]; BLOCK]), Rows([[0.0; 16]; BLOCK]));
+        transpose(&f, &mut want);
+        // SAFETY: the CPU has AVX-512 (checked above).
+        unsafe { avx512::transpose(&f, &mut got) };
+        assert_eq!(got.0, want.0);
+    }
+
+    /// The AVX-512 loads of a full block into lanes are the plain ones (1, 3 and 4 values per
+    /// Gaussian, at an offset).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx512_deinterleave_is_the_plain_one() {
+        if Simd::Avx512.resolve() != Simd::Avx512 {
+            return;
+        }
+        let src: Vec<f32> = (0..200).map(|v| v as f32 * 0.5 - 7.0).collect();
+        fn both<const C: usize>(src: &[f32]) {
+            let (mut want, mut got) = ([[0.0; BLOCK]; C], [[0.0; BLOCK]; C]);
+            deinterleave::<false, C>(src, 3, BLOCK, &mut want);
+            deinterleave::<true, C>(src, 3, BLOCK, &mut got);
+            assert_eq!(got, want, "{C} values");
+            assert_eq!(want[C - 1][BLOCK - 1], src[(3 + BLOCK) * C - 1]);
+        }
+        both::<1>(&src);
+        both::<3>(&src);
+        both::<4>(&src);
     }
 }
