@@ -437,6 +437,16 @@ pub(crate) enum Isa {
 }
 
 impl Isa {
+    /// The build for a kernel level ([`Simd::resolve`]d here: its features include the build's),
+    /// so `MORPHGS_SIMD` / `RenderOptions::simd` also pick the code [`per_isa!`] compiles.
+    pub(crate) fn of(simd: crate::raster::Simd) -> Isa {
+        match simd.resolve() {
+            crate::raster::Simd::Avx512 => Isa::Avx512,
+            crate::raster::Simd::Avx2 => Isa::Avx2,
+            _ => Isa::Plain,
+        }
+    }
+
     pub(crate) fn detect() -> Isa {
         #[cfg(target_arch = "x86_64")]
         {
@@ -459,17 +469,17 @@ impl Isa {
 /// compiled for the given [`Isa`]: its AVX-512 and AVX2 copies are separate functions with
 /// those target features, so the lane loops inlined into them use the wide vectors.
 macro_rules! per_isa {
-    ($(#[$doc:meta])* $vis:vis fn $name:ident($($arg:ident: $ty:ty),* $(,)?) => $imp:path) => {
+    ($(#[$doc:meta])* $vis:vis fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? => $imp:path) => {
         $(#[$doc])*
-        $vis fn $name(isa: $crate::raster::footprint::Isa, $($arg: $ty),*) {
+        $vis fn $name(isa: $crate::raster::footprint::Isa, $($arg: $ty),*) $(-> $ret)? {
             #[cfg(target_arch = "x86_64")]
             #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-            fn avx512($($arg: $ty),*) {
+            fn avx512($($arg: $ty),*) $(-> $ret)? {
                 $imp($($arg),*)
             }
             #[cfg(target_arch = "x86_64")]
             #[target_feature(enable = "avx2,fma")]
-            fn avx2($($arg: $ty),*) {
+            fn avx2($($arg: $ty),*) $(-> $ret)? {
                 $imp($($arg),*)
             }
             match isa {

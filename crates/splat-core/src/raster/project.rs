@@ -469,16 +469,8 @@ impl Projector {
                 }
             }
             // A = J T (2x3); Sigma_2d = A A^T
-            let [j00, j02, j11, j12] = [sc.j[0][l], sc.j[1][l], sc.j[2][l], sc.j[3][l]];
-            let mut a0 = [0.0f32; 3];
-            let mut a1 = [0.0f32; 3];
-            for c in 0..3 {
-                a0[c] = j00 * t[0][c] + j02 * t[2][c];
-                a1[c] = j11 * t[1][c] + j12 * t[2][c];
-            }
-            let c00 = a0[0] * a0[0] + a0[1] * a0[1] + a0[2] * a0[2];
-            let c01 = a0[0] * a1[0] + a0[1] * a1[1] + a0[2] * a1[2];
-            let c11 = a1[0] * a1[0] + a1[1] * a1[1] + a1[2] * a1[2];
+            let j = [sc.j[0][l], sc.j[1][l], sc.j[2][l], sc.j[3][l]];
+            let (_, _, [c00, c01, c11]) = cov2d(j, &t);
             cov[0][l] = c00;
             cov[1][l] = c01;
             cov[2][l] = c11;
@@ -733,6 +725,26 @@ struct FootLanes {
     opacity: [f32; BLOCK],
     ln_over: [f32; BLOCK],
     radius: [[f32; BLOCK]; 2],
+}
+
+/// A = J T (J the EWA Jacobian [j00, j02, j11, j12] of its two non-zero rows, T = W R S) and
+/// the 2D covariance A A^T without eps2d: (A's rows, [c00, c01, c11]). The forward and the
+/// backward (which recomputes it) share it, so they round alike.
+#[inline(always)]
+pub(crate) fn cov2d(
+    [j00, j02, j11, j12]: [f32; 4],
+    t: &[[f32; 3]; 3],
+) -> ([f32; 3], [f32; 3], [f32; 3]) {
+    let mut a0 = [0.0f32; 3];
+    let mut a1 = [0.0f32; 3];
+    for c in 0..3 {
+        a0[c] = j00 * t[0][c] + j02 * t[2][c];
+        a1[c] = j11 * t[1][c] + j12 * t[2][c];
+    }
+    let c00 = a0[0] * a0[0] + a0[1] * a0[1] + a0[2] * a0[2];
+    let c01 = a0[0] * a1[0] + a0[1] * a1[1] + a0[2] * a1[2];
+    let c11 = a1[0] * a1[0] + a1[1] * a1[1] + a1[2] * a1[2];
+    (a0, a1, [c00, c01, c11])
 }
 
 /// An upper bound of the largest singular value of `m`: 1 (plus rounding slack) for a rotation,

@@ -407,47 +407,26 @@ pub(crate) fn tile_inputs(
     pix: &mut PixIn,
 ) -> [f64; 3] {
     let args = (x0, y0, width, height);
-    match simd {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: `Simd::resolve` only yields Avx512 when the CPU has these features.
-        Simd::Avx512 => unsafe {
-            tile_inputs_avx512(args, saved, grads, background, expected_depth, want_bg, pix)
-        },
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: `Simd::resolve` only yields Avx2 when the CPU has AVX2 and FMA.
-        Simd::Avx2 => unsafe {
-            tile_inputs_avx2(args, saved, grads, background, expected_depth, want_bg, pix)
-        },
-        _ => tile_inputs_impl(args, saved, grads, background, expected_depth, want_bg, pix),
-    }
+    let isa = crate::raster::footprint::Isa::of(simd);
+    tile_inputs_isa(
+        isa,
+        args,
+        saved,
+        grads,
+        (background, expected_depth, want_bg),
+        pix,
+    )
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2,fma")]
-unsafe fn tile_inputs_avx512(
-    args: (usize, usize, usize, usize),
-    saved: &TileOut,
-    grads: &super::ImageGrads<'_>,
-    background: [f32; 3],
-    expected_depth: bool,
-    want_bg: bool,
-    pix: &mut PixIn,
-) -> [f64; 3] {
-    tile_inputs_impl(args, saved, grads, background, expected_depth, want_bg, pix)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn tile_inputs_avx2(
-    args: (usize, usize, usize, usize),
-    saved: &TileOut,
-    grads: &super::ImageGrads<'_>,
-    background: [f32; 3],
-    expected_depth: bool,
-    want_bg: bool,
-    pix: &mut PixIn,
-) -> [f64; 3] {
-    tile_inputs_impl(args, saved, grads, background, expected_depth, want_bg, pix)
+crate::raster::footprint::per_isa! {
+    /// [`tile_inputs`] compiled for `isa`.
+    fn tile_inputs_isa(
+        args: (usize, usize, usize, usize),
+        saved: &TileOut,
+        grads: &super::ImageGrads<'_>,
+        opts: ([f32; 3], bool, bool),
+        pix: &mut PixIn,
+    ) -> [f64; 3] => tile_inputs_impl
 }
 
 #[inline(always)]
@@ -455,9 +434,7 @@ fn tile_inputs_impl(
     (x0, y0, width, height): (usize, usize, usize, usize),
     saved: &TileOut,
     grads: &super::ImageGrads<'_>,
-    background: [f32; 3],
-    expected_depth: bool,
-    want_bg: bool,
+    (background, expected_depth, want_bg): ([f32; 3], bool, bool),
     pix: &mut PixIn,
 ) -> [f64; 3] {
     let cols = LANES.min(width - x0);

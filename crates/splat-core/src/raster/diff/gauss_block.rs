@@ -12,7 +12,7 @@ use super::gauss_bwd::{GaussCtx, POSE_LEN};
 use super::sh_bwd::basis_grad;
 use super::slot;
 use crate::fastmath;
-use crate::raster::project::{quat_rotation, Splat, EPS2D};
+use crate::raster::project::{cov2d, quat_rotation, Splat, EPS2D};
 use crate::raster::{sh, Simd};
 
 /// Gaussians per block.
@@ -186,15 +186,7 @@ fn geometry_lane(ctx: &GaussCtx<'_>, g: &InLanes, pc: &[Lane; 3], o: &mut GradLa
             t[r][c] = mq[r][c] * scale[c];
         }
     }
-    let mut a0 = [0.0f32; 3];
-    let mut a1 = [0.0f32; 3];
-    for c in 0..3 {
-        a0[c] = j00 * t[0][c] + j02 * t[2][c];
-        a1[c] = j11 * t[1][c] + j12 * t[2][c];
-    }
-    let c00 = a0[0] * a0[0] + a0[1] * a0[1] + a0[2] * a0[2];
-    let c01 = a0[0] * a1[0] + a0[1] * a1[1] + a0[2] * a1[2];
-    let c11 = a1[0] * a1[0] + a1[1] * a1[1] + a1[2] * a1[2];
+    let (a0, a1, [c00, c01, c11]) = cov2d([j00, j02, j11, j12], &t);
     let (bx, by) = (c00 + EPS2D, c11 + EPS2D);
     let det = bx * by - c01 * c01;
 
