@@ -396,7 +396,7 @@ pub(super) unsafe fn part_backward(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: &[[f32; slot::LEN]],
+    acc: &[super::AccRow],
     scatter: &super::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     #[cfg(target_arch = "x86_64")]
@@ -432,7 +432,7 @@ unsafe fn part_avx512(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: &[[f32; slot::LEN]],
+    acc: &[super::AccRow],
     scatter: &super::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     // SAFETY: the caller's contract.
@@ -446,7 +446,7 @@ unsafe fn part_avx2(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: &[[f32; slot::LEN]],
+    acc: &[super::AccRow],
     scatter: &super::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     // SAFETY: the caller's contract.
@@ -477,7 +477,7 @@ unsafe fn part_impl(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: &[[f32; slot::LEN]],
+    acc: &[super::AccRow],
     scatter: &super::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     let mut part = [0.0f64; POSE_LEN];
@@ -489,7 +489,7 @@ unsafe fn part_impl(
         let n = BLOCK.min(n_all - j0);
         // the sums lie in depth order (a cache miss each otherwise): fetch the next block's
         for &ahead in pos.iter().skip(j0 + BLOCK).take(BLOCK) {
-            super::prefetch_slot(acc, ahead as usize);
+            super::prefetch_acc(acc, ahead as usize);
         }
         // and the next block's splats (a cache line each, cold since the projection), its
         // stored parameters and the gradient rows it will update
@@ -500,7 +500,7 @@ unsafe fn part_impl(
         }
         for l in 0..n {
             let j = j0 + l;
-            g.set(ctx, l, ids[j] as usize, &ss[j], &acc[pos[j] as usize]);
+            g.set(ctx, l, ids[j] as usize, &ss[j], acc[pos[j] as usize].sums());
         }
         // lanes n.. keep the previous block's values: computed, never read
         block_backward(ctx, &g, &mut o);

@@ -69,6 +69,46 @@ pub(crate) mod slot {
 /// A slot's bytes.
 pub const SLOT_BYTES: usize = slot::LEN * 4;
 
+/// One splat's running sums of its slots: the `slot::LEN` values padded to 16 floats and
+/// aligned to 64 bytes, so that each random access of the slot sums (`reduce_band`) and of the
+/// per-Gaussian pass touches one cache line (a 48-byte row straddles two lines half the time).
+/// The padding stays +0.0.
+#[derive(Debug, Clone, Copy, Default)]
+#[repr(C, align(64))]
+pub(crate) struct AccRow(pub(crate) [f32; 16]);
+
+impl AccRow {
+    /// The summed slot values.
+    #[inline(always)]
+    pub(crate) fn sums(&self) -> &[f32; slot::LEN] {
+        self.0[..slot::LEN].try_into().expect("16 >= slot::LEN")
+    }
+
+    /// Add one slot's values, element by element (the plain float additions, 4 lanes at a
+    /// time where the target has SSE: the same bits).
+    #[inline(always)]
+    fn add(&mut self, s: &[f32; slot::LEN]) {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: SSE is part of x86_64; every access lies inside `self.0` (64-byte aligned,
+        // so the aligned loads hold) or `s`.
+        unsafe {
+            use std::arch::x86_64::{_mm_add_ps, _mm_load_ps, _mm_loadu_ps, _mm_store_ps};
+            let a = self.0.as_mut_ptr();
+            for q in 0..slot::LEN / 4 {
+                let v = _mm_add_ps(
+                    _mm_load_ps(a.add(4 * q)),
+                    _mm_loadu_ps(s.as_ptr().add(4 * q)),
+                );
+                _mm_store_ps(a.add(4 * q), v);
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        for (a, v) in self.0.iter_mut().zip(s) {
+            *a += v;
+        }
+    }
+}
+
 /// Which depth the depth image holds (and its gradient refers to).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum DepthKind {
@@ -307,8 +347,8 @@ pub struct Workspace {
     /// Per slot of the band: 1 when the tile pass wrote it, 0 when its entry has no sums
     /// (`SlotSink::zero`: the slot is neither written nor read).
     written: Vec<u8>,
-    /// Summed slots per sorted splat.
-    acc: Vec<[f32; slot::LEN]>,
+    /// Summed slots per sorted splat (zeroed by the first band's `reduce_band`).
+    acc: Vec<AccRow>,
     /// exp(log_scales) for the per-Gaussian pass.
     scales: Vec<f32>,
 }
@@ -516,12 +556,15 @@ impl Workspace {
 
         // ---- blend backward, band by band, and the fixed-order per-Gaussian sums
         let visible = self.sorted.len();
-        self.acc.clear();
-        self.acc.resize(visible, [0.0; slot::LEN]);
+        // no serial zeroing: the first band's reduction zeroes each chunk's sums in its task
+        self.acc.resize(visible, AccRow::default());
         let bands = self.bands(sv.opts.slot_budget);
         stats.bands = bands.len() as u32;
+        if bands.is_empty() {
+            self.acc.fill(AccRow::default());
+        }
         let mut v_bg = [0.0f64; 3];
-        for &(r0, r1) in &bands {
+        for (b, &(r0, r1)) in bands.iter().enumerate() {
             let t0 = Instant::now();
             let total = self.band_layout(r0, r1);
             stats.slot_bytes = stats.slot_bytes.max(total as u64 * SLOT_BYTES as u64);
@@ -538,7 +581,7 @@ impl Workspace {
                 v_bg[c] += bg[c];
             }
             let t1 = Instant::now();
-            self.reduce_band(r0, r1);
+            self.reduce_band(r0, r1, b == 0);
             stats.blend_s += (t1 - t0).as_secs_f64();
             stats.reduce_s += t1.elapsed().as_secs_f64();
         }
@@ -654,7 +697,8 @@ impl Workspace {
             )
             + self.bins.bytes()
             + v(self.tiles.capacity(), size_of::<TileOut>())
-            + v(self.slots.capacity() + self.acc.capacity(), SLOT_BYTES)
+            + v(self.slots.capacity(), SLOT_BYTES)
+            + v(self.acc.capacity(), size_of::<AccRow>())
             + self.written.capacity()
             + v(self.scales.capacity(), 4)
     }
@@ -828,8 +872,10 @@ impl Workspace {
     /// tile order: one task per binning chunk walks the chunk's slots of the band in storage
     /// order (tile by tile), adding each to its splat's sums, which only that task touches.
     /// Slots the tile pass did not write (`written` 0: zero sums, which would leave the
-    /// running sums' bits unchanged, see `SlotSink::zero`) are skipped.
-    fn reduce_band(&mut self, r0: u32, r1: u32) {
+    /// running sums' bits unchanged, see `SlotSink::zero`) are skipped. With `first` (the
+    /// frame's first band) each task zeroes its chunk's sums before adding (in parallel, and
+    /// the lines stay in the task's cache).
+    fn reduce_band(&mut self, r0: u32, r1: u32, first: bool) {
         let tx = self.bins.tiles_x as usize;
         let (t0, t1) = (r0 as usize * tx, r1 as usize * tx);
         let (slots, written) = (&self.slots, &self.written);
@@ -838,6 +884,9 @@ impl Workspace {
             .par_chunks_mut(TileBins::CHUNK)
             .enumerate()
             .for_each(|(c, accs)| {
+                if first {
+                    accs.fill(AccRow::default());
+                }
                 let base = c * TileBins::CHUNK;
                 let items = bins.chunk_items(c, t0, t1);
                 let run = &slots[band_base[c]..band_base[c] + items.len()];
@@ -847,15 +896,12 @@ impl Workspace {
                     if let (Some(&ahead), Some(&1)) =
                         (items.get(k + REDUCE_PREFETCH), wr.get(k + REDUCE_PREFETCH))
                     {
-                        prefetch_slot(accs, ahead as usize - base);
+                        prefetch_acc(accs, ahead as usize - base);
                     }
                     if w == 0 {
                         continue;
                     }
-                    let acc = &mut accs[p as usize - base];
-                    for (a, v) in acc.iter_mut().zip(s) {
-                        *a += v;
-                    }
+                    accs[p as usize - base].add(s);
                 }
             });
     }
@@ -864,21 +910,17 @@ impl Workspace {
 /// How many slots ahead the slot sums prefetch the running sums they add to.
 const REDUCE_PREFETCH: usize = 16;
 
-/// Hint the CPU to load slot `i` of `slots` (both cache lines it may span).
+/// Hint the CPU to load the sums `acc[i]` (one cache line).
 #[inline(always)]
-fn prefetch_slot(slots: &[[f32; slot::LEN]], i: usize) {
+fn prefetch_acc(acc: &[AccRow], i: usize) {
     #[cfg(target_arch = "x86_64")]
-    if let Some(a) = slots.get(i) {
+    if let Some(a) = acc.get(i) {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let p = a.as_ptr() as *const i8;
-        // SAFETY: prefetching never faults, and both addresses lie inside `*a`.
-        unsafe {
-            _mm_prefetch::<_MM_HINT_T0>(p);
-            _mm_prefetch::<_MM_HINT_T0>(p.add(SLOT_BYTES - 1));
-        }
+        // SAFETY: prefetching never faults, and the address lies inside `*a`.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(a.0.as_ptr() as *const i8) };
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = (slots, i);
+    let _ = (acc, i);
 }
 
 /// Hint the CPU to load the cache line of `base + i` (a prefetch never faults, so the address
