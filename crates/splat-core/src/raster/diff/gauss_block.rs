@@ -24,14 +24,14 @@ pub(crate) type Lane = [f32; BLOCK];
 /// A block's inputs. Unused lanes hold zeros (their results are ignored).
 #[derive(Default)]
 pub(crate) struct InLanes {
-    mean: [Lane; 3],
-    q: [Lane; 4],
-    scale: [Lane; 3],
-    logit: Lane,
-    conic: [Lane; 3],
-    acc: [Lane; slot::LEN],
+    pub(super) mean: [Lane; 3],
+    pub(super) q: [Lane; 4],
+    pub(super) scale: [Lane; 3],
+    pub(super) logit: Lane,
+    pub(super) conic: [Lane; 3],
+    pub(super) acc: [Lane; slot::LEN],
     /// SH coefficients, basis-major (k = 0 is sh0), only the bands in use.
-    coef: [[Lane; 3]; 16],
+    pub(super) coef: [[Lane; 3]; 16],
 }
 
 impl InLanes {
@@ -422,7 +422,7 @@ pub(super) unsafe fn part_backward(
     #[cfg(not(target_arch = "x86_64"))]
     let _ = simd;
     // SAFETY: the caller's contract.
-    unsafe { part_impl(ctx, ss, ids, pos, acc, scatter) }
+    unsafe { part_impl::<false>(ctx, ss, ids, pos, acc, scatter) }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -435,8 +435,8 @@ unsafe fn part_avx512(
     acc: &[super::AccRow],
     scatter: &super::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
-    // SAFETY: the caller's contract.
-    unsafe { part_impl(ctx, ss, ids, pos, acc, scatter) }
+    // SAFETY: the caller's contract; the CPU has AVX-512F (this function's features).
+    unsafe { part_impl::<true>(ctx, ss, ids, pos, acc, scatter) }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -450,7 +450,7 @@ unsafe fn part_avx2(
     scatter: &super::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     // SAFETY: the caller's contract.
-    unsafe { part_impl(ctx, ss, ids, pos, acc, scatter) }
+    unsafe { part_impl::<false>(ctx, ss, ids, pos, acc, scatter) }
 }
 
 /// Ask for the stored parameters of Gaussian `i` that [`InLanes::set`] reads.
@@ -471,8 +471,10 @@ fn prefetch_inputs(ctx: &GaussCtx<'_>, i: usize) {
     }
 }
 
+/// The block loop; with `V512` (the AVX-512 build only: the CPU has AVX-512F) the inputs are
+/// loaded through `gauss_block_avx512`'s transposes.
 #[inline(always)]
-unsafe fn part_impl(
+unsafe fn part_impl<const V512: bool>(
     ctx: &GaussCtx<'_>,
     ss: &[Splat],
     ids: &[u32],
@@ -498,11 +500,30 @@ unsafe fn part_impl(
             prefetch_inputs(ctx, i as usize);
             scatter.prefetch(i as usize, ctx.degree);
         }
-        for l in 0..n {
-            let j = j0 + l;
-            g.set(ctx, l, ids[j] as usize, &ss[j], acc[pos[j] as usize].sums());
+        let blk = j0..j0 + n;
+        #[cfg(target_arch = "x86_64")]
+        if V512 {
+            // SAFETY: V512 only in the AVX-512 build; ids and positions index the scene and
+            // `acc` (the caller's contract).
+            unsafe {
+                super::gauss_block_avx512::load_block(
+                    ctx,
+                    &mut g,
+                    &ss[blk.clone()],
+                    &ids[blk.clone()],
+                    &pos[blk.clone()],
+                    acc,
+                )
+            };
         }
-        // lanes n.. keep the previous block's values: computed, never read
+        if !V512 || cfg!(not(target_arch = "x86_64")) {
+            for l in 0..n {
+                let j = j0 + l;
+                g.set(ctx, l, ids[j] as usize, &ss[j], acc[pos[j] as usize].sums());
+            }
+        }
+        // lanes n.. keep the previous block's values (zeros from the AVX-512 loads):
+        // computed, never read
         block_backward(ctx, &g, &mut o);
         for l in 0..n {
             let j = j0 + l;

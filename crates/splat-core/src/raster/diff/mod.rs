@@ -41,6 +41,8 @@ mod blend_bwd_avx2;
 mod blend_bwd_avx512;
 mod densify;
 mod gauss_block;
+#[cfg(target_arch = "x86_64")]
+mod gauss_block_avx512;
 mod gauss_bwd;
 mod sh_bwd;
 #[cfg(test)]
