@@ -396,7 +396,7 @@ pub(super) unsafe fn part_backward(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: &[super::AccRow],
+    acc: super::Sums<'_>,
     scatter: &super::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     #[cfg(target_arch = "x86_64")]
@@ -432,7 +432,7 @@ unsafe fn part_avx512(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: &[super::AccRow],
+    acc: super::Sums<'_>,
     scatter: &super::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     // SAFETY: the caller's contract; the CPU has AVX-512F (this function's features).
@@ -446,7 +446,7 @@ unsafe fn part_avx2(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: &[super::AccRow],
+    acc: super::Sums<'_>,
     scatter: &super::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     // SAFETY: the caller's contract.
@@ -479,7 +479,7 @@ unsafe fn part_impl<const V512: bool>(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: &[super::AccRow],
+    acc: super::Sums<'_>,
     scatter: &super::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     let mut part = [0.0f64; POSE_LEN];
@@ -491,7 +491,7 @@ unsafe fn part_impl<const V512: bool>(
         let n = BLOCK.min(n_all - j0);
         // the sums lie in depth order (a cache miss each otherwise): fetch the next block's
         for &ahead in pos.iter().skip(j0 + BLOCK).take(BLOCK) {
-            super::prefetch_acc(acc, ahead as usize);
+            super::prefetch_acc(acc.acc, ahead as usize);
         }
         // and the next block's splats (a cache line each, cold since the projection), its
         // stored parameters and the gradient rows it will update
@@ -519,7 +519,7 @@ unsafe fn part_impl<const V512: bool>(
         if !V512 || cfg!(not(target_arch = "x86_64")) {
             for l in 0..n {
                 let j = j0 + l;
-                g.set(ctx, l, ids[j] as usize, &ss[j], acc[pos[j] as usize].sums());
+                g.set(ctx, l, ids[j] as usize, &ss[j], acc.get(pos[j] as usize));
             }
         }
         // lanes n.. keep the previous block's values (zeros from the AVX-512 loads):

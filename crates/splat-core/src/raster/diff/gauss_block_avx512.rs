@@ -18,7 +18,7 @@ use super::gauss_block::{InLanes, Lane, BLOCK};
 use super::gauss_bwd::GaussCtx;
 use super::project::Splat;
 use super::slot;
-use super::AccRow;
+use super::Sums;
 
 /// A 16x16 float matrix held as 16 rows.
 type Rows = [__m512; BLOCK];
@@ -90,7 +90,7 @@ fn flat<const A: usize, const B: usize>(v: &mut [[Lane; B]; A]) -> &mut [Lane] {
 }
 
 /// Load the block's inputs as [`InLanes::set`] does for lanes 0..n (Gaussians `ids`, splats
-/// `ss`, summed slots `acc[pos]`); lanes n.. get zeros (computed, never read).
+/// `ss`, summed slots `acc.get(pos)`); lanes n.. get zeros (computed, never read).
 ///
 /// # Safety
 /// The CPU has AVX-512F; every id is a Gaussian of `ctx.scene` (whose buffers the scene's
@@ -103,7 +103,7 @@ pub(super) unsafe fn load_block(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: &[AccRow],
+    acc: Sums<'_>,
 ) {
     let sc = ctx.scene;
     let n = ss.len().min(ids.len()).min(pos.len()).min(BLOCK);
@@ -132,8 +132,12 @@ pub(super) unsafe fn load_block(
     // the summed slots: one aligned row each
     let mut r = [zero; BLOCK];
     for l in 0..n {
-        // SAFETY: the caller's contract (pos indexes acc); an AccRow is 64 aligned bytes.
-        r[l] = unsafe { _mm512_load_ps(acc.get_unchecked(pos[l] as usize).0.as_ptr()) };
+        let p = pos[l] as usize;
+        // zeros where no slot was added (as `Sums::get`)
+        let m: __mmask16 = if acc.touched[p] != 0 { 0xFFFF } else { 0 };
+        // SAFETY: p indexes the sums (the caller's contract; `touched` has the same length);
+        // an AccRow is 64 aligned bytes.
+        r[l] = unsafe { _mm512_maskz_load_ps(m, acc.acc.get_unchecked(p).0.as_ptr()) };
     }
     transpose16(&mut r);
     store_lanes(&r[..slot::LEN], &mut g.acc);

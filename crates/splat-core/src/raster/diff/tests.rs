@@ -755,7 +755,7 @@ fn backward_matches_the_scalar_reference(simd: Simd) {
             for (j, (sp, &i)) in ss.iter().zip(ids).enumerate() {
                 let i = i as usize;
                 let p = ws.pos[ws.part_off[c] + j] as usize;
-                let q = gauss_backward(&ctx, i, sp, ws.acc[p].sums());
+                let q = gauss_backward(&ctx, i, sp, ws.sums().get(p));
                 for (a, v) in part.iter_mut().zip(&q.pose) {
                     *a += *v as f64;
                 }
