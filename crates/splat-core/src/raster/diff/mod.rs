@@ -346,7 +346,8 @@ struct Saved {
 /// leaves for its backward. About 64 + 4 + 4 bytes per visible Gaussian and 4 bytes per
 /// intersection (depth-sorted splats, their ids and sorted positions, the tile lists), 20 bytes per
 /// pixel (final transmittance, colour and depth sums), and during the backward 49 bytes per
-/// intersection of a band (slot and written flag) plus 48 bytes per visible Gaussian.
+/// intersection of a band (slot and written flag) plus 65 bytes per visible Gaussian (its
+/// 64-byte row of sums and a flag).
 #[derive(Default)]
 pub struct Workspace {
     saved: Option<Saved>,
