@@ -24,14 +24,14 @@ pub(crate) type Lane = [f32; BLOCK];
 /// A block's inputs. Unused lanes hold zeros (their results are ignored).
 #[derive(Default)]
 pub(crate) struct InLanes {
-    mean: [Lane; 3],
-    q: [Lane; 4],
-    scale: [Lane; 3],
-    logit: Lane,
-    conic: [Lane; 3],
-    acc: [Lane; slot::LEN],
+    pub(super) mean: [Lane; 3],
+    pub(super) q: [Lane; 4],
+    pub(super) scale: [Lane; 3],
+    pub(super) logit: Lane,
+    pub(super) conic: [Lane; 3],
+    pub(super) acc: [Lane; slot::LEN],
     /// SH coefficients, basis-major (k = 0 is sh0), only the bands in use.
-    coef: [[Lane; 3]; 16],
+    pub(super) coef: [[Lane; 3]; 16],
 }
 
 impl InLanes {
@@ -396,7 +396,7 @@ pub(super) unsafe fn part_backward(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: &[[f32; slot::LEN]],
+    acc: super::Sums<'_>,
     scatter: &super::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     #[cfg(target_arch = "x86_64")]
@@ -422,7 +422,7 @@ pub(super) unsafe fn part_backward(
     #[cfg(not(target_arch = "x86_64"))]
     let _ = simd;
     // SAFETY: the caller's contract.
-    unsafe { part_impl(ctx, ss, ids, pos, acc, scatter) }
+    unsafe { part_impl::<false>(ctx, ss, ids, pos, acc, scatter) }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -432,11 +432,11 @@ unsafe fn part_avx512(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: &[[f32; slot::LEN]],
+    acc: super::Sums<'_>,
     scatter: &super::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
-    // SAFETY: the caller's contract.
-    unsafe { part_impl(ctx, ss, ids, pos, acc, scatter) }
+    // SAFETY: the caller's contract; the CPU has AVX-512F (this function's features).
+    unsafe { part_impl::<true>(ctx, ss, ids, pos, acc, scatter) }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -446,11 +446,11 @@ unsafe fn part_avx2(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: &[[f32; slot::LEN]],
+    acc: super::Sums<'_>,
     scatter: &super::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     // SAFETY: the caller's contract.
-    unsafe { part_impl(ctx, ss, ids, pos, acc, scatter) }
+    unsafe { part_impl::<false>(ctx, ss, ids, pos, acc, scatter) }
 }
 
 /// Ask for the stored parameters of Gaussian `i` that [`InLanes::set`] reads.
@@ -471,13 +471,15 @@ fn prefetch_inputs(ctx: &GaussCtx<'_>, i: usize) {
     }
 }
 
+/// The block loop; with `V512` (the AVX-512 build only: the CPU has AVX-512F) the inputs are
+/// loaded through `gauss_block_avx512`'s transposes.
 #[inline(always)]
-unsafe fn part_impl(
+unsafe fn part_impl<const V512: bool>(
     ctx: &GaussCtx<'_>,
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: &[[f32; slot::LEN]],
+    acc: super::Sums<'_>,
     scatter: &super::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     let mut part = [0.0f64; POSE_LEN];
@@ -489,7 +491,7 @@ unsafe fn part_impl(
         let n = BLOCK.min(n_all - j0);
         // the sums lie in depth order (a cache miss each otherwise): fetch the next block's
         for &ahead in pos.iter().skip(j0 + BLOCK).take(BLOCK) {
-            super::prefetch_slot(acc, ahead as usize);
+            super::prefetch_acc(acc.acc, ahead as usize);
         }
         // and the next block's splats (a cache line each, cold since the projection), its
         // stored parameters and the gradient rows it will update
@@ -498,11 +500,30 @@ unsafe fn part_impl(
             prefetch_inputs(ctx, i as usize);
             scatter.prefetch(i as usize, ctx.degree);
         }
-        for l in 0..n {
-            let j = j0 + l;
-            g.set(ctx, l, ids[j] as usize, &ss[j], &acc[pos[j] as usize]);
+        let blk = j0..j0 + n;
+        #[cfg(target_arch = "x86_64")]
+        if V512 {
+            // SAFETY: V512 only in the AVX-512 build; ids and positions index the scene and
+            // `acc` (the caller's contract).
+            unsafe {
+                super::gauss_block_avx512::load_block(
+                    ctx,
+                    &mut g,
+                    &ss[blk.clone()],
+                    &ids[blk.clone()],
+                    &pos[blk.clone()],
+                    acc,
+                )
+            };
         }
-        // lanes n.. keep the previous block's values: computed, never read
+        if !V512 || cfg!(not(target_arch = "x86_64")) {
+            for l in 0..n {
+                let j = j0 + l;
+                g.set(ctx, l, ids[j] as usize, &ss[j], acc.get(pos[j] as usize));
+            }
+        }
+        // lanes n.. keep the previous block's values (zeros from the AVX-512 loads):
+        // computed, never read
         block_backward(ctx, &g, &mut o);
         for l in 0..n {
             let j = j0 + l;

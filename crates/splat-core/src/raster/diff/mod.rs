@@ -41,6 +41,8 @@ mod blend_bwd_avx2;
 mod blend_bwd_avx512;
 mod densify;
 mod gauss_block;
+#[cfg(target_arch = "x86_64")]
+mod gauss_block_avx512;
 mod gauss_bwd;
 mod sh_bwd;
 #[cfg(test)]
@@ -68,6 +70,68 @@ pub(crate) mod slot {
 
 /// A slot's bytes.
 pub const SLOT_BYTES: usize = slot::LEN * 4;
+
+/// One splat's running sums of its slots: the `slot::LEN` values padded to 16 floats and
+/// aligned to 64 bytes, so that each random access of the slot sums (`reduce_band`) and of the
+/// per-Gaussian pass touches one cache line (a 48-byte row straddles two lines half the time).
+/// The padding stays +0.0.
+#[derive(Debug, Clone, Copy, Default)]
+#[repr(C, align(64))]
+pub(crate) struct AccRow(pub(crate) [f32; 16]);
+
+impl AccRow {
+    /// The summed slot values.
+    #[inline(always)]
+    pub(crate) fn sums(&self) -> &[f32; slot::LEN] {
+        self.0[..slot::LEN].try_into().expect("16 >= slot::LEN")
+    }
+
+    /// Add one slot's values, element by element, to the sums (`keep`) or to +0.0 (the
+    /// splat's first slot: its sums' memory is stale). The plain float additions, 4 lanes at
+    /// a time where the target has SSE, so the bits are those of sums that start at +0.0.
+    #[inline(always)]
+    fn add(&mut self, s: &[f32; slot::LEN], keep: bool) {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: SSE is part of x86_64; every access lies inside `self.0` (64-byte aligned,
+        // so the aligned loads hold) or `s`.
+        unsafe {
+            use std::arch::x86_64::*;
+            // all ones (keep the sums) or +0.0
+            let m = _mm_castsi128_ps(_mm_set1_epi32(-(keep as i32)));
+            let a = self.0.as_mut_ptr();
+            for q in 0..slot::LEN / 4 {
+                let old = _mm_and_ps(_mm_load_ps(a.add(4 * q)), m);
+                let v = _mm_add_ps(old, _mm_loadu_ps(s.as_ptr().add(4 * q)));
+                _mm_store_ps(a.add(4 * q), v);
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        for (a, v) in self.0.iter_mut().zip(s) {
+            *a = if keep { *a } else { 0.0 } + v;
+        }
+    }
+}
+
+/// The summed slots by sorted position as the per-Gaussian pass reads them: the rows, and
+/// which of them hold sums (1 once `reduce_band` added a slot; the others read as zeros).
+#[derive(Clone, Copy)]
+pub(crate) struct Sums<'a> {
+    pub(crate) acc: &'a [AccRow],
+    pub(crate) touched: &'a [u8],
+}
+
+impl Sums<'_> {
+    /// Sorted splat p's sums (zeros where no slot was added).
+    #[inline(always)]
+    pub(crate) fn get(&self, p: usize) -> &[f32; slot::LEN] {
+        const ZERO: [f32; slot::LEN] = [0.0; slot::LEN];
+        if self.touched[p] != 0 {
+            self.acc[p].sums()
+        } else {
+            &ZERO
+        }
+    }
+}
 
 /// Which depth the depth image holds (and its gradient refers to).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -282,7 +346,8 @@ struct Saved {
 /// leaves for its backward. About 64 + 4 + 4 bytes per visible Gaussian and 4 bytes per
 /// intersection (depth-sorted splats, their ids and sorted positions, the tile lists), 20 bytes per
 /// pixel (final transmittance, colour and depth sums), and during the backward 49 bytes per
-/// intersection of a band (slot and written flag) plus 48 bytes per visible Gaussian.
+/// intersection of a band (slot and written flag) plus 65 bytes per visible Gaussian (its
+/// 64-byte row of sums and a flag).
 #[derive(Default)]
 pub struct Workspace {
     saved: Option<Saved>,
@@ -307,8 +372,12 @@ pub struct Workspace {
     /// Per slot of the band: 1 when the tile pass wrote it, 0 when its entry has no sums
     /// (`SlotSink::zero`: the slot is neither written nor read).
     written: Vec<u8>,
-    /// Summed slots per sorted splat.
-    acc: Vec<[f32; slot::LEN]>,
+    /// Summed slots per sorted splat, valid where `touched` is 1 (never zeroed: a splat's
+    /// first slot is added to +0.0 instead, see `AccRow::add`).
+    acc: Vec<AccRow>,
+    /// Per sorted splat: 1 once `reduce_band` added a slot to its sums (zeroed per chunk by
+    /// the first band's reduction).
+    touched: Vec<u8>,
     /// exp(log_scales) for the per-Gaussian pass.
     scales: Vec<f32>,
 }
@@ -516,12 +585,17 @@ impl Workspace {
 
         // ---- blend backward, band by band, and the fixed-order per-Gaussian sums
         let visible = self.sorted.len();
-        self.acc.clear();
-        self.acc.resize(visible, [0.0; slot::LEN]);
+        // the sums are not zeroed: the first band's reduction clears each chunk's touched
+        // flags in its task, and a splat's first slot is added to +0.0
+        self.acc.resize(visible, AccRow::default());
+        self.touched.resize(visible, 0);
         let bands = self.bands(sv.opts.slot_budget);
         stats.bands = bands.len() as u32;
+        if bands.is_empty() {
+            self.touched.fill(0);
+        }
         let mut v_bg = [0.0f64; 3];
-        for &(r0, r1) in &bands {
+        for (b, &(r0, r1)) in bands.iter().enumerate() {
             let t0 = Instant::now();
             let total = self.band_layout(r0, r1);
             stats.slot_bytes = stats.slot_bytes.max(total as u64 * SLOT_BYTES as u64);
@@ -538,7 +612,7 @@ impl Workspace {
                 v_bg[c] += bg[c];
             }
             let t1 = Instant::now();
-            self.reduce_band(r0, r1);
+            self.reduce_band(r0, r1, b == 0);
             stats.blend_s += (t1 - t0).as_secs_f64();
             stats.reduce_s += t1.elapsed().as_secs_f64();
         }
@@ -569,7 +643,8 @@ impl Workspace {
             k,
             (sv.cam.width, sv.cam.height),
         );
-        let (acc, part_off, pos) = (&self.acc, &self.part_off, &self.pos);
+        let acc = self.sums();
+        let (part_off, pos) = (&self.part_off, &self.pos);
         let simd = sv.blend.simd;
         // per projection chunk (a fixed partition of the Gaussians) the camera-gradient sum of
         // its Gaussians in index order; the chunks are then added in order
@@ -654,7 +729,9 @@ impl Workspace {
             )
             + self.bins.bytes()
             + v(self.tiles.capacity(), size_of::<TileOut>())
-            + v(self.slots.capacity() + self.acc.capacity(), SLOT_BYTES)
+            + v(self.slots.capacity(), SLOT_BYTES)
+            + v(self.acc.capacity(), size_of::<AccRow>())
+            + self.touched.capacity()
             + self.written.capacity()
             + v(self.scales.capacity(), 4)
     }
@@ -705,6 +782,14 @@ impl Workspace {
             );
         }
         Ok(rec.out)
+    }
+
+    /// The summed slots of the last backward, by sorted position.
+    fn sums(&self) -> Sums<'_> {
+        Sums {
+            acc: &self.acc,
+            touched: &self.touched,
+        }
     }
 
     /// Bands of tile rows [r0, r1) whose slots fit the budget (at least one row each).
@@ -828,16 +913,23 @@ impl Workspace {
     /// tile order: one task per binning chunk walks the chunk's slots of the band in storage
     /// order (tile by tile), adding each to its splat's sums, which only that task touches.
     /// Slots the tile pass did not write (`written` 0: zero sums, which would leave the
-    /// running sums' bits unchanged, see `SlotSink::zero`) are skipped.
-    fn reduce_band(&mut self, r0: u32, r1: u32) {
+    /// running sums' bits unchanged, see `SlotSink::zero`) are skipped. With `first` (the
+    /// frame's first band) each task clears its chunk's touched flags first; a splat's first
+    /// slot is then added to +0.0 rather than to its stale sums (no zeroing pass over the
+    /// sums, 64 bytes per visible splat, which costs about a millisecond per frame).
+    fn reduce_band(&mut self, r0: u32, r1: u32, first: bool) {
         let tx = self.bins.tiles_x as usize;
         let (t0, t1) = (r0 as usize * tx, r1 as usize * tx);
         let (slots, written) = (&self.slots, &self.written);
         let (bins, band_base) = (&self.bins, &self.band_base);
         self.acc
             .par_chunks_mut(TileBins::CHUNK)
+            .zip(self.touched.par_chunks_mut(TileBins::CHUNK))
             .enumerate()
-            .for_each(|(c, accs)| {
+            .for_each(|(c, (accs, touched))| {
+                if first {
+                    touched.fill(0);
+                }
                 let base = c * TileBins::CHUNK;
                 let items = bins.chunk_items(c, t0, t1);
                 let run = &slots[band_base[c]..band_base[c] + items.len()];
@@ -847,15 +939,14 @@ impl Workspace {
                     if let (Some(&ahead), Some(&1)) =
                         (items.get(k + REDUCE_PREFETCH), wr.get(k + REDUCE_PREFETCH))
                     {
-                        prefetch_slot(accs, ahead as usize - base);
+                        prefetch_acc(accs, ahead as usize - base);
                     }
                     if w == 0 {
                         continue;
                     }
-                    let acc = &mut accs[p as usize - base];
-                    for (a, v) in acc.iter_mut().zip(s) {
-                        *a += v;
-                    }
+                    let q = p as usize - base;
+                    accs[q].add(s, touched[q] != 0);
+                    touched[q] = 1;
                 }
             });
     }
@@ -864,21 +955,17 @@ impl Workspace {
 /// How many slots ahead the slot sums prefetch the running sums they add to.
 const REDUCE_PREFETCH: usize = 16;
 
-/// Hint the CPU to load slot `i` of `slots` (both cache lines it may span).
+/// Hint the CPU to load the sums `acc[i]` (one cache line).
 #[inline(always)]
-fn prefetch_slot(slots: &[[f32; slot::LEN]], i: usize) {
+fn prefetch_acc(acc: &[AccRow], i: usize) {
     #[cfg(target_arch = "x86_64")]
-    if let Some(a) = slots.get(i) {
+    if let Some(a) = acc.get(i) {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let p = a.as_ptr() as *const i8;
-        // SAFETY: prefetching never faults, and both addresses lie inside `*a`.
-        unsafe {
-            _mm_prefetch::<_MM_HINT_T0>(p);
-            _mm_prefetch::<_MM_HINT_T0>(p.add(SLOT_BYTES - 1));
-        }
+        // SAFETY: prefetching never faults, and the address lies inside `*a`.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(a.0.as_ptr() as *const i8) };
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = (slots, i);
+    let _ = (acc, i);
 }
 
 /// Hint the CPU to load the cache line of `base + i` (a prefetch never faults, so the address

@@ -681,10 +681,11 @@ fn backward_matches_the_scalar_reference(simd: Simd) {
         let mut next = rng(5);
         (0..s.len() * 3).map(|_| next()).collect()
     };
-    for given in [false, true] {
+    // SH degrees 0-3 (1 to 3 rows of 16 coefficients in the AVX-512 pass) and given colours
+    for (given, degree) in [(false, 0u8), (false, 1), (false, 2), (false, 3), (true, 2)] {
         let opts = DiffOptions {
             render: RenderOptions {
-                sh_degree: Some(2),
+                sh_degree: Some(degree),
                 antialiased: given,
                 simd,
                 ..Default::default()
@@ -698,8 +699,26 @@ fn backward_matches_the_scalar_reference(simd: Simd) {
         ws.forward(&view, &cam, &opts, cols, &mut rgb, &mut depth, &mut alpha)
             .expect("forward");
         let (r, d, a) = image_grads(&cam, 9);
+        // gradients already holding values: the backward adds to them
+        let prior = |g: &mut Gradients| {
+            let mut next = rng(17);
+            for v in [
+                &mut g.means,
+                &mut g.quats,
+                &mut g.log_scales,
+                &mut g.opacity_logits,
+                &mut g.sh0,
+                &mut g.sh_rest,
+                &mut g.scales,
+                &mut g.opacities,
+                &mut g.colors,
+            ] {
+                v.iter_mut().for_each(|x| *x = next());
+            }
+        };
         let mut g = Gradients::default();
         g.reset(s.len(), s.sh_rest_k(), given);
+        prior(&mut g);
         let mut vg = ViewGrads {
             viewmat: Some([0.0; 16]),
             ..Default::default()
@@ -715,19 +734,20 @@ fn backward_matches_the_scalar_reference(simd: Simd) {
         assert!(ws.parts.iter().filter(|p| !p.is_empty()).count() > 1);
 
         // the reference: the scalar function per visible Gaussian, in each part's order
-        let proj = Projector::new(&cam, &opts.render, 2);
+        let proj = Projector::new(&cam, &opts.render, degree);
         let mut scales = Vec::new();
         scales_into(&s.log_scales, &mut scales);
         let ctx = GaussCtx {
             proj: &proj,
             scene: &view,
-            degree: 2,
+            degree,
             colors: cols,
             pose: true,
             scales: &scales,
         };
         let mut want = Gradients::default();
         want.reset(s.len(), s.sh_rest_k(), given);
+        prior(&mut want);
         let mut sum = [0.0f64; POSE_LEN];
         let mut visible = 0;
         for (c, (ss, ids)) in ws.parts.iter().zip(&ws.part_ids).enumerate() {
@@ -735,7 +755,7 @@ fn backward_matches_the_scalar_reference(simd: Simd) {
             for (j, (sp, &i)) in ss.iter().zip(ids).enumerate() {
                 let i = i as usize;
                 let p = ws.pos[ws.part_off[c] + j] as usize;
-                let q = gauss_backward(&ctx, i, sp, &ws.acc[p]);
+                let q = gauss_backward(&ctx, i, sp, ws.sums().get(p));
                 for (a, v) in part.iter_mut().zip(&q.pose) {
                     *a += *v as f64;
                 }
@@ -754,7 +774,7 @@ fn backward_matches_the_scalar_reference(simd: Simd) {
                     add(&mut want.colors, i * 3, &q.color);
                 } else {
                     add(&mut want.sh0, i * 3, &q.sh[0]);
-                    for b in 1..9 {
+                    for b in 1..(degree as usize + 1).pow(2) {
                         add(&mut want.sh_rest, (i * s.sh_rest_k() + b - 1) * 3, &q.sh[b]);
                     }
                 }
@@ -794,7 +814,11 @@ fn backward_matches_the_scalar_reference(simd: Simd) {
             .flat_map(|v| v.iter().map(|x| x.to_bits()))
             .collect::<Vec<_>>()
         };
-        assert_eq!(bits(&g), bits(&want), "colours {given}, {simd:?}");
+        assert_eq!(
+            bits(&g),
+            bits(&want),
+            "colours {given}, degree {degree}, {simd:?}"
+        );
         let vm = viewmat_grad(&sum, &proj.rot, &proj.center);
         assert_eq!(
             vg.viewmat.map(|m| m.map(f64::to_bits)),
