@@ -1,5 +1,5 @@
 //! The AVX-512 blend-backward kernel (`core::arch` intrinsics): the operations of the generic
-//! kernel (`blend_bwd::bwd_tile_impl::<true, _>`) in the same order per lane, so the same slot
+//! kernel (`blend_bwd::bwd_tile_impl::<true, _, _>`) in the same order per lane, so the same slot
 //! bits. One splat at a time: its per-lane terms and its 12 per-lane accumulators stay in
 //! registers while the 4x4-pixel blocks it reaches are replayed in block order (each block's
 //! transmittance and running colour are loaded and stored back); the 16-lane sums of the 12
@@ -85,7 +85,7 @@ fn hsum12(v: &[__m512; 12]) -> [f32; slot::LEN] {
 /// kept in block order, as `PixIn` is.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
-pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
+pub(super) fn bwd_tile_avx512<'a, const ABS: bool, const DEPTH: bool, S: SlotSink>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -250,7 +250,11 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
                         _mm512_load_ps(g_ptr[0].add(o)),
                         _mm512_load_ps(g_ptr[1].add(o)),
                         _mm512_load_ps(g_ptr[2].add(o)),
-                        _mm512_load_ps(g_ptr[3].add(o)),
+                        if DEPTH {
+                            _mm512_load_ps(g_ptr[3].add(o))
+                        } else {
+                            zero
+                        },
                         _mm512_load_ps(q_ptr.add(o)),
                         _mm512_broadcast_f32x4(_mm_load_ps(cterm[0].0.as_ptr().add(c))),
                         _mm512_broadcast_f32x4(_mm_load_ps(cterm[1].0.as_ptr().add(c))),
@@ -285,7 +289,13 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
                 let gc = _mm512_mul_ps(g0, col[0]);
                 let gc = _mm512_fmadd_ps(g1, col[1], gc);
                 let gc = _mm512_fmadd_ps(g2, col[2], gc);
-                let gc = _mm512_fmadd_ps(g3, col[3], gc);
+                // without a depth gradient (g3 = +0.0 everywhere) the depth channel's terms
+                // are left out: they change no slot bit (see `bwd_tile`)
+                let gc = if DEPTH {
+                    _mm512_fmadd_ps(g3, col[3], gc)
+                } else {
+                    gc
+                };
                 let s_new = _mm512_fmadd_ps(gc, w, sr);
                 let ra = _mm512_div_ps(one, _mm512_sub_ps(one, alpha));
                 let tq = _mm512_mul_ps(_mm512_sub_ps(q, s_new), ra);
@@ -295,7 +305,9 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
                 acc[0] = _mm512_mask3_fmadd_ps(w, g0, acc[0], contrib);
                 acc[1] = _mm512_mask3_fmadd_ps(w, g1, acc[1], contrib);
                 acc[2] = _mm512_mask3_fmadd_ps(w, g2, acc[2], contrib);
-                acc[3] = _mm512_mask3_fmadd_ps(w, g3, acc[3], contrib);
+                if DEPTH {
+                    acc[3] = _mm512_mask3_fmadd_ps(w, g3, acc[3], contrib);
+                }
                 acc[slot::V0] = _mm512_mask_add_ps(acc[slot::V0], m2, acc[slot::V0], uu);
                 acc[slot::VDX] = _mm512_mask3_fmadd_ps(uu, dx, acc[slot::VDX], m2);
                 acc[slot::VDY] = _mm512_mask3_fmadd_ps(uu, b_dy, acc[slot::VDY], m2);
