@@ -113,7 +113,7 @@ pub(crate) fn finish_slot(acc: &[[f32; LANES]; slot::LEN]) -> [f32; slot::LEN] {
 /// the tile finished). `t_final` is the forward's state (for the live pixels).
 /// Returns the Gaussian-pixel evaluations (as the forward counts them).
 #[inline(always)]
-fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
+fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, const DEPTH: bool, S: SlotSink>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -228,7 +228,9 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
                     let mut gc = g0[l] * col[0];
                     gc = fmadd::<FMA>(g1[l], col[1], gc);
                     gc = fmadd::<FMA>(g2[l], col[2], gc);
-                    gc = fmadd::<FMA>(g3[l], col[3], gc);
+                    if DEPTH {
+                        gc = fmadd::<FMA>(g3[l], col[3], gc);
+                    }
                     let s_new = fmadd::<FMA>(gc, wt, srow[l]);
                     let ra = 1.0 / (1.0 - alpha);
                     let tq = (qrow[l] - s_new) * ra;
@@ -253,7 +255,9 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
                         a[0][i] = select(contrib, fmadd::<FMA>(wt, g0[l], a[0][i]), a[0][i]);
                         a[1][i] = select(contrib, fmadd::<FMA>(wt, g1[l], a[1][i]), a[1][i]);
                         a[2][i] = select(contrib, fmadd::<FMA>(wt, g2[l], a[2][i]), a[2][i]);
-                        a[3][i] = select(contrib, fmadd::<FMA>(wt, g3[l], a[3][i]), a[3][i]);
+                        if DEPTH {
+                            a[3][i] = select(contrib, fmadd::<FMA>(wt, g3[l], a[3][i]), a[3][i]);
+                        }
                         a[slot::V0][i] = select(m2, a[slot::V0][i] + u, a[slot::V0][i]);
                         let dx = dxs[l];
                         let dxdy = dx * dy;
@@ -298,7 +302,7 @@ fn bwd_tile_impl<'a, const FMA: bool, const ABS: bool, S: SlotSink>(
 /// against bit for bit.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-pub(crate) fn bwd_tile_generic_fma<'a, const ABS: bool, S: SlotSink>(
+pub(crate) fn bwd_tile_generic_fma<'a, const ABS: bool, const DEPTH: bool, S: SlotSink>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -307,10 +311,10 @@ pub(crate) fn bwd_tile_generic_fma<'a, const ABS: bool, S: SlotSink>(
     pix: &PixIn,
     sink: &mut S,
 ) -> u64 {
-    bwd_tile_impl::<true, ABS, _>(x0, y0, p, splats, lists, pix, sink)
+    bwd_tile_impl::<true, ABS, DEPTH, _>(x0, y0, p, splats, lists, pix, sink)
 }
 
-fn bwd_tile_scalar<'a, const ABS: bool, S: SlotSink>(
+fn bwd_tile_scalar<'a, const ABS: bool, const DEPTH: bool, S: SlotSink>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -319,11 +323,19 @@ fn bwd_tile_scalar<'a, const ABS: bool, S: SlotSink>(
     pix: &PixIn,
     sink: &mut S,
 ) -> u64 {
-    bwd_tile_impl::<false, ABS, _>(x0, y0, p, splats, lists, pix, sink)
+    bwd_tile_impl::<false, ABS, DEPTH, _>(x0, y0, p, splats, lists, pix, sink)
 }
 
 /// The backward kernel matching the forward kernel `p.simd` (so the replay gives the forward's
 /// bits): AVX-512, AVX2 + FMA or plain; `absgrad` also sums |dL/dmean2d| per pixel.
+///
+/// `depth` false (no depth-image gradient: `pix.g[3]` must then be +0.0 in every lane, as
+/// `tile_inputs` leaves it) runs the kernels without the depth channel's terms, with the same
+/// slot bits: with g3 = +0.0 the channel's accumulator would stay +0.0 (+0.0 + w * 0), and
+/// g . c only differs in the sign of a zero (-0.0 + +0.0 = +0.0), which the running colour S,
+/// the accumulators and the slot sums all absorb, as none of them is ever -0.0 (each starts at
+/// +0.0, and a rounded-to-nearest sum is -0.0 only when both terms are).
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn bwd_tile<'a>(
     x0: u32,
     y0: u32,
@@ -333,32 +345,34 @@ pub(crate) fn bwd_tile<'a>(
     pix: &PixIn,
     sink: &mut impl SlotSink,
     absgrad: bool,
+    depth: bool,
 ) -> u64 {
     macro_rules! run {
-        ($abs:literal) => {
+        ($abs:literal, $depth:literal) => {
             match p.simd {
                 #[cfg(target_arch = "x86_64")]
                 // SAFETY: `Simd::resolve` only yields Avx512 when the CPU has these features.
                 Simd::Avx512 => unsafe {
-                    super::blend_bwd_avx512::bwd_tile_avx512::<$abs, _>(
+                    super::blend_bwd_avx512::bwd_tile_avx512::<$abs, $depth, _>(
                         x0, y0, p, splats, lists, pix, sink,
                     )
                 },
                 #[cfg(target_arch = "x86_64")]
                 // SAFETY: `Simd::resolve` only yields Avx2 when the CPU has AVX2 and FMA.
                 Simd::Avx2 => unsafe {
-                    super::blend_bwd_avx2::bwd_tile_avx2::<$abs, _>(
+                    super::blend_bwd_avx2::bwd_tile_avx2::<$abs, $depth, _>(
                         x0, y0, p, splats, lists, pix, sink,
                     )
                 },
-                _ => bwd_tile_scalar::<$abs, _>(x0, y0, p, splats, lists, pix, sink),
+                _ => bwd_tile_scalar::<$abs, $depth, _>(x0, y0, p, splats, lists, pix, sink),
             }
         };
     }
-    if absgrad {
-        run!(true)
-    } else {
-        run!(false)
+    match (absgrad, depth) {
+        (true, true) => run!(true, true),
+        (true, false) => run!(true, false),
+        (false, true) => run!(false, true),
+        (false, false) => run!(false, false),
     }
 }
 
@@ -377,9 +391,9 @@ pub(crate) fn bwd_tile_generic<'a>(
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `Simd::resolve` only yields Avx512 / Avx2 when the CPU has AVX2 and FMA.
         Simd::Avx512 | Simd::Avx2 => unsafe {
-            bwd_tile_generic_fma::<true, _>(x0, y0, p, splats, lists, pix, sink)
+            bwd_tile_generic_fma::<true, true, _>(x0, y0, p, splats, lists, pix, sink)
         },
-        _ => bwd_tile_scalar::<true, _>(x0, y0, p, splats, lists, pix, sink),
+        _ => bwd_tile_scalar::<true, true, _>(x0, y0, p, splats, lists, pix, sink),
     }
 }
 

@@ -79,7 +79,7 @@ fn hsum12(v: &[[__m256; 2]; 12]) -> [f32; slot::LEN] {
 /// accumulators stay in registers.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
+pub(super) fn bwd_tile_avx2<'a, const ABS: bool, const DEPTH: bool, S: SlotSink>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -265,7 +265,11 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
                             _mm256_load_ps(g_ptr[0].add(o)),
                             _mm256_load_ps(g_ptr[1].add(o)),
                             _mm256_load_ps(g_ptr[2].add(o)),
-                            _mm256_load_ps(g_ptr[3].add(o)),
+                            if DEPTH {
+                                _mm256_load_ps(g_ptr[3].add(o))
+                            } else {
+                                zero
+                            },
                             _mm256_load_ps(q_ptr.add(o)),
                             quad(&cterm[0]),
                             quad(&cterm[1]),
@@ -308,7 +312,12 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
                     let gc = _mm256_mul_ps(g0, col[0]);
                     let gc = _mm256_fmadd_ps(g1, col[1], gc);
                     let gc = _mm256_fmadd_ps(g2, col[2], gc);
-                    let gc = _mm256_fmadd_ps(g3, col[3], gc);
+                    // no depth gradient: the depth channel's terms are left out (see `bwd_tile`)
+                    let gc = if DEPTH {
+                        _mm256_fmadd_ps(g3, col[3], gc)
+                    } else {
+                        gc
+                    };
                     let s_new = _mm256_fmadd_ps(gc, w, sr);
                     let ra = _mm256_div_ps(one, _mm256_sub_ps(one, alpha));
                     let tq = _mm256_mul_ps(_mm256_sub_ps(q, s_new), ra);
@@ -321,7 +330,9 @@ pub(super) fn bwd_tile_avx2<'a, const ABS: bool, S: SlotSink>(
                     acc[0] = fm(w, g0, acc[0], contrib);
                     acc[1] = fm(w, g1, acc[1], contrib);
                     acc[2] = fm(w, g2, acc[2], contrib);
-                    acc[3] = fm(w, g3, acc[3], contrib);
+                    if DEPTH {
+                        acc[3] = fm(w, g3, acc[3], contrib);
+                    }
                     let v0 = acc[slot::V0];
                     acc[slot::V0] = _mm256_blendv_ps(v0, _mm256_add_ps(v0, uu), m2);
                     acc[slot::VDX] = fm(uu, dx, acc[slot::VDX], m2);

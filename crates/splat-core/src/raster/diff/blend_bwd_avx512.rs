@@ -1,5 +1,5 @@
 //! The AVX-512 blend-backward kernel (`core::arch` intrinsics): the operations of the generic
-//! kernel (`blend_bwd::bwd_tile_impl::<true, _>`) in the same order per lane, so the same slot
+//! kernel (`blend_bwd::bwd_tile_impl::<true, _, _>`) in the same order per lane, so the same slot
 //! bits. One splat at a time: its per-lane terms and its 12 per-lane accumulators stay in
 //! registers while the 4x4-pixel blocks it reaches are replayed in block order (each block's
 //! transmittance and running colour are loaded and stored back); the 16-lane sums of the 12
@@ -15,6 +15,9 @@ use crate::raster::project::{Splat, ALPHA_THRESHOLD};
 
 #[cfg(target_arch = "x86_64")]
 use std::arch::x86_64::*;
+
+/// List entries whose reached blocks are found ahead of their replay, at a time.
+const REACH_CHUNK: usize = 16;
 
 /// Rows of 16 floats, 64-byte aligned.
 #[derive(Clone, Copy)]
@@ -82,10 +85,11 @@ fn hsum12(v: &[__m512; 12]) -> [f32; slot::LEN] {
 /// columns), then per reached block, in block order, the per-pixel backward step on the block's
 /// 16 lanes (a lane's row terms by a permute of the splat's 16-row vectors, taken once per band;
 /// its column terms by a 4-lane broadcast). The tile's transmittance and running colour are
-/// kept in block order, as `PixIn` is.
+/// kept in block order, as `PixIn` is. The reach tests run [`REACH_CHUNK`] entries ahead of
+/// the replay (the same masks, ANDed with the blocks still live when the entry is replayed).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
-pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
+pub(super) fn bwd_tile_avx512<'a, const ABS: bool, const DEPTH: bool, S: SlotSink>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -159,183 +163,222 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, S: SlotSink>(
     let q_ptr = pix.q.as_ptr() as *const f32;
     let mut evals = 0u64;
     let mut done = alive == 0;
+    // the blocks each splat reaches, found for REACH_CHUNK entries of the list ahead of their
+    // replay: a splat's reach test (its loads, square roots and hull, about 60 cycles of
+    // latency) then does not wait behind the replay of the splats before it in the
+    // out-of-order window, and its block loop starts on a known mask
+    let mut reach = [0u16; REACH_CHUNK];
     for list in lists {
-        for (k, &gi) in list.iter().enumerate() {
-            if done {
-                sink.zero(gi);
-                continue;
-            }
-            if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
-                prefetch(splats, ahead as usize);
-            }
-            let s = &splats[gi as usize];
-            let (mx, my) = (s.xy[0], s.xy[1]);
-            let [ca, cb, cc] = s.conic;
-            // the blocks it reaches: each row's contour range (the rows test of the generic
-            // kernel), the hull of the reached rows' ranges over each band of 4 rows (in every
-            // lane of the band), against each block's columns (lane 4 br + bc)
-            let range = row_mask(my, s.half_height, y0f) as u16;
-            let v_mx = _mm512_set1_ps(mx);
-            let dy = _mm512_sub_ps(_mm512_set1_ps(my), py);
-            let bdy = _mm512_mul_ps(_mm512_set1_ps(cb), dy);
-            let dy2 = _mm512_mul_ps(dy, dy);
-            let disc = _mm512_sub_ps(
-                _mm512_set1_ps(s.two_a_level),
-                _mm512_mul_ps(dy2, _mm512_set1_ps(s.conic_det)),
-            );
-            let ok = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(range, disc, zero);
-            let sq = _mm512_sqrt_ps(disc);
-            let inv_a = _mm512_set1_ps(s.inv_a);
-            let left = _mm512_sub_ps(v_mx, _mm512_mul_ps(_mm512_sub_ps(sq, bdy), inv_a));
-            let right = _mm512_add_ps(v_mx, _mm512_mul_ps(_mm512_add_ps(sq, bdy), inv_a));
-            let l = _mm512_mask_mov_ps(inf, ok, left);
-            let r = _mm512_mask_mov_ps(neg_inf, ok, right);
-            let l = _mm512_min_ps(l, _mm512_permute_ps::<0b10_11_00_01>(l));
-            let r = _mm512_max_ps(r, _mm512_permute_ps::<0b10_11_00_01>(r));
-            let l = _mm512_min_ps(l, _mm512_permute_ps::<0b01_00_11_10>(l));
-            let r = _mm512_max_ps(r, _mm512_permute_ps::<0b01_00_11_10>(r));
-            let blocks = _mm512_mask_cmp_ps_mask::<_CMP_LE_OQ>(alive, l, v_bxh);
-            let mut todo = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(blocks, r, v_bxl);
-            let cdy2 = _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(0.5 * cc), dy), dy);
-            let cdy = _mm512_mul_ps(_mm512_set1_ps(cc), dy);
-            // per-column terms
-            let dx = _mm512_sub_ps(v_mx, px);
-            let adx2 = _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(0.5 * ca), dx), dx);
-            let dx2 = _mm512_mul_ps(dx, dx);
-            // SAFETY: each row holds 16 aligned floats.
-            unsafe {
-                _mm512_store_ps(cterm[0].0.as_mut_ptr(), dx);
-                _mm512_store_ps(cterm[1].0.as_mut_ptr(), adx2);
-                _mm512_store_ps(cterm[2].0.as_mut_ptr(), dx2);
-                if ABS {
-                    _mm512_store_ps(
-                        cterm[3].0.as_mut_ptr(),
-                        _mm512_mul_ps(_mm512_set1_ps(ca), dx),
+        for (c, chunk) in list.chunks(REACH_CHUNK).enumerate() {
+            if !done {
+                for (j, (&gi, reached)) in chunk.iter().zip(reach.iter_mut()).enumerate() {
+                    if let Some(&ahead) = list.get(c * REACH_CHUNK + j + PREFETCH_AHEAD) {
+                        prefetch(splats, ahead as usize);
+                    }
+                    let s = &splats[gi as usize];
+                    let (mx, my) = (s.xy[0], s.xy[1]);
+                    let cb = s.conic[1];
+                    // the blocks it reaches: each row's contour range (the rows test of the
+                    // generic kernel), the hull of the reached rows' ranges over each band of 4
+                    // rows (in every lane of the band), against each block's columns (lane
+                    // 4 br + bc); the tile's live blocks are taken at its replay
+                    let range = row_mask(my, s.half_height, y0f) as u16;
+                    let v_mx = _mm512_set1_ps(mx);
+                    let dy = _mm512_sub_ps(_mm512_set1_ps(my), py);
+                    let bdy = _mm512_mul_ps(_mm512_set1_ps(cb), dy);
+                    let dy2 = _mm512_mul_ps(dy, dy);
+                    let disc = _mm512_sub_ps(
+                        _mm512_set1_ps(s.two_a_level),
+                        _mm512_mul_ps(dy2, _mm512_set1_ps(s.conic_det)),
                     );
-                    _mm512_store_ps(
-                        cterm[4].0.as_mut_ptr(),
-                        _mm512_mul_ps(_mm512_set1_ps(cb), dx),
-                    );
+                    let ok = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(range, disc, zero);
+                    let sq = _mm512_sqrt_ps(disc);
+                    let inv_a = _mm512_set1_ps(s.inv_a);
+                    let left = _mm512_sub_ps(v_mx, _mm512_mul_ps(_mm512_sub_ps(sq, bdy), inv_a));
+                    let right = _mm512_add_ps(v_mx, _mm512_mul_ps(_mm512_add_ps(sq, bdy), inv_a));
+                    let l = _mm512_mask_mov_ps(inf, ok, left);
+                    let r = _mm512_mask_mov_ps(neg_inf, ok, right);
+                    let l = _mm512_min_ps(l, _mm512_permute_ps::<0b10_11_00_01>(l));
+                    let r = _mm512_max_ps(r, _mm512_permute_ps::<0b10_11_00_01>(r));
+                    let l = _mm512_min_ps(l, _mm512_permute_ps::<0b01_00_11_10>(l));
+                    let r = _mm512_max_ps(r, _mm512_permute_ps::<0b01_00_11_10>(r));
+                    let blocks = _mm512_cmp_ps_mask::<_CMP_LE_OQ>(l, v_bxh);
+                    *reached = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(blocks, r, v_bxl);
                 }
             }
-            let ln_op = _mm512_set1_ps(s.ln_opacity);
-            let col = [s.rgb[0], s.rgb[1], s.rgb[2], s.depth].map(|v| _mm512_set1_ps(v));
-            let mut acc = [zero; slot::LEN];
-            // the row terms of the current band in block lanes
-            let mut band = usize::MAX;
-            let (mut b_bdy, mut b_cdy2, mut b_dy, mut b_dy2, mut b_cdy) =
-                (zero, zero, zero, zero, zero);
-            while todo != 0 {
-                let b = todo.trailing_zeros() as usize;
-                todo &= todo - 1;
-                evals += LANES as u64;
-                if b / 4 != band {
-                    band = b / 4;
-                    let idx = _mm512_add_epi32(quarter, _mm512_set1_epi32(4 * band as i32));
-                    b_bdy = _mm512_permutexvar_ps(idx, bdy);
-                    b_cdy2 = _mm512_permutexvar_ps(idx, cdy2);
-                    b_dy = _mm512_permutexvar_ps(idx, dy);
-                    b_dy2 = _mm512_permutexvar_ps(idx, dy2);
+            for (j, &gi) in chunk.iter().enumerate() {
+                if done {
+                    sink.zero(gi);
+                    continue;
+                }
+                let s = &splats[gi as usize];
+                let (mx, my) = (s.xy[0], s.xy[1]);
+                let [ca, cb, cc] = s.conic;
+                let v_mx = _mm512_set1_ps(mx);
+                let dy = _mm512_sub_ps(_mm512_set1_ps(my), py);
+                let dy2 = _mm512_mul_ps(dy, dy);
+                let bdy = _mm512_mul_ps(_mm512_set1_ps(cb), dy);
+                let mut todo = reach[j] & alive;
+                let cdy2 = _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(0.5 * cc), dy), dy);
+                let cdy = _mm512_mul_ps(_mm512_set1_ps(cc), dy);
+                // per-column terms
+                let dx = _mm512_sub_ps(v_mx, px);
+                let adx2 = _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(0.5 * ca), dx), dx);
+                let dx2 = _mm512_mul_ps(dx, dx);
+                // SAFETY: each row holds 16 aligned floats.
+                unsafe {
+                    _mm512_store_ps(cterm[0].0.as_mut_ptr(), dx);
+                    _mm512_store_ps(cterm[1].0.as_mut_ptr(), adx2);
+                    _mm512_store_ps(cterm[2].0.as_mut_ptr(), dx2);
                     if ABS {
-                        b_cdy = _mm512_permutexvar_ps(idx, cdy);
+                        _mm512_store_ps(
+                            cterm[3].0.as_mut_ptr(),
+                            _mm512_mul_ps(_mm512_set1_ps(ca), dx),
+                        );
+                        _mm512_store_ps(
+                            cterm[4].0.as_mut_ptr(),
+                            _mm512_mul_ps(_mm512_set1_ps(cb), dx),
+                        );
                     }
                 }
-                let c = 4 * (b % 4);
-                let o = b * LANES;
-                // SAFETY: b < 16, so o..o + 16 lies inside each 256-float array; c + 4 <= 16.
-                let (t, sr, g0, g1, g2, g3, q, dx, adx2, dx2) = unsafe {
-                    (
-                        _mm512_load_ps(t_ptr.add(o)),
-                        _mm512_load_ps(s_ptr.add(o)),
-                        _mm512_load_ps(g_ptr[0].add(o)),
-                        _mm512_load_ps(g_ptr[1].add(o)),
-                        _mm512_load_ps(g_ptr[2].add(o)),
-                        _mm512_load_ps(g_ptr[3].add(o)),
-                        _mm512_load_ps(q_ptr.add(o)),
-                        _mm512_broadcast_f32x4(_mm_load_ps(cterm[0].0.as_ptr().add(c))),
-                        _mm512_broadcast_f32x4(_mm_load_ps(cterm[1].0.as_ptr().add(c))),
-                        _mm512_broadcast_f32x4(_mm_load_ps(cterm[2].0.as_ptr().add(c))),
-                    )
-                };
-                let lv = live[b];
-                let sigma = _mm512_add_ps(_mm512_fmadd_ps(b_bdy, dx, adx2), b_cdy2);
-                // e = exp(ln_op - sigma), exactly as blend::opacity_exp::<true>
-                let sg = _mm512_castsi512_ps(_mm512_min_epu32(_mm512_castps_si512(sigma), clamp));
-                let u = _mm512_sub_ps(sg, ln_op);
-                let tk = _mm512_fnmadd_ps(u, k16, magic);
-                let kf = _mm512_sub_ps(tk, magic);
-                let rr = _mm512_fmadd_ps(kf, c_hi, u);
-                let rr = _mm512_fmadd_ps(kf, c_lo, rr);
-                let y = _mm512_fmadd_ps(rr, sixth, half);
-                let y = _mm512_fmadd_ps(y, rr, minus_one);
-                let y = _mm512_fmadd_ps(y, rr, one);
-                let ti = _mm512_castps_si512(tk);
-                let scale = _mm512_add_epi32(
-                    _mm512_permutexvar_epi32(ti, table),
-                    _mm512_slli_epi32::<23>(_mm512_srli_epi32::<4>(ti)),
-                );
-                let e = _mm512_mul_ps(y, _mm512_castsi512_ps(scale));
-                let alpha = _mm512_min_ps(e, max_alpha);
-                let valid = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(lv, alpha, thr);
-                let w = _mm512_mul_ps(alpha, t);
-                let tn = _mm512_sub_ps(t, w);
-                let contrib = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(valid, tn, t_min);
-                let m2 = _mm512_mask_cmp_ps_mask::<_CMP_LT_OQ>(contrib, e, max_alpha);
-                // dL/dalpha = (g . c) T - (Q - S) / (1 - alpha)
-                let gc = _mm512_mul_ps(g0, col[0]);
-                let gc = _mm512_fmadd_ps(g1, col[1], gc);
-                let gc = _mm512_fmadd_ps(g2, col[2], gc);
-                let gc = _mm512_fmadd_ps(g3, col[3], gc);
-                let s_new = _mm512_fmadd_ps(gc, w, sr);
-                let ra = _mm512_div_ps(one, _mm512_sub_ps(one, alpha));
-                let tq = _mm512_mul_ps(_mm512_sub_ps(q, s_new), ra);
-                let va = _mm512_fmsub_ps(gc, t, tq);
-                let uu = _mm512_mul_ps(e, va);
-                let dxdy = _mm512_mul_ps(dx, b_dy);
-                acc[0] = _mm512_mask3_fmadd_ps(w, g0, acc[0], contrib);
-                acc[1] = _mm512_mask3_fmadd_ps(w, g1, acc[1], contrib);
-                acc[2] = _mm512_mask3_fmadd_ps(w, g2, acc[2], contrib);
-                acc[3] = _mm512_mask3_fmadd_ps(w, g3, acc[3], contrib);
-                acc[slot::V0] = _mm512_mask_add_ps(acc[slot::V0], m2, acc[slot::V0], uu);
-                acc[slot::VDX] = _mm512_mask3_fmadd_ps(uu, dx, acc[slot::VDX], m2);
-                acc[slot::VDY] = _mm512_mask3_fmadd_ps(uu, b_dy, acc[slot::VDY], m2);
-                acc[slot::VDX2] = _mm512_mask3_fmadd_ps(uu, dx2, acc[slot::VDX2], m2);
-                acc[slot::VDXDY] = _mm512_mask3_fmadd_ps(uu, dxdy, acc[slot::VDXDY], m2);
-                acc[slot::VDY2] = _mm512_mask3_fmadd_ps(uu, b_dy2, acc[slot::VDY2], m2);
-                if ABS {
-                    // SAFETY: as above
-                    let (adx, bdx) = unsafe {
+                let ln_op = _mm512_set1_ps(s.ln_opacity);
+                let col = [s.rgb[0], s.rgb[1], s.rgb[2], s.depth].map(|v| _mm512_set1_ps(v));
+                let mut acc = [zero; slot::LEN];
+                // the row terms of the current band in block lanes
+                let mut band = usize::MAX;
+                let (mut b_bdy, mut b_cdy2, mut b_dy, mut b_dy2, mut b_cdy) =
+                    (zero, zero, zero, zero, zero);
+                while todo != 0 {
+                    let b = todo.trailing_zeros() as usize;
+                    todo &= todo - 1;
+                    evals += LANES as u64;
+                    if b / 4 != band {
+                        band = b / 4;
+                        let idx = _mm512_add_epi32(quarter, _mm512_set1_epi32(4 * band as i32));
+                        b_bdy = _mm512_permutexvar_ps(idx, bdy);
+                        b_cdy2 = _mm512_permutexvar_ps(idx, cdy2);
+                        b_dy = _mm512_permutexvar_ps(idx, dy);
+                        b_dy2 = _mm512_permutexvar_ps(idx, dy2);
+                        if ABS {
+                            b_cdy = _mm512_permutexvar_ps(idx, cdy);
+                        }
+                    }
+                    let c = 4 * (b % 4);
+                    let o = b * LANES;
+                    // SAFETY: b < 16, so o..o + 16 lies inside each 256-float array; c + 4 <= 16.
+                    let (t, sr, g0, g1, g2, g3, q, dx, adx2, dx2) = unsafe {
                         (
-                            _mm512_broadcast_f32x4(_mm_load_ps(cterm[3].0.as_ptr().add(c))),
-                            _mm512_broadcast_f32x4(_mm_load_ps(cterm[4].0.as_ptr().add(c))),
+                            _mm512_load_ps(t_ptr.add(o)),
+                            _mm512_load_ps(s_ptr.add(o)),
+                            _mm512_load_ps(g_ptr[0].add(o)),
+                            _mm512_load_ps(g_ptr[1].add(o)),
+                            _mm512_load_ps(g_ptr[2].add(o)),
+                            if DEPTH {
+                                _mm512_load_ps(g_ptr[3].add(o))
+                            } else {
+                                zero
+                            },
+                            _mm512_load_ps(q_ptr.add(o)),
+                            _mm512_broadcast_f32x4(_mm_load_ps(cterm[0].0.as_ptr().add(c))),
+                            _mm512_broadcast_f32x4(_mm_load_ps(cterm[1].0.as_ptr().add(c))),
+                            _mm512_broadcast_f32x4(_mm_load_ps(cterm[2].0.as_ptr().add(c))),
                         )
                     };
-                    let ax = _mm512_mul_ps(uu, _mm512_add_ps(adx, b_bdy));
-                    let ay = _mm512_mul_ps(uu, _mm512_add_ps(bdx, b_cdy));
-                    let ax =
-                        _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(ax), abs_mask));
-                    let ay =
-                        _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(ay), abs_mask));
-                    acc[slot::ABSX] = _mm512_mask_add_ps(acc[slot::ABSX], m2, acc[slot::ABSX], ax);
-                    acc[slot::ABSY] = _mm512_mask_add_ps(acc[slot::ABSY], m2, acc[slot::ABSY], ay);
-                }
-                // SAFETY: see above
-                unsafe {
-                    _mm512_store_ps(t_ptr.add(o), _mm512_mask_mov_ps(t, contrib, tn));
-                    _mm512_store_ps(s_ptr.add(o), _mm512_mask_mov_ps(sr, contrib, s_new));
-                }
-                // valid lanes that do not contribute stop
-                let lv = (lv & !valid) | contrib;
-                live[b] = lv;
-                if lv == 0 {
-                    alive &= !(1 << b);
-                    if alive == 0 {
-                        done = true;
-                        break;
+                    let lv = live[b];
+                    let sigma = _mm512_add_ps(_mm512_fmadd_ps(b_bdy, dx, adx2), b_cdy2);
+                    // e = exp(ln_op - sigma), exactly as blend::opacity_exp::<true>
+                    let sg =
+                        _mm512_castsi512_ps(_mm512_min_epu32(_mm512_castps_si512(sigma), clamp));
+                    let u = _mm512_sub_ps(sg, ln_op);
+                    let tk = _mm512_fnmadd_ps(u, k16, magic);
+                    let kf = _mm512_sub_ps(tk, magic);
+                    let rr = _mm512_fmadd_ps(kf, c_hi, u);
+                    let rr = _mm512_fmadd_ps(kf, c_lo, rr);
+                    let y = _mm512_fmadd_ps(rr, sixth, half);
+                    let y = _mm512_fmadd_ps(y, rr, minus_one);
+                    let y = _mm512_fmadd_ps(y, rr, one);
+                    let ti = _mm512_castps_si512(tk);
+                    let scale = _mm512_add_epi32(
+                        _mm512_permutexvar_epi32(ti, table),
+                        _mm512_slli_epi32::<23>(_mm512_srli_epi32::<4>(ti)),
+                    );
+                    let e = _mm512_mul_ps(y, _mm512_castsi512_ps(scale));
+                    let alpha = _mm512_min_ps(e, max_alpha);
+                    let valid = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(lv, alpha, thr);
+                    let w = _mm512_mul_ps(alpha, t);
+                    let tn = _mm512_sub_ps(t, w);
+                    let contrib = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(valid, tn, t_min);
+                    let m2 = _mm512_mask_cmp_ps_mask::<_CMP_LT_OQ>(contrib, e, max_alpha);
+                    // dL/dalpha = (g . c) T - (Q - S) / (1 - alpha)
+                    let gc = _mm512_mul_ps(g0, col[0]);
+                    let gc = _mm512_fmadd_ps(g1, col[1], gc);
+                    let gc = _mm512_fmadd_ps(g2, col[2], gc);
+                    // without a depth gradient (g3 = +0.0 everywhere) the depth channel's terms
+                    // are left out: they change no slot bit (see `bwd_tile`)
+                    let gc = if DEPTH {
+                        _mm512_fmadd_ps(g3, col[3], gc)
+                    } else {
+                        gc
+                    };
+                    let s_new = _mm512_fmadd_ps(gc, w, sr);
+                    let ra = _mm512_div_ps(one, _mm512_sub_ps(one, alpha));
+                    let tq = _mm512_mul_ps(_mm512_sub_ps(q, s_new), ra);
+                    let va = _mm512_fmsub_ps(gc, t, tq);
+                    let uu = _mm512_mul_ps(e, va);
+                    let dxdy = _mm512_mul_ps(dx, b_dy);
+                    acc[0] = _mm512_mask3_fmadd_ps(w, g0, acc[0], contrib);
+                    acc[1] = _mm512_mask3_fmadd_ps(w, g1, acc[1], contrib);
+                    acc[2] = _mm512_mask3_fmadd_ps(w, g2, acc[2], contrib);
+                    if DEPTH {
+                        acc[3] = _mm512_mask3_fmadd_ps(w, g3, acc[3], contrib);
+                    }
+                    acc[slot::V0] = _mm512_mask_add_ps(acc[slot::V0], m2, acc[slot::V0], uu);
+                    acc[slot::VDX] = _mm512_mask3_fmadd_ps(uu, dx, acc[slot::VDX], m2);
+                    acc[slot::VDY] = _mm512_mask3_fmadd_ps(uu, b_dy, acc[slot::VDY], m2);
+                    acc[slot::VDX2] = _mm512_mask3_fmadd_ps(uu, dx2, acc[slot::VDX2], m2);
+                    acc[slot::VDXDY] = _mm512_mask3_fmadd_ps(uu, dxdy, acc[slot::VDXDY], m2);
+                    acc[slot::VDY2] = _mm512_mask3_fmadd_ps(uu, b_dy2, acc[slot::VDY2], m2);
+                    if ABS {
+                        // SAFETY: as above
+                        let (adx, bdx) = unsafe {
+                            (
+                                _mm512_broadcast_f32x4(_mm_load_ps(cterm[3].0.as_ptr().add(c))),
+                                _mm512_broadcast_f32x4(_mm_load_ps(cterm[4].0.as_ptr().add(c))),
+                            )
+                        };
+                        let ax = _mm512_mul_ps(uu, _mm512_add_ps(adx, b_bdy));
+                        let ay = _mm512_mul_ps(uu, _mm512_add_ps(bdx, b_cdy));
+                        let ax = _mm512_castsi512_ps(_mm512_and_si512(
+                            _mm512_castps_si512(ax),
+                            abs_mask,
+                        ));
+                        let ay = _mm512_castsi512_ps(_mm512_and_si512(
+                            _mm512_castps_si512(ay),
+                            abs_mask,
+                        ));
+                        acc[slot::ABSX] =
+                            _mm512_mask_add_ps(acc[slot::ABSX], m2, acc[slot::ABSX], ax);
+                        acc[slot::ABSY] =
+                            _mm512_mask_add_ps(acc[slot::ABSY], m2, acc[slot::ABSY], ay);
+                    }
+                    // SAFETY: see above
+                    unsafe {
+                        _mm512_store_ps(t_ptr.add(o), _mm512_mask_mov_ps(t, contrib, tn));
+                        _mm512_store_ps(s_ptr.add(o), _mm512_mask_mov_ps(sr, contrib, s_new));
+                    }
+                    // valid lanes that do not contribute stop
+                    let lv = (lv & !valid) | contrib;
+                    live[b] = lv;
+                    if lv == 0 {
+                        alive &= !(1 << b);
+                        if alive == 0 {
+                            done = true;
+                            break;
+                        }
                     }
                 }
+                sink.put(gi, &hsum12(&acc));
             }
-            sink.put(gi, &hsum12(&acc));
         }
     }
     evals

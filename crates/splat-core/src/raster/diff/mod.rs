@@ -893,6 +893,7 @@ impl Workspace {
                     &pix,
                     &mut out,
                     sv.opts.absgrad,
+                    grads.depth.is_some(),
                 );
                 out.finish();
                 (evals, bg)

@@ -298,9 +298,9 @@ fn explicit_kernels_give_the_generic_kernels_slots_tile_by_tile() {
             macro_rules! call {
                 ($($f:ident)::+, $out:expr) => {
                     if abs {
-                        $($f)::+::<true, _>(x0 as u32, y0 as u32, &sv.blend, &ws.sorted, lists(), &pix, $out)
+                        $($f)::+::<true, true, _>(x0 as u32, y0 as u32, &sv.blend, &ws.sorted, lists(), &pix, $out)
                     } else {
-                        $($f)::+::<false, _>(x0 as u32, y0 as u32, &sv.blend, &ws.sorted, lists(), &pix, $out)
+                        $($f)::+::<false, true, _>(x0 as u32, y0 as u32, &sv.blend, &ws.sorted, lists(), &pix, $out)
                     }
                 };
             }
@@ -992,4 +992,100 @@ fn skipping_the_background_gradient_leaves_every_other_gradient_bit() {
     assert_eq!(with, without);
     assert!(bg.iter().any(|&v| v != 0.0));
     assert_eq!(none, [0.0; 3]);
+}
+
+/// Without a depth-image gradient the band loop runs the kernels without the depth channel
+/// (`bwd_tile`'s `depth` false): every kernel (AVX-512, AVX2, plain) must emit the slots of its
+/// full version bit for bit, tile by tile, for expected and accumulated depth, absgrad on and
+/// off. Pixels whose rgb and alpha gradients are -0.0 give g . c = -0.0 without the depth term
+/// and +0.0 with it (then -0.0 or +0.0 in dL/dalpha), which the sums must absorb. With a depth
+/// gradient the two versions differ (the channel is really left out).
+#[test]
+fn kernels_without_the_depth_channel_give_the_same_slots() {
+    let s = scene(6000, 1, 77);
+    let cam = camera(90, 60);
+    let (mut r, d, mut a) = image_grads(&cam, 5);
+    for p in (0..a.len()).step_by(5) {
+        r[3 * p..3 * p + 3].fill(-0.0);
+        a[p] = -0.0;
+    }
+    let mut checked = 0;
+    for simd in [Simd::Avx512, Simd::Avx2, Simd::Scalar] {
+        if simd.resolve() != simd {
+            continue;
+        }
+        for (depth, absgrad) in [
+            (DepthKind::Expected, false),
+            (DepthKind::Accumulated, true),
+            (DepthKind::Expected, true),
+        ] {
+            let opts = DiffOptions {
+                render: RenderOptions {
+                    simd,
+                    background: [0.2, 0.5, 0.9],
+                    ..Default::default()
+                },
+                depth,
+                absgrad,
+                ..Default::default()
+            };
+            let mut ws = Workspace::default();
+            forward(&mut ws, &s, &cam, &opts);
+            let sv = ws.saved.expect("saved");
+            let tiles_x = ws.bins.tiles_x as usize;
+            let (mut nonzero, mut differ) = (0, 0);
+            for with_depth_grad in [false, true] {
+                let grads = ImageGrads {
+                    rgb: Some(&r),
+                    depth: with_depth_grad.then_some(&d[..]),
+                    alpha: Some(&a),
+                    skip_background: false,
+                };
+                for t in 0..ws.tiles.len() {
+                    let (x0, y0) = ((t % tiles_x) * LANES, (t / tiles_x) * LANES);
+                    let mut pix = blend_bwd::PixIn::default();
+                    blend_bwd::tile_inputs(
+                        x0,
+                        y0,
+                        cam.width as usize,
+                        cam.height as usize,
+                        &ws.tiles[t],
+                        &grads,
+                        sv.blend.background,
+                        depth == DepthKind::Expected,
+                        true,
+                        sv.blend.simd,
+                        &mut pix,
+                    );
+                    let run = |channel: bool| {
+                        let mut o = VecSink::default();
+                        let (x, y) = (x0 as u32, y0 as u32);
+                        let lists = ws.bins.lists(t);
+                        let e = blend_bwd::bwd_tile(
+                            x, y, &sv.blend, &ws.sorted, lists, &pix, &mut o, absgrad, channel,
+                        );
+                        (o.0, e)
+                    };
+                    let (full, e_full) = run(true);
+                    let (without, e_without) = run(false);
+                    assert_eq!(e_full, e_without, "{} tile {t}", simd.name());
+                    if with_depth_grad {
+                        differ += (full != without) as usize;
+                        continue;
+                    }
+                    assert_eq!(full, without, "{} {depth:?} tile {t}", simd.name());
+                    nonzero += full
+                        .iter()
+                        .filter(|(_, v)| v.is_some_and(|v| v.iter().any(|&b| b != 0)))
+                        .count();
+                    checked += 1;
+                }
+            }
+            assert!(
+                nonzero > 1000 && differ > 5,
+                "{nonzero} slots, {differ} tiles differ"
+            );
+        }
+    }
+    assert!(checked >= 24 * 3, "{checked} tiles");
 }
