@@ -147,7 +147,6 @@ pub struct Trainer {
     /// The SH degree of the last backward into `grads` (None before the first).
     grads_degree: Option<u8>,
     rgb: Vec<f32>,
-    depth: Vec<f32>,
     alpha: Vec<f32>,
     target: Vec<f32>,
     v_rgb: Vec<f32>,
@@ -247,7 +246,6 @@ impl Trainer {
             grads: Gradients::default(),
             grads_degree: None,
             rgb: Vec::new(),
-            depth: Vec::new(),
             alpha: Vec::new(),
             target: Vec::new(),
             v_rgb: Vec::new(),
@@ -330,7 +328,8 @@ impl Trainer {
             matches!(&self.cfg.strategy, Strategy::Default(d) if d.absgrad && s < d.refine_stop);
         let opts = DiffOptions {
             render: ropts,
-            depth: DepthKind::Expected,
+            // the fit has no depth loss: its forward sums no depth
+            depth: DepthKind::None,
             absgrad,
             ..DiffOptions::default()
         };
@@ -339,7 +338,6 @@ impl Trainer {
         let npix = w * h;
         for (b, len) in [
             (&mut self.rgb, npix * 3),
-            (&mut self.depth, npix),
             (&mut self.alpha, npix),
             (&mut self.target, npix * 3),
             (&mut self.v_rgb, npix * 3),
@@ -352,7 +350,7 @@ impl Trainer {
             &opts,
             None,
             &mut self.rgb,
-            &mut self.depth,
+            &mut [],
             &mut self.alpha,
         )?;
         let t1 = Instant::now();
