@@ -655,7 +655,15 @@ fn blend_frame_impl(
             unsafe { out.tile(x0, y0, None, p.background) };
             return Counts::default();
         }
-        let evals = blend_tile(x0 as u32, y0 as u32, p, sorted, bins.lists(t), buf, with_depth);
+        let evals = blend_tile(
+            x0 as u32,
+            y0 as u32,
+            p,
+            sorted,
+            bins.lists(t),
+            buf,
+            with_depth,
+        );
         // SAFETY: as above
         unsafe { out.tile(x0, y0, Some(buf), p.background) };
         evals

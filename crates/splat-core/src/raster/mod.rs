@@ -762,8 +762,7 @@ mod tests {
                 };
                 let (mut with, mut without) = (stale(), stale());
                 let e1 = blend::blend_tile(x0, y0, &p, &sorted, bins.lists(t), &mut with, true);
-                let e0 =
-                    blend::blend_tile(x0, y0, &p, &sorted, bins.lists(t), &mut without, false);
+                let e0 = blend::blend_tile(x0, y0, &p, &sorted, bins.lists(t), &mut without, false);
                 assert_eq!(e0, e1, "{simd:?} tile {t}");
                 let bits = |o: &blend::TileOut| {
                     let mut v: Vec<u32> = o.t.iter().flatten().map(|x| x.abs().to_bits()).collect();
