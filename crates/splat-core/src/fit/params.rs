@@ -197,9 +197,13 @@ impl Params {
     /// One Adam step of every array with gradients `grads` (same layout as the values),
     /// learning rates `lrs`, step count `t` (1 for the first step). SH bands above
     /// `active_degree` are skipped (their update is exactly zero, see the module docs).
+    ///
+    /// Each gradient value the step reads is zeroed in the same pass (the active prefix of
+    /// every row; the skipped bands are left as they are), so the next backward, which adds
+    /// into the gradients, needs no separate clear of these arrays.
     pub fn adam_step(
         &mut self,
-        grads: [&[f32]; GROUPS],
+        grads: [&mut [f32]; GROUPS],
         lrs: [f32; GROUPS],
         t: u64,
         adam: &AdamParams,
@@ -209,9 +213,8 @@ impl Params {
         let bc1 = 1.0 - (b1 as f64).powf(t as f64);
         let bc2_sqrt = (1.0 - (b2 as f64).powf(t as f64)).sqrt() as f32;
         let active_rest = sh_rest_count(active_degree.min(self.sh_degree)) * 3;
-        for (k, g) in self.groups.iter_mut().enumerate() {
+        for ((k, g), grad) in self.groups.iter_mut().enumerate().zip(grads) {
             let step_size = (lrs[k] as f64 / bc1) as f32;
-            let grad = grads[k];
             let width = g.width;
             // the active prefix of each row (all of it but for sh_rest)
             let active = if k == SH_REST { active_rest } else { width };
@@ -237,7 +240,7 @@ impl Params {
                 .par_chunks_mut(chunk)
                 .zip(g.m.par_chunks_mut(chunk))
                 .zip(g.v.par_chunks_mut(chunk))
-                .zip(grad.par_chunks(chunk))
+                .zip(grad.par_chunks_mut(chunk))
                 .for_each(|(((p, m), v), gr)| k.run(level, p, m, v, gr));
         }
     }
@@ -257,9 +260,10 @@ struct AdamStep {
 
 impl AdamStep {
     #[inline(always)]
-    fn update(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
+    fn update(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &mut [f32]) {
         let (b1, b2) = (self.b1, self.b2);
-        for (((p, m), v), &gr) in p.iter_mut().zip(m).zip(v).zip(g) {
+        for (((p, m), v), g) in p.iter_mut().zip(m).zip(v).zip(g) {
+            let gr = std::mem::take(g);
             *m = b1 * *m + (1.0 - b1) * gr;
             *v = b2 * *v + (1.0 - b2) * gr * gr;
             let denom = v.sqrt() / self.bc2_sqrt + self.eps;
@@ -268,7 +272,7 @@ impl AdamStep {
     }
 
     #[inline(always)]
-    fn chunk(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
+    fn chunk(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &mut [f32]) {
         if self.active == self.width {
             self.update(p, m, v, g);
         } else {
@@ -277,28 +281,28 @@ impl AdamStep {
                 .chunks_mut(w)
                 .zip(m.chunks_mut(w))
                 .zip(v.chunks_mut(w))
-                .zip(g.chunks(w))
+                .zip(g.chunks_mut(w))
             {
-                self.update(&mut p[..a], &mut m[..a], &mut v[..a], &g[..a]);
+                self.update(&mut p[..a], &mut m[..a], &mut v[..a], &mut g[..a]);
             }
         }
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
-    unsafe fn chunk_avx512(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
+    unsafe fn chunk_avx512(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &mut [f32]) {
         self.chunk(p, m, v, g)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
-    unsafe fn chunk_avx2(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
+    unsafe fn chunk_avx2(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &mut [f32]) {
         self.chunk(p, m, v, g)
     }
 
     /// The update with the widest kernel the CPU has (plain multiplies, adds, divides and
     /// square roots, no FMA contraction: every kernel gives the same bits).
-    fn run(&self, level: Simd, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
+    fn run(&self, level: Simd, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &mut [f32]) {
         match level {
             // SAFETY: `Simd::resolve` checked the CPU has these features.
             #[cfg(target_arch = "x86_64")]
@@ -330,11 +334,17 @@ mod tests {
         let n = p.groups[MEANS].value.len();
         let g: Vec<f32> = (0..n).map(|i| 0.1 * (i as f32 - 2.0)).collect();
         let empty = |k: usize| vec![0.0f32; p.groups[k].value.len()];
-        let (z1, z2, z3, z4, z5) = (empty(1), empty(2), empty(3), empty(4), empty(5));
+        let (mut z1, mut z2, mut z3, mut z4, mut z5) =
+            (empty(1), empty(2), empty(3), empty(4), empty(5));
         let before = p.groups[MEANS].value.clone();
         let adam = AdamParams::default();
         for t in 1..=3u64 {
-            p.adam_step([&g, &z1, &z2, &z3, &z4, &z5], [0.01; GROUPS], t, &adam, 1);
+            let mut gt = g.clone();
+            let zs = [&mut z1, &mut z2, &mut z3, &mut z4, &mut z5];
+            let [a, b, c, d, e] = zs.map(|z| &mut z[..]);
+            p.adam_step([&mut gt, a, b, c, d, e], [0.01; GROUPS], t, &adam, 1);
+            // the step zeroes the gradients it read
+            assert!(gt.iter().all(|&v| v.to_bits() == 0));
         }
         // reference in f64: with a constant gradient m_hat = g and v_hat = g^2 exactly, so each
         // step moves by lr * sign(g) (up to eps)

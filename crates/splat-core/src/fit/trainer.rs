@@ -146,8 +146,10 @@ pub struct Trainer {
     grads: Gradients,
     /// The SH degree of the last backward into `grads` (None before the first).
     grads_degree: Option<u8>,
+    /// Adam zeroed the gradients it read after the last backward (every array but the
+    /// activated `scales` and `opacities`, which only the backward writes).
+    adam_cleared: bool,
     rgb: Vec<f32>,
-    depth: Vec<f32>,
     alpha: Vec<f32>,
     target: Vec<f32>,
     v_rgb: Vec<f32>,
@@ -246,8 +248,8 @@ impl Trainer {
             loss,
             grads: Gradients::default(),
             grads_degree: None,
+            adam_cleared: false,
             rgb: Vec::new(),
-            depth: Vec::new(),
             alpha: Vec::new(),
             target: Vec::new(),
             v_rgb: Vec::new(),
@@ -330,7 +332,8 @@ impl Trainer {
             matches!(&self.cfg.strategy, Strategy::Default(d) if d.absgrad && s < d.refine_stop);
         let opts = DiffOptions {
             render: ropts,
-            depth: DepthKind::Expected,
+            // the fit has no depth loss: its forward sums no depth
+            depth: DepthKind::None,
             absgrad,
             ..DiffOptions::default()
         };
@@ -339,7 +342,6 @@ impl Trainer {
         let npix = w * h;
         for (b, len) in [
             (&mut self.rgb, npix * 3),
-            (&mut self.depth, npix),
             (&mut self.alpha, npix),
             (&mut self.target, npix * 3),
             (&mut self.v_rgb, npix * 3),
@@ -352,7 +354,7 @@ impl Trainer {
             &opts,
             None,
             &mut self.rgb,
-            &mut self.depth,
+            &mut [],
             &mut self.alpha,
         )?;
         let t1 = Instant::now();
@@ -382,8 +384,18 @@ impl Trainer {
         let n = self.params.len();
         // the last step's backward wrote SH bands up to its degree only
         let written = self.grads_degree.replace(degree);
-        self.grads
-            .reset_since(n, self.params.view().sh_rest_k(), false, written);
+        let k = self.params.view().sh_rest_k();
+        let g = &mut self.grads;
+        let same = g.means.len() == n * 3 && g.sh_rest.len() == n * k * 3 && g.colors.is_empty();
+        if std::mem::take(&mut self.adam_cleared) && same {
+            // Adam zeroed what it read (in its pass: no separate clear of those arrays); the
+            // activated gradients it does not read are cleared here
+            for v in [&mut g.scales, &mut g.opacities] {
+                v.par_chunks_mut(1 << 16).for_each(|c| c.fill(0.0));
+            }
+        } else {
+            g.reset_since(n, k, false, written);
+        }
         let densify = match &self.cfg.strategy {
             Strategy::Default(d) if s < d.refine_stop => Some(&mut self.stats),
             _ => None,
@@ -408,17 +420,18 @@ impl Trainer {
                 mcmc::add_regularisers(m, &self.params, &mut g.opacity_logits, &mut g.log_scales);
         }
         let t3 = Instant::now();
-        let g = &self.grads;
-        let grads: [&[f32]; GROUPS] = [
-            &g.means,
-            &g.quats,
-            &g.log_scales,
-            &g.opacity_logits,
-            &g.sh0,
-            &g.sh_rest,
+        let g = &mut self.grads;
+        let grads: [&mut [f32]; GROUPS] = [
+            &mut g.means,
+            &mut g.quats,
+            &mut g.log_scales,
+            &mut g.opacity_logits,
+            &mut g.sh0,
+            &mut g.sh_rest,
         ];
         self.params
             .adam_step(grads, self.cfg.lrs(s), s as u64 + 1, &self.cfg.adam, degree);
+        self.adam_cleared = true;
         let t4 = Instant::now();
         let refine = match &self.cfg.strategy {
             Strategy::Default(d) => densify::post_step(

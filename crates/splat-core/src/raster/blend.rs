@@ -16,7 +16,8 @@ use super::Simd;
 pub(super) const LANES: usize = TILE as usize;
 pub(super) const T_MIN: f32 = 1e-4;
 
-/// Output of one tile: transmittance, colour and depth sums per pixel.
+/// Output of one tile: transmittance, colour and depth sums per pixel (the depth sums are
+/// left as they were by a blend without depth, [`DepthOut::Skip`]).
 #[derive(Clone)]
 #[repr(C, align(64))]
 pub(crate) struct TileOut {
@@ -122,6 +123,19 @@ pub(super) const EXP_K16: f32 = 16.0 * std::f32::consts::LOG2_E;
 pub(super) const EXP_C_HI: f32 = 0.693_359_4 / 16.0; // 0.693359375 exactly
 pub(super) const EXP_C_LO: f32 = -2.121_944_4e-4 / 16.0;
 
+/// Which depth a frame's blend writes (and so whether its kernels sum depth at all).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum DepthOut {
+    /// D / max(1 - T, 1e-10): the expected camera z.
+    Expected,
+    /// D = sum of w_i z_i.
+    Accumulated,
+    /// No depth: the kernels skip the depth sums (leaving [`TileOut::d`] as it was) and the
+    /// depth image is not written (the fit's forward, which has no depth loss). The colour
+    /// and transmittance bits are those of a blend with depth.
+    Skip,
+}
+
 /// Unclamped alpha = exp(ln_op - sigma) = opacity e^-sigma (relative error about 1.5e-7), the
 /// same formula as the explicit SIMD kernels (which are checked to give the same bits).
 ///
@@ -226,8 +240,9 @@ pub(super) fn prefetch(splats: &[Splat], i: usize) {
 
 /// Blend one tile's list into `out` (which starts as `TileOut::default()`); returns the
 /// Gaussian-pixel evaluations (16 per row evaluated) and the useful ones among them.
+/// `DEPTH` false skips the depth sums (`out.d` is left as it was).
 #[inline(always)]
-fn blend_tile_impl<'a, const FMA: bool, const COUNT: bool>(
+fn blend_tile_impl<'a, const FMA: bool, const COUNT: bool, const DEPTH: bool>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -235,6 +250,11 @@ fn blend_tile_impl<'a, const FMA: bool, const COUNT: bool>(
     lists: impl Iterator<Item = &'a [u32]>,
     out: &mut TileOut,
 ) -> Counts {
+    out.t = [[1.0; LANES]; LANES];
+    out.c = [[[0.0; LANES]; LANES]; 3];
+    if DEPTH {
+        out.d = [[0.0; LANES]; LANES];
+    }
     let mut px = [0.0f32; LANES];
     for (l, v) in px.iter_mut().enumerate() {
         *v = (x0 + l as u32) as f32 + 0.5;
@@ -318,7 +338,9 @@ fn blend_tile_impl<'a, const FMA: bool, const COUNT: bool>(
                     out.c[0][r][l] = fmadd::<FMA>(w, cr, out.c[0][r][l]);
                     out.c[1][r][l] = fmadd::<FMA>(w, cg, out.c[1][r][l]);
                     out.c[2][r][l] = fmadd::<FMA>(w, cbl, out.c[2][r][l]);
-                    out.d[r][l] = fmadd::<FMA>(w, z, out.d[r][l]);
+                    if DEPTH {
+                        out.d[r][l] = fmadd::<FMA>(w, z, out.d[r][l]);
+                    }
                     let tt = select(contrib, tn, select(valid, -t, t));
                     trow[l] = tt;
                 }
@@ -352,10 +374,10 @@ pub(super) fn blend_tile_generic_fma<'a>(
     lists: impl Iterator<Item = &'a [u32]>,
     out: &mut TileOut,
 ) -> Counts {
-    blend_tile_impl::<true, true>(x0, y0, p, splats, lists, out)
+    blend_tile_impl::<true, true, true>(x0, y0, p, splats, lists, out)
 }
 
-fn blend_tile_scalar<'a, const COUNT: bool>(
+fn blend_tile_scalar<'a, const COUNT: bool, const DEPTH: bool>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -363,9 +385,12 @@ fn blend_tile_scalar<'a, const COUNT: bool>(
     lists: impl Iterator<Item = &'a [u32]>,
     out: &mut TileOut,
 ) -> Counts {
-    blend_tile_impl::<false, COUNT>(x0, y0, p, splats, lists, out)
+    blend_tile_impl::<false, COUNT, DEPTH>(x0, y0, p, splats, lists, out)
 }
 
+/// Blend one tile's list into `out`, whose previous contents do not matter: every kernel
+/// starts from T = 1 and zero sums itself (the depth sums only when `depth`; without it they
+/// are left as they were).
 pub(crate) fn blend_tile<'a>(
     x0: u32,
     y0: u32,
@@ -373,18 +398,21 @@ pub(crate) fn blend_tile<'a>(
     splats: &[Splat],
     lists: impl Iterator<Item = &'a [u32]>,
     out: &mut TileOut,
+    depth: bool,
 ) -> Counts {
-    if p.count_useful {
-        blend_tile_counting::<true>(x0, y0, p, splats, lists, out)
-    } else {
-        blend_tile_counting::<false>(x0, y0, p, splats, lists, out)
+    match (p.count_useful, depth) {
+        (true, true) => blend_tile_counting::<true, true>(x0, y0, p, splats, lists, out),
+        (true, false) => blend_tile_counting::<true, false>(x0, y0, p, splats, lists, out),
+        (false, true) => blend_tile_counting::<false, true>(x0, y0, p, splats, lists, out),
+        (false, false) => blend_tile_counting::<false, false>(x0, y0, p, splats, lists, out),
     }
 }
 
 /// [`blend_tile`] with the useful evaluations counted (`COUNT`) or not (0): counting costs the
-/// AVX-512 kernel about 15% of its time, so only benchmarks ask for it.
+/// AVX-512 kernel about 15% of its time, so only benchmarks ask for it. `DEPTH` false skips
+/// the depth sums.
 #[inline(always)]
-fn blend_tile_counting<'a, const COUNT: bool>(
+fn blend_tile_counting<'a, const COUNT: bool, const DEPTH: bool>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -396,14 +424,14 @@ fn blend_tile_counting<'a, const COUNT: bool>(
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `Simd::resolve` only yields Avx512 when the CPU reports these features.
         Simd::Avx512 => unsafe {
-            super::blend_avx512::blend_tile_avx512::<COUNT>(x0, y0, p, splats, lists, out)
+            super::blend_avx512::blend_tile_avx512::<COUNT, DEPTH>(x0, y0, p, splats, lists, out)
         },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `Simd::resolve` only yields Avx2 when the CPU reports AVX2 and FMA.
         Simd::Avx2 => unsafe {
-            super::blend_avx2::blend_tile_avx2::<COUNT>(x0, y0, p, splats, lists, out)
+            super::blend_avx2::blend_tile_avx2::<COUNT, DEPTH>(x0, y0, p, splats, lists, out)
         },
-        _ => blend_tile_scalar::<COUNT>(x0, y0, p, splats, lists, out),
+        _ => blend_tile_scalar::<COUNT, DEPTH>(x0, y0, p, splats, lists, out),
     }
 }
 
@@ -500,8 +528,8 @@ struct FrameOut {
     alpha: *mut f32,
     width: usize,
     height: usize,
-    /// Write the expected depth D / max(1 - T, 1e-10), else the accumulated depth D.
-    expected_depth: bool,
+    /// Which depth to write (none: `depth` is not touched and may be empty).
+    depth_out: DepthOut,
 }
 
 // SAFETY: the pointers come from three `&mut [f32]` borrowed for the whole parallel pass, and
@@ -511,7 +539,8 @@ unsafe impl Sync for FrameOut {}
 impl FrameOut {
     /// Write the final colour, depth and alpha of the tile at (x0, y0): colour plus the
     /// background seen through the remaining transmittance, alpha = 1 - T, expected depth.
-    /// `tile` None means no Gaussian touches it (background, zero alpha and depth).
+    /// `tile` None means no Gaussian touches it (background, zero alpha and depth). Without
+    /// depth ([`DepthOut::Skip`]) the depth image is left as it is.
     ///
     /// # Safety
     /// Each tile must be written by one call only, while no other access to the buffers runs.
@@ -520,18 +549,22 @@ impl FrameOut {
         for r in 0..LANES.min(self.height - y0) {
             let i = (y0 + r) * self.width + x0;
             // SAFETY: pixels i..i + cols lie in row y0 + r of the image, inside this tile.
-            let (rgb, depth, alpha) = unsafe {
+            let (rgb, alpha) = unsafe {
                 (
                     std::slice::from_raw_parts_mut(self.rgb.add(i * 3), cols * 3),
-                    std::slice::from_raw_parts_mut(self.depth.add(i), cols),
                     std::slice::from_raw_parts_mut(self.alpha.add(i), cols),
                 )
             };
+            // SAFETY: as above; the depth image is only there when it is written.
+            let depth = (self.depth_out != DepthOut::Skip)
+                .then(|| unsafe { std::slice::from_raw_parts_mut(self.depth.add(i), cols) });
             let Some(tile) = tile else {
                 for px in rgb.chunks_exact_mut(3) {
                     px.copy_from_slice(&bg);
                 }
-                depth.fill(0.0);
+                if let Some(depth) = depth {
+                    depth.fill(0.0);
+                }
                 alpha.fill(0.0);
                 continue;
             };
@@ -540,13 +573,16 @@ impl FrameOut {
                 for ch in 0..3 {
                     rgb[l * 3 + ch] = tile.c[ch][r][l] + t * bg[ch];
                 }
-                let a = 1.0 - t;
-                alpha[l] = a;
-                depth[l] = if self.expected_depth {
-                    tile.d[r][l] / a.max(1e-10)
-                } else {
-                    tile.d[r][l]
-                };
+                alpha[l] = 1.0 - t;
+            }
+            match depth {
+                Some(depth) if self.depth_out == DepthOut::Expected => {
+                    for l in 0..cols {
+                        depth[l] = tile.d[r][l] / alpha[l].max(1e-10);
+                    }
+                }
+                Some(depth) => depth.copy_from_slice(&tile.d[r][..cols]),
+                None => {}
             }
         }
     }
@@ -562,12 +598,12 @@ pub(crate) fn blend_frame(
     depth: &mut [f32],
     alpha: &mut [f32],
 ) -> Counts {
-    blend_frame_impl(sorted, bins, p, rgb, depth, alpha, None, true)
+    blend_frame_impl(sorted, bins, p, rgb, depth, alpha, None, DepthOut::Expected)
 }
 
 /// [`blend_frame`] keeping every tile's final state (transmittance and colour and depth sums
-/// per pixel, `saved[t]` for tile t) for the backward pass; `expected_depth` false writes the
-/// accumulated depth instead of the expected one.
+/// per pixel, `saved[t]` for tile t) for the backward pass; `depth_out` picks the depth
+/// written (with [`DepthOut::Skip`] `depth` may be empty and the saved depth sums are stale).
 pub(crate) fn blend_frame_saving(
     sorted: &[Splat],
     bins: &TileBins,
@@ -576,18 +612,9 @@ pub(crate) fn blend_frame_saving(
     depth: &mut [f32],
     alpha: &mut [f32],
     saved: &mut [TileOut],
-    expected_depth: bool,
+    depth_out: DepthOut,
 ) -> Counts {
-    blend_frame_impl(
-        sorted,
-        bins,
-        p,
-        rgb,
-        depth,
-        alpha,
-        Some(saved),
-        expected_depth,
-    )
+    blend_frame_impl(sorted, bins, p, rgb, depth, alpha, Some(saved), depth_out)
 }
 
 fn blend_frame_impl(
@@ -598,11 +625,13 @@ fn blend_frame_impl(
     depth: &mut [f32],
     alpha: &mut [f32],
     saved: Option<&mut [TileOut]>,
-    expected_depth: bool,
+    depth_out: DepthOut,
 ) -> Counts {
     let (tiles_x, tiles_y) = (bins.tiles_x as usize, bins.tiles_y as usize);
     let (width, height) = (p.width as usize, p.height as usize);
-    assert!(rgb.len() == width * height * 3 && depth.len() == width * height);
+    let with_depth = depth_out != DepthOut::Skip;
+    assert!(rgb.len() == width * height * 3);
+    assert!(depth.len() == width * height || (!with_depth && depth.is_empty()));
     assert!(alpha.len() == width * height && tiles_x * LANES >= width);
     assert!(tiles_y * LANES >= height);
     let out = FrameOut {
@@ -611,32 +640,30 @@ fn blend_frame_impl(
         alpha: alpha.as_mut_ptr(),
         width,
         height,
-        expected_depth,
+        depth_out,
     };
     // each tile blends into its own buffer and writes its pixels of the image; a tile no
     // Gaussian touches gets the background (and its saved state the default: T = 1, no colour)
-    let tile = |t: usize, buf: Option<&mut TileOut>| {
+    // (the kernels set the tile's starting state themselves: no clearing of `buf` first)
+    let tile = |t: usize, buf: &mut TileOut, saving: bool| {
         let (x0, y0) = ((t % tiles_x) * LANES, (t / tiles_x) * LANES);
         if bins.lists(t).all(|l| l.is_empty()) {
-            if let Some(buf) = buf {
+            if saving {
                 *buf = TileOut::default();
             }
             // SAFETY: tile t is written by this task only (see `FrameOut`).
             unsafe { out.tile(x0, y0, None, p.background) };
             return Counts::default();
         }
-        let mut local;
-        let buf = match buf {
-            Some(b) => {
-                *b = TileOut::default();
-                b
-            }
-            None => {
-                local = TileOut::default();
-                &mut local
-            }
-        };
-        let evals = blend_tile(x0 as u32, y0 as u32, p, sorted, bins.lists(t), buf);
+        let evals = blend_tile(
+            x0 as u32,
+            y0 as u32,
+            p,
+            sorted,
+            bins.lists(t),
+            buf,
+            with_depth,
+        );
         // SAFETY: as above
         unsafe { out.tile(x0, y0, Some(buf), p.background) };
         evals
@@ -647,12 +674,13 @@ fn blend_frame_impl(
             saved
                 .par_iter_mut()
                 .enumerate()
-                .map(|(t, buf)| tile(t, Some(buf)))
+                .map(|(t, buf)| tile(t, buf, true))
                 .sum()
         }
+        // one scratch tile per rayon task, not one per tile
         None => (0..tiles_x * tiles_y)
             .into_par_iter()
-            .map(|t| tile(t, None))
+            .map_init(TileOut::default, |buf, t| tile(t, buf, false))
             .sum(),
     }
 }

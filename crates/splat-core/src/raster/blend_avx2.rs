@@ -9,15 +9,18 @@ use super::blend::{
     EXP_MAGIC, LANES, PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
 };
 use super::project::{Splat, ALPHA_THRESHOLD};
+use std::mem::MaybeUninit;
+use std::ptr::addr_of_mut;
 
 /// Lanes of one AVX2 vector: a row is two halves.
 const HALF: usize = 8;
 
 /// Blend one tile with AVX2 and FMA; returns the number of Gaussian-pixel evaluations (8 per
-/// half row evaluated while the half has live pixels).
+/// half row evaluated while the half has live pixels). `out` is reset first (T = 1, zero
+/// sums); `DEPTH` false skips the depth sums and leaves `out.d` as it was.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
+pub(super) fn blend_tile_avx2<'a, const COUNT: bool, const DEPTH: bool>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -27,6 +30,11 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
 ) -> Counts {
     use std::arch::x86_64::*;
 
+    out.t = [[1.0; LANES]; LANES];
+    out.c = [[[0.0; LANES]; LANES]; 3];
+    if DEPTH {
+        out.d = [[0.0; LANES]; LANES];
+    }
     // live lanes per row as 16 bits (low half: bits 0-7); rows and lanes outside the image
     // start done
     let mut live = [0u32; LANES];
@@ -81,7 +89,8 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
     let lane_bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
     let mut evals = 0u64;
     let mut useful = 0u64;
-    let mut slots = [Slot::default(); CHUNK];
+    // written by phase 1 before phase 2 reads them: no clearing of the batch each tile
+    let mut slots = [const { MaybeUninit::<Slot>::uninit() }; CHUNK];
     let t_ptr = out.t.as_mut_ptr() as *mut f32;
     let c0_ptr = out.c[0].as_mut_ptr() as *mut f32;
     let c1_ptr = out.c[1].as_mut_ptr() as *mut f32;
@@ -105,8 +114,9 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                 let lo = _mm256_set1_ps(my - ey - 0.5 - y0f);
                 let hi = _mm256_set1_ps(my + ey - 0.5 - y0f);
                 let v_mx = _mm256_set1_ps(mx);
-                let slot = &mut slots[k];
-                slot.splat = *s;
+                let slot = slots[k].as_mut_ptr();
+                // SAFETY: `slot` points to slots[k]; phase 1 writes all its fields.
+                unsafe { addr_of_mut!((*slot).splat).write(*s) };
                 let mut ok = 0u32;
                 for h in 0..2 {
                     // the contour test of 8 rows at once (see the AVX-512 kernel)
@@ -143,10 +153,11 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                     let adx2 = _mm256_mul_ps(_mm256_mul_ps(_mm256_set1_ps(0.5 * ca), dx), dx);
                     // SAFETY: each array holds 16 floats, 32-byte aligned at h * 8.
                     unsafe {
-                        _mm256_store_ps(slot.bdy.as_mut_ptr().add(h * HALF), bdy);
-                        _mm256_store_ps(slot.cdy2.as_mut_ptr().add(h * HALF), cdy2);
-                        _mm256_store_ps(slot.dx.as_mut_ptr().add(h * HALF), dx);
-                        _mm256_store_ps(slot.adx2.as_mut_ptr().add(h * HALF), adx2);
+                        let f = |a: *mut [f32; LANES]| (a as *mut f32).add(h * HALF);
+                        _mm256_store_ps(f(addr_of_mut!((*slot).bdy)), bdy);
+                        _mm256_store_ps(f(addr_of_mut!((*slot).cdy2)), cdy2);
+                        _mm256_store_ps(f(addr_of_mut!((*slot).dx)), dx);
+                        _mm256_store_ps(f(addr_of_mut!((*slot).adx2)), adx2);
                     }
                 }
                 masks[k] = (alive | alive << LANES) & ok;
@@ -197,7 +208,11 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                             _mm256_loadu_ps(c0p),
                             _mm256_loadu_ps(c1p),
                             _mm256_loadu_ps(c2p),
-                            _mm256_loadu_ps(dp),
+                            if DEPTH {
+                                _mm256_loadu_ps(dp)
+                            } else {
+                                _mm256_setzero_ps()
+                            },
                         )
                     };
                     let mut lv = _mm256_castsi256_ps(_mm256_cmpeq_epi32(
@@ -207,7 +222,9 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                     while ks != 0 {
                         let k = ks.trailing_zeros() as usize;
                         ks &= ks - 1;
-                        let slot = &slots[k];
+                        // SAFETY: k is a splat of this batch (its mask bit is set), whose
+                        // slot phase 1 wrote.
+                        let slot = unsafe { slots[k].assume_init_ref() };
                         let s = &slot.splat;
                         let q = h * HALF;
                         // SAFETY: both arrays hold 16 floats, 32-byte aligned at q.
@@ -259,7 +276,9 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                         c0 = _mm256_fmadd_ps(wc, _mm256_set1_ps(s.rgb[0]), c0);
                         c1 = _mm256_fmadd_ps(wc, _mm256_set1_ps(s.rgb[1]), c1);
                         c2 = _mm256_fmadd_ps(wc, _mm256_set1_ps(s.rgb[2]), c2);
-                        d = _mm256_fmadd_ps(wc, _mm256_set1_ps(s.depth), d);
+                        if DEPTH {
+                            d = _mm256_fmadd_ps(wc, _mm256_set1_ps(s.depth), d);
+                        }
                         t = _mm256_blendv_ps(t, tn, contrib);
                         // every step runs on a half with live lanes: 8 evaluations each
                         evals += HALF as u64;
@@ -276,7 +295,9 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool>(
                         _mm256_storeu_ps(c0p, c0);
                         _mm256_storeu_ps(c1p, c1);
                         _mm256_storeu_ps(c2p, c2);
-                        _mm256_storeu_ps(dp, d);
+                        if DEPTH {
+                            _mm256_storeu_ps(dp, d);
+                        }
                     }
                     row_live |= (_mm256_movemask_ps(lv) as u32) << (h * HALF);
                 }

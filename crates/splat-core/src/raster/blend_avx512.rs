@@ -5,6 +5,8 @@ use super::blend::{
     EXP_MAGIC, LANES, SIGMA_CLAMP, T_MIN,
 };
 use super::project::{Splat, ALPHA_THRESHOLD};
+use std::mem::MaybeUninit;
+use std::ptr::addr_of_mut;
 
 /// Splats per batch of this kernel (twice the AVX2 kernel's `CHUNK`): a block's state is
 /// loaded and stored once per batch, so longer batches amortise that over more splats.
@@ -32,8 +34,8 @@ const fn block_pixel(b: usize, i: usize) -> (usize, usize) {
 }
 
 impl Blocks {
-    /// Copy the state into `out`'s row order.
-    fn write_rows(&self, out: &mut TileOut) {
+    /// Copy the state into `out`'s row order (the depth sums only when `DEPTH`).
+    fn write_rows<const DEPTH: bool>(&self, out: &mut TileOut) {
         for b in 0..LANES {
             for q in 0..4 {
                 let (r, c) = block_pixel(b, 4 * q);
@@ -42,7 +44,9 @@ impl Blocks {
                 for ch in 0..3 {
                     out.c[ch][r][c..c + 4].copy_from_slice(&self.c[ch][b][lanes.clone()]);
                 }
-                out.d[r][c..c + 4].copy_from_slice(&self.d[b][lanes]);
+                if DEPTH {
+                    out.d[r][c..c + 4].copy_from_slice(&self.d[b][lanes]);
+                }
             }
         }
     }
@@ -66,9 +70,12 @@ impl Blocks {
 /// A skipped block, like a skipped row of the generic kernel, has every pixel outside the
 /// splat's 1/255 contour (alpha below the threshold), so blending it would change nothing; a
 /// block's lanes outside the contour are masked by the alpha test as a row's are.
+///
+/// `out` is overwritten (its previous contents do not matter); `DEPTH` false skips the depth
+/// sums and leaves `out.d` as it was.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
-pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
+pub(super) fn blend_tile_avx512<'a, const COUNT: bool, const DEPTH: bool>(
     x0: u32,
     y0: u32,
     p: &BlendParams,
@@ -141,7 +148,8 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
     let sixteenth = _mm512_set1_ps(1.0 / 16.0);
     let mut evals = 0u64;
     let mut useful = 0u64;
-    let mut slots = [Slot::default(); BATCH];
+    // written by phase 1 before phase 2 reads them: no clearing of the batch each tile
+    let mut slots = [const { MaybeUninit::<Slot>::uninit() }; BATCH];
     let mut st = Blocks {
         t: [[1.0; LANES]; LANES],
         c: [[[0.0; LANES]; LANES]; 3],
@@ -169,7 +177,11 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
                     c0: _mm512_load_ps(st.c[0][b].as_ptr()),
                     c1: _mm512_load_ps(st.c[1][b].as_ptr()),
                     c2: _mm512_load_ps(st.c[2][b].as_ptr()),
-                    d: _mm512_load_ps(st.d[b].as_ptr()),
+                    d: if DEPTH {
+                        _mm512_load_ps(st.d[b].as_ptr())
+                    } else {
+                        _mm512_setzero_ps()
+                    },
                     lv: live[b],
                     idx: _mm512_add_epi32(quarter, _mm512_set1_epi32(4 * (b / 4) as i32)),
                     col: 4 * (b % 4),
@@ -186,7 +198,9 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
                 _mm512_store_ps(st.c[0][b].as_mut_ptr(), $blk.c0);
                 _mm512_store_ps(st.c[1][b].as_mut_ptr(), $blk.c1);
                 _mm512_store_ps(st.c[2][b].as_mut_ptr(), $blk.c2);
-                _mm512_store_ps(st.d[b].as_mut_ptr(), $blk.d);
+                if DEPTH {
+                    _mm512_store_ps(st.d[b].as_mut_ptr(), $blk.d);
+                }
             }
             live[b] = $blk.lv;
             if $blk.lv == 0 {
@@ -197,7 +211,9 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
     // blend batch splat k into a block
     macro_rules! step {
         ($blk:ident, $k:expr) => {{
-            let slot = &slots[$k];
+            // SAFETY: $k is a splat of this batch (its mask bit is set), whose slot phase 1
+            // wrote.
+            let slot = unsafe { slots[$k].assume_init_ref() };
             let s = &slot.splat;
             // SAFETY: each array holds 16 aligned floats and col + 4 <= 16.
             let (dx, adx2, bdy, cdy2) = unsafe {
@@ -235,7 +251,9 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
             $blk.c0 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[0]), $blk.c0, contrib);
             $blk.c1 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[1]), $blk.c1, contrib);
             $blk.c2 = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.rgb[2]), $blk.c2, contrib);
-            $blk.d = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.depth), $blk.d, contrib);
+            if DEPTH {
+                $blk.d = _mm512_mask3_fmadd_ps(w, _mm512_set1_ps(s.depth), $blk.d, contrib);
+            }
             $blk.t = _mm512_mask_mov_ps($blk.t, contrib, tn);
             // valid lanes that do not contribute stop
             $blk.lv = _kor_mask16(_kandn_mask16(valid, $blk.lv), contrib);
@@ -291,15 +309,16 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
                 // per-column terms: dx and 0.5 a dx^2
                 let dx = _mm512_sub_ps(v_mx, px);
                 let adx2 = _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(0.5 * ca), dx), dx);
-                let slot = &mut slots[k];
-                slot.splat = *s;
+                let slot = slots[k].as_mut_ptr();
                 masks[k] = blocks as u32;
-                // SAFETY: each array holds 16 aligned floats.
+                // SAFETY: `slot` points to slots[k], whose fields are all written here; each
+                // array holds 16 aligned floats.
                 unsafe {
-                    _mm512_store_ps(slot.bdy.as_mut_ptr(), bdy);
-                    _mm512_store_ps(slot.cdy2.as_mut_ptr(), cdy2);
-                    _mm512_store_ps(slot.dx.as_mut_ptr(), dx);
-                    _mm512_store_ps(slot.adx2.as_mut_ptr(), adx2);
+                    addr_of_mut!((*slot).splat).write(*s);
+                    _mm512_store_ps(addr_of_mut!((*slot).bdy) as *mut f32, bdy);
+                    _mm512_store_ps(addr_of_mut!((*slot).cdy2) as *mut f32, cdy2);
+                    _mm512_store_ps(addr_of_mut!((*slot).dx) as *mut f32, dx);
+                    _mm512_store_ps(addr_of_mut!((*slot).adx2) as *mut f32, adx2);
                 }
             }
             // phase 2, blocks two at a time: each block's transmittance, colour and depth stay
@@ -374,11 +393,11 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool>(
             // every step ran on a block with live lanes: 16 evaluations each
             evals += LANES as u64 * steps;
             if alive == 0 {
-                st.write_rows(out);
+                st.write_rows::<DEPTH>(out);
                 return Counts { evals, useful };
             }
         }
     }
-    st.write_rows(out);
+    st.write_rows::<DEPTH>(out);
     Counts { evals, useful }
 }

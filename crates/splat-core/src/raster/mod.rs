@@ -672,7 +672,7 @@ mod tests {
                     let mut o = blend::TileOut::default();
                     // SAFETY: AVX2 and FMA are present.
                     let e = unsafe {
-                        blend_avx2::blend_tile_avx2::<true>(
+                        blend_avx2::blend_tile_avx2::<true, true>(
                             x0,
                             y0,
                             &p,
@@ -687,7 +687,7 @@ mod tests {
                     let mut o = blend::TileOut::default();
                     // SAFETY: the AVX-512 features are present.
                     let e = unsafe {
-                        blend_avx512::blend_tile_avx512::<true>(
+                        blend_avx512::blend_tile_avx512::<true, true>(
                             x0,
                             y0,
                             &p,
@@ -717,6 +717,64 @@ mod tests {
                     checked += 1;
                 }
             }
+        }
+        assert!(checked > 50);
+    }
+
+    /// Every kernel (plain, AVX2, AVX-512) without depth sums (the fit's forward) gives the
+    /// transmittance and colour bits of the same kernel with them, whatever the tile buffer
+    /// held before (each kernel sets its starting state itself), and leaves the depth sums as
+    /// they were.
+    #[test]
+    fn kernels_without_depth_keep_the_colour_and_transmittance_bits() {
+        let cam = camera();
+        let mut checked = 0;
+        for simd in [Simd::Avx512, Simd::Avx2, Simd::Scalar] {
+            if simd.resolve() != simd {
+                continue;
+            }
+            let s = scene(20000);
+            let opts = RenderOptions::default();
+            let proj = project::Projector::new(&cam, &opts, 0);
+            let sorted = sort::sort_by_depth(&project::project_visible(&s.view(), &proj));
+            let (tx, ty) = cam.tiles();
+            let bins = sort::TileBins::build(&sorted, tx, ty).expect("bins");
+            let p = blend::BlendParams {
+                width: cam.width,
+                height: cam.height,
+                max_alpha: opts.max_alpha,
+                background: [0.0; 3],
+                simd,
+                count_useful: false,
+            };
+            let mut contributed = 0;
+            for t in 0..(tx * ty) as usize {
+                let (x0, y0) = ((t as u32 % tx) * 16, (t as u32 / tx) * 16);
+                let stale = || {
+                    let mut o = blend::TileOut::default();
+                    for v in o.t.iter_mut().chain(o.d.iter_mut()).flatten() {
+                        *v = 7.5;
+                    }
+                    for v in o.c.iter_mut().flatten().flatten() {
+                        *v = -3.25;
+                    }
+                    o
+                };
+                let (mut with, mut without) = (stale(), stale());
+                let e1 = blend::blend_tile(x0, y0, &p, &sorted, bins.lists(t), &mut with, true);
+                let e0 = blend::blend_tile(x0, y0, &p, &sorted, bins.lists(t), &mut without, false);
+                assert_eq!(e0, e1, "{simd:?} tile {t}");
+                let bits = |o: &blend::TileOut| {
+                    let mut v: Vec<u32> = o.t.iter().flatten().map(|x| x.abs().to_bits()).collect();
+                    v.extend(o.c.iter().flatten().flatten().map(|x| x.to_bits()));
+                    v
+                };
+                assert_eq!(bits(&with), bits(&without), "{simd:?} tile {t}");
+                assert!(without.d.iter().flatten().all(|&v| v == 7.5));
+                contributed += with.d.iter().flatten().any(|&v| v != 0.0) as usize;
+                checked += 1;
+            }
+            assert!(contributed > 10, "{simd:?}");
         }
         assert!(checked > 50);
     }

@@ -402,7 +402,8 @@ pub(crate) fn bwd_tile_generic<'a>(
 /// order; zeros without `want_bg`, which skips that serial sum).
 ///
 /// `depth_grad` is dL/d(depth image); with `expected_depth` it refers to D / max(A, 1e-10)
-/// and is turned into gradients of the accumulated depth D and of the alpha A here.
+/// and is turned into gradients of the accumulated depth D and of the alpha A here. Without
+/// a depth gradient the saved depth sums are not read (the same bits as a zero gradient).
 ///
 /// A row's 16 pixels are computed as lanes (the same operations, in the same order, as one
 /// pixel at a time), by the build `simd` names.
@@ -476,11 +477,34 @@ fn tile_inputs_impl(
         if let Some(v) = grads.depth {
             gd[..cols].copy_from_slice(&v[row..row + cols]);
         }
-        let (st, sd) = (&saved.t[r], &saved.d[r]);
+        let st = &saved.t[r];
         let mut t = [0.0f32; LANES];
         for l in 0..LANES {
             t[l] = st[l].abs();
         }
+        let Some(sd) = grads.depth.map(|_| &saved.d[r]) else {
+            // no depth gradient: the depth sums are not read (a forward without depth leaves
+            // them stale). With gd = +0 the depth terms below are +0 (g[3] = +0 / am, and
+            // +0 (sd / am) / am subtracted from ga changes nothing: sd >= 0 is a sum of
+            // w z, finite), and v + g[3] sd is v + (+0): adding +0.0 keeps its bits (it turns
+            // -0 into +0 as that add did)
+            let mut q = [0.0f32; LANES];
+            for l in 0..LANES {
+                let gbg =
+                    g[0][l] * background[0] + g[1][l] * background[1] + g[2][l] * background[2];
+                let mut v = t[l] * (gbg - ga[l]);
+                v += g[0][l] * saved.c[0][r][l];
+                v += g[1][l] * saved.c[1][r][l];
+                v += g[2][l] * saved.c[2][r][l];
+                v += 0.0;
+                q[l] = v;
+            }
+            put_row(pix, r, cols, &g, &q);
+            if want_bg {
+                add_bg(&mut v_bg, &g, &t, cols);
+            }
+            continue;
+        };
         if expected_depth {
             // depth = D / max(A, 1e-10)
             for l in 0..LANES {
@@ -503,22 +527,34 @@ fn tile_inputs_impl(
             v += g[3][l] * sd[l];
             q[l] = v;
         }
-        // lanes (r, 4k..4k + 4) are lanes 4 (r % 4).. of block 4 (r / 4) + k (`block_lane`)
-        let j = 4 * (r % 4);
-        for k in 0..cols.div_ceil(4) {
-            let (b, n) = (4 * (r / 4) + k, (cols - 4 * k).min(4));
-            for c in 0..4 {
-                pix.g[c][b][j..j + n].copy_from_slice(&g[c][4 * k..4 * k + n]);
-            }
-            pix.q[b][j..j + n].copy_from_slice(&q[4 * k..4 * k + n]);
-        }
+        put_row(pix, r, cols, &g, &q);
         if want_bg {
-            for l in 0..cols {
-                for c in 0..3 {
-                    v_bg[c] += g[c][l] as f64 * t[l] as f64;
-                }
-            }
+            add_bg(&mut v_bg, &g, &t, cols);
         }
     }
     v_bg
+}
+
+/// Store tile row `r`'s inputs into `pix`'s block order: lanes (r, 4k..4k + 4) are lanes
+/// 4 (r % 4).. of block 4 (r / 4) + k (`block_lane`).
+#[inline(always)]
+fn put_row(pix: &mut PixIn, r: usize, cols: usize, g: &[[f32; LANES]; 4], q: &[f32; LANES]) {
+    let j = 4 * (r % 4);
+    for k in 0..cols.div_ceil(4) {
+        let (b, n) = (4 * (r / 4) + k, (cols - 4 * k).min(4));
+        for c in 0..4 {
+            pix.g[c][b][j..j + n].copy_from_slice(&g[c][4 * k..4 * k + n]);
+        }
+        pix.q[b][j..j + n].copy_from_slice(&q[4 * k..4 * k + n]);
+    }
+}
+
+/// Add row's share of dL/d(background): sum of g_c T over its pixels.
+#[inline(always)]
+fn add_bg(v_bg: &mut [f64; 3], g: &[[f32; LANES]; 4], t: &[f32; LANES], cols: usize) {
+    for l in 0..cols {
+        for c in 0..3 {
+            v_bg[c] += g[c][l] as f64 * t[l] as f64;
+        }
+    }
 }

@@ -26,7 +26,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::blend::{self, BlendParams, TileOut, LANES};
+use super::blend::{self, BlendParams, DepthOut, TileOut, LANES};
 use super::project::{self, Projection, Projector, Splat};
 use super::sort::{self, TileBins};
 use super::{RenderOptions, RenderStats};
@@ -141,6 +141,10 @@ pub enum DepthKind {
     Expected,
     /// D = sum of w_i z_i.
     Accumulated,
+    /// No depth: the forward skips the depth sums and leaves the depth image as it is (it may
+    /// be empty), and the backward takes no depth gradient. Rgb, alpha and the gradients have
+    /// the bits of the other kinds (with no depth gradient). The fit's trainer uses it.
+    None,
 }
 
 /// Options of the differentiable forward.
@@ -384,7 +388,8 @@ pub struct Workspace {
 
 impl Workspace {
     /// Render `scene` from `cam` into `rgb` (H*W*3), `depth` and `alpha` (H*W) exactly as
-    /// [`super::render_into`] does (same bits; `opts.depth` picks the depth written), keeping
+    /// [`super::render_into`] does (same bits; `opts.depth` picks the depth written; with
+    /// [`DepthKind::None`] `depth` is not written and may be empty), keeping
     /// the state the next [`Workspace::backward`] needs. `colors` (N*3), when given, replace
     /// the SH colours (gsplat's `sh_degree=None` with post-activation colours).
     pub fn forward(
@@ -402,7 +407,8 @@ impl Workspace {
         opts.render.validate()?;
         scene.validate()?;
         let npix = cam.width as usize * cam.height as usize;
-        if rgb.len() != npix * 3 || depth.len() != npix || alpha.len() != npix {
+        let depth_ok = depth.len() == npix || (opts.depth == DepthKind::None && depth.is_empty());
+        if rgb.len() != npix * 3 || !depth_ok || alpha.len() != npix {
             return Err(Error::InvalidArgument(format!(
                 "output buffers hold {}, {} and {} values, expected {} for a {}x{} image",
                 rgb.len(),
@@ -487,7 +493,11 @@ impl Workspace {
             depth,
             alpha,
             &mut self.tiles,
-            opts.depth == DepthKind::Expected,
+            match opts.depth {
+                DepthKind::Expected => DepthOut::Expected,
+                DepthKind::Accumulated => DepthOut::Accumulated,
+                DepthKind::None => DepthOut::Skip,
+            },
         );
         stats.evaluations = counts.evals;
         stats.useful = counts.useful;
@@ -539,6 +549,12 @@ impl Workspace {
         }
         if let Some(c) = colors {
             check_colors(c, n)?;
+        }
+        if grads.depth.is_some() && sv.opts.depth == DepthKind::None {
+            return Err(Error::InvalidArgument(
+                "a depth gradient was given, but the forward wrote no depth (DepthKind::None)"
+                    .into(),
+            ));
         }
         let npix = sv.cam.width as usize * sv.cam.height as usize;
         for (name, g, per) in [

@@ -1089,3 +1089,84 @@ fn kernels_without_the_depth_channel_give_the_same_slots() {
     }
     assert!(checked >= 24 * 3, "{checked} tiles");
 }
+
+/// The fit's forward without depth (`DepthKind::None`) gives the rgb and alpha bits of a
+/// forward with depth, and, with no depth gradient, the same gradient bits (the per-tile
+/// inputs then skip the depth sums, which that forward leaves stale), on every kernel, with
+/// and without absgrad; a depth gradient is refused after it.
+#[test]
+fn forward_without_depth_keeps_rgb_alpha_and_gradient_bits_on_every_kernel() {
+    let s = scene(4000, 1, 17);
+    let cam = camera(83, 61);
+    let (r, _, a) = image_grads(&cam, 9);
+    let n = cam.width as usize * cam.height as usize;
+    let mut checked = 0;
+    for simd in [Simd::Avx512, Simd::Avx2, Simd::Scalar] {
+        for absgrad in [false, true] {
+            let run = |depth: DepthKind, ws: &mut Workspace| {
+                let opts = DiffOptions {
+                    render: RenderOptions {
+                        simd,
+                        background: [0.2, 0.5, 0.1],
+                        ..Default::default()
+                    },
+                    depth,
+                    absgrad,
+                    ..Default::default()
+                };
+                let (mut rgb, mut alpha) = (vec![0.0; n * 3], vec![0.0; n]);
+                // without depth the depth image may be empty
+                let mut d = if depth == DepthKind::None {
+                    Vec::new()
+                } else {
+                    vec![0.0; n]
+                };
+                ws.forward(&s.view(), &cam, &opts, None, &mut rgb, &mut d, &mut alpha)
+                    .expect("forward");
+                let mut g = Gradients::default();
+                g.reset(s.len(), s.sh_rest_k(), false);
+                let mut dens = DensifyStats::default();
+                dens.reset(s.len());
+                let grads = ImageGrads {
+                    rgb: Some(&r),
+                    alpha: Some(&a),
+                    ..ImageGrads::default()
+                };
+                ws.backward(&s.view(), None, &grads, &mut g, None, Some(&mut dens))
+                    .expect("backward");
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                (bits(&rgb), bits(&alpha), grad_bits(&g, &dens))
+            };
+            // the same workspace: the forward with depth first, so the stale depth sums the
+            // one without depth leaves are real values, not zeros
+            let mut ws = Workspace::default();
+            let with = run(DepthKind::Expected, &mut ws);
+            let without = run(DepthKind::None, &mut ws);
+            assert!(with.2.iter().any(|&b| b != 0));
+            assert_eq!(with.0, without.0, "rgb {simd:?}");
+            assert_eq!(with.1, without.1, "alpha {simd:?}");
+            assert_eq!(with.2, without.2, "gradients {simd:?} absgrad {absgrad}");
+            assert_eq!(with, run(DepthKind::Accumulated, &mut Workspace::default()));
+            checked += 1;
+            // a depth gradient after a forward without depth is an error
+            let mut g = Gradients::default();
+            g.reset(s.len(), s.sh_rest_k(), false);
+            let depth = vec![0.0f32; n];
+            let err = ws
+                .backward(
+                    &s.view(),
+                    None,
+                    &ImageGrads {
+                        depth: Some(&depth),
+                        ..ImageGrads::default()
+                    },
+                    &mut g,
+                    None,
+                    None,
+                )
+                .expect_err("depth gradient without depth");
+            assert!(err.to_string().contains("DepthKind::None"), "{err}");
+        }
+    }
+    assert_eq!(checked, 6);
+}
