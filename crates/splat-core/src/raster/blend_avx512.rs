@@ -52,6 +52,47 @@ impl Blocks {
     }
 }
 
+/// The 4x4-pixel blocks of a 16x16 tile that splat `s`'s contour can reach, as a mask whose bit
+/// 4 br + bc is block (br, bc): the contour on every row at once (disc = 2 a level - dy^2 det >=
+/// 0, its dx range [(-b dy - sq) / a, (-b dy + sq) / a], pixels [left, right]) on the rows of
+/// `range`, the hull of the reached rows' ranges over each band of 4 rows in every lane of the
+/// band (rows not reached: an empty range), against each block's columns: block (br, bc) is
+/// reached when its band's hull meets [x0 + 4 bc + 0.5, x0 + 4 bc + 3.5] (`cols`, lane
+/// 4 br + bc). `dy` holds my - (y0 + r + 0.5) per row r and `bdy` b dy. The forward and the
+/// backward AVX-512 kernels both take their blocks from here, so they reach the same ones.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
+pub(crate) fn reached_blocks(
+    s: &Splat,
+    range: u16,
+    dy: std::arch::x86_64::__m512,
+    bdy: std::arch::x86_64::__m512,
+    cols: (std::arch::x86_64::__m512, std::arch::x86_64::__m512),
+) -> u16 {
+    use std::arch::x86_64::*;
+    let (v_bxl, v_bxh) = cols;
+    let v_mx = _mm512_set1_ps(s.xy[0]);
+    let dy2 = _mm512_mul_ps(dy, dy);
+    let disc = _mm512_sub_ps(
+        _mm512_set1_ps(s.two_a_level),
+        _mm512_mul_ps(dy2, _mm512_set1_ps(s.conic_det)),
+    );
+    let ok = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(range, disc, _mm512_setzero_ps());
+    let sq = _mm512_sqrt_ps(disc);
+    let inv_a = _mm512_set1_ps(s.inv_a);
+    let left = _mm512_sub_ps(v_mx, _mm512_mul_ps(_mm512_sub_ps(sq, bdy), inv_a));
+    let right = _mm512_add_ps(v_mx, _mm512_mul_ps(_mm512_add_ps(sq, bdy), inv_a));
+    let l = _mm512_mask_mov_ps(_mm512_set1_ps(f32::INFINITY), ok, left);
+    let r = _mm512_mask_mov_ps(_mm512_set1_ps(f32::NEG_INFINITY), ok, right);
+    let l = _mm512_min_ps(l, _mm512_permute_ps::<0b10_11_00_01>(l));
+    let r = _mm512_max_ps(r, _mm512_permute_ps::<0b10_11_00_01>(r));
+    let l = _mm512_min_ps(l, _mm512_permute_ps::<0b01_00_11_10>(l));
+    let r = _mm512_max_ps(r, _mm512_permute_ps::<0b01_00_11_10>(r));
+    let blocks = _mm512_cmp_ps_mask::<_CMP_LE_OQ>(l, v_bxh);
+    _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(blocks, r, v_bxl)
+}
+
 /// Explicit AVX-512 kernel: per pixel the same formulas and operation order as
 /// `blend_tile_impl::<true>`, so the same image bits, organised for the CPU rather than per
 /// splat. The work unit is a 4x4-pixel block (one 16-lane vector): a splat's footprint of about
@@ -130,9 +171,6 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool, const DEPTH: bool>(
     );
     // lane i of a block takes the row terms of its row 4 br + i / 4
     let quarter = _mm512_setr_epi32(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3);
-    let inf = _mm512_set1_ps(f32::INFINITY);
-    let neg_inf = _mm512_set1_ps(f32::NEG_INFINITY);
-    let zero = _mm512_setzero_ps();
     let one = _mm512_set1_ps(1.0);
     let max_alpha = _mm512_set1_ps(p.max_alpha);
     let thr = _mm512_set1_ps(ALPHA_THRESHOLD);
@@ -278,33 +316,10 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool, const DEPTH: bool>(
                 let hi = _mm512_set1_ps(my + ey - 0.5 - y0f);
                 let range = _mm512_cmp_ps_mask::<_CMP_GE_OQ>(lane_f, lo);
                 let range = _mm512_mask_cmp_ps_mask::<_CMP_LE_OQ>(range, lane_f, hi);
-                // the contour on every row at once: disc = 2 a level - dy^2 det >= 0, and its
-                // dx range [(-b dy - sq) / a, (-b dy + sq) / a], pixels [left, right]
                 let v_mx = _mm512_set1_ps(mx);
                 let dy = _mm512_sub_ps(_mm512_set1_ps(my), py);
                 let bdy = _mm512_mul_ps(_mm512_set1_ps(cb), dy);
-                let dy2 = _mm512_mul_ps(dy, dy);
-                let disc = _mm512_sub_ps(
-                    _mm512_set1_ps(s.two_a_level),
-                    _mm512_mul_ps(dy2, _mm512_set1_ps(s.conic_det)),
-                );
-                let ok = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(range, disc, zero);
-                let sq = _mm512_sqrt_ps(disc);
-                let inv_a = _mm512_set1_ps(s.inv_a);
-                let left = _mm512_sub_ps(v_mx, _mm512_mul_ps(_mm512_sub_ps(sq, bdy), inv_a));
-                let right = _mm512_add_ps(v_mx, _mm512_mul_ps(_mm512_add_ps(sq, bdy), inv_a));
-                // the hull of the reached rows' ranges over each band of 4 rows, in every lane
-                // of the band (rows not reached: an empty range)
-                let l = _mm512_mask_mov_ps(inf, ok, left);
-                let r = _mm512_mask_mov_ps(neg_inf, ok, right);
-                let l = _mm512_min_ps(l, _mm512_permute_ps::<0b10_11_00_01>(l));
-                let r = _mm512_max_ps(r, _mm512_permute_ps::<0b10_11_00_01>(r));
-                let l = _mm512_min_ps(l, _mm512_permute_ps::<0b01_00_11_10>(l));
-                let r = _mm512_max_ps(r, _mm512_permute_ps::<0b01_00_11_10>(r));
-                // lane 4 br + bc: block (br, bc) is reached when the band's hull meets the
-                // block's columns [x0 + 4 bc + 0.5, x0 + 4 bc + 3.5]
-                let blocks = _mm512_mask_cmp_ps_mask::<_CMP_LE_OQ>(alive, l, v_bxh);
-                let blocks = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(blocks, r, v_bxl);
+                let blocks = reached_blocks(s, range, dy, bdy, (v_bxl, v_bxh)) & alive;
                 let cdy2 = _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(0.5 * cc), dy), dy);
                 // per-column terms: dx and 0.5 a dx^2
                 let dx = _mm512_sub_ps(v_mx, px);

@@ -11,6 +11,7 @@ use crate::raster::blend::{
     prefetch, row_mask, BlendParams, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16, EXP_MAGIC, LANES,
     PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
 };
+use crate::raster::blend_avx512::reached_blocks;
 use crate::raster::project::{Splat, ALPHA_THRESHOLD};
 
 #[cfg(target_arch = "x86_64")]
@@ -137,8 +138,6 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, const DEPTH: bool, S: SlotSin
     );
     // lane i of a block of band br takes the row terms of row 4 br + i / 4
     let quarter = _mm512_setr_epi32(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3);
-    let inf = _mm512_set1_ps(f32::INFINITY);
-    let neg_inf = _mm512_set1_ps(f32::NEG_INFINITY);
     let zero = _mm512_setzero_ps();
     let one = _mm512_set1_ps(1.0);
     let max_alpha = _mm512_set1_ps(p.max_alpha);
@@ -176,34 +175,16 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, const DEPTH: bool, S: SlotSin
                         prefetch(splats, ahead as usize);
                     }
                     let s = &splats[gi as usize];
-                    let (mx, my) = (s.xy[0], s.xy[1]);
+                    let my = s.xy[1];
                     let cb = s.conic[1];
                     // the blocks it reaches: each row's contour range (the rows test of the
                     // generic kernel), the hull of the reached rows' ranges over each band of 4
                     // rows (in every lane of the band), against each block's columns (lane
                     // 4 br + bc); the tile's live blocks are taken at its replay
                     let range = row_mask(my, s.half_height, y0f) as u16;
-                    let v_mx = _mm512_set1_ps(mx);
                     let dy = _mm512_sub_ps(_mm512_set1_ps(my), py);
                     let bdy = _mm512_mul_ps(_mm512_set1_ps(cb), dy);
-                    let dy2 = _mm512_mul_ps(dy, dy);
-                    let disc = _mm512_sub_ps(
-                        _mm512_set1_ps(s.two_a_level),
-                        _mm512_mul_ps(dy2, _mm512_set1_ps(s.conic_det)),
-                    );
-                    let ok = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(range, disc, zero);
-                    let sq = _mm512_sqrt_ps(disc);
-                    let inv_a = _mm512_set1_ps(s.inv_a);
-                    let left = _mm512_sub_ps(v_mx, _mm512_mul_ps(_mm512_sub_ps(sq, bdy), inv_a));
-                    let right = _mm512_add_ps(v_mx, _mm512_mul_ps(_mm512_add_ps(sq, bdy), inv_a));
-                    let l = _mm512_mask_mov_ps(inf, ok, left);
-                    let r = _mm512_mask_mov_ps(neg_inf, ok, right);
-                    let l = _mm512_min_ps(l, _mm512_permute_ps::<0b10_11_00_01>(l));
-                    let r = _mm512_max_ps(r, _mm512_permute_ps::<0b10_11_00_01>(r));
-                    let l = _mm512_min_ps(l, _mm512_permute_ps::<0b01_00_11_10>(l));
-                    let r = _mm512_max_ps(r, _mm512_permute_ps::<0b01_00_11_10>(r));
-                    let blocks = _mm512_cmp_ps_mask::<_CMP_LE_OQ>(l, v_bxh);
-                    *reached = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(blocks, r, v_bxl);
+                    *reached = reached_blocks(s, range, dy, bdy, (v_bxl, v_bxh));
                 }
             }
             for (j, &gi) in chunk.iter().enumerate() {
