@@ -552,6 +552,35 @@ mod tests {
         s
     }
 
+    /// A frame of `scene(n)` seen by `cam` ready for the tile kernels: the depth-sorted splats,
+    /// their tile lists and the blend parameters (black background).
+    fn tiled(
+        cam: &Camera,
+        n: usize,
+        max_alpha: f32,
+        simd: Simd,
+        count_useful: bool,
+    ) -> (Vec<project::Splat>, sort::TileBins, blend::BlendParams) {
+        let s = scene(n);
+        let opts = RenderOptions {
+            max_alpha,
+            ..Default::default()
+        };
+        let proj = project::Projector::new(cam, &opts, 0);
+        let sorted = sort::sort_by_depth(&project::project_visible(&s.view(), &proj));
+        let (tx, ty) = cam.tiles();
+        let bins = sort::TileBins::build(&sorted, tx, ty).expect("bins");
+        let p = blend::BlendParams {
+            width: cam.width,
+            height: cam.height,
+            max_alpha,
+            background: [0.0; 3],
+            simd,
+            count_useful,
+        };
+        (sorted, bins, p)
+    }
+
     fn camera() -> Camera {
         let mut m = [[0.0; 4]; 4];
         for (i, row) in m.iter_mut().enumerate() {
@@ -637,23 +666,8 @@ mod tests {
         let cam = camera();
         let mut checked = 0;
         for (n, max_alpha) in [(3000, 0.99), (20000, 0.999), (20000, 0.99)] {
-            let s = scene(n);
-            let opts = RenderOptions {
-                max_alpha,
-                ..Default::default()
-            };
-            let proj = project::Projector::new(&cam, &opts, 0);
-            let sorted = sort::sort_by_depth(&project::project_visible(&s.view(), &proj));
+            let (sorted, bins, p) = tiled(&cam, n, max_alpha, Simd::Auto, true);
             let (tx, ty) = cam.tiles();
-            let bins = sort::TileBins::build(&sorted, tx, ty).expect("bins");
-            let p = blend::BlendParams {
-                width: cam.width,
-                height: cam.height,
-                max_alpha,
-                background: [0.0; 3],
-                simd: Simd::Auto,
-                count_useful: true,
-            };
             for t in 0..(tx * ty) as usize {
                 let (x0, y0) = ((t as u32 % tx) * 16, (t as u32 / tx) * 16);
                 let mut want = blend::TileOut::default();
@@ -733,20 +747,9 @@ mod tests {
             if simd.resolve() != simd {
                 continue;
             }
-            let s = scene(20000);
-            let opts = RenderOptions::default();
-            let proj = project::Projector::new(&cam, &opts, 0);
-            let sorted = sort::sort_by_depth(&project::project_visible(&s.view(), &proj));
+            let max_alpha = RenderOptions::default().max_alpha;
+            let (sorted, bins, p) = tiled(&cam, 20000, max_alpha, simd, false);
             let (tx, ty) = cam.tiles();
-            let bins = sort::TileBins::build(&sorted, tx, ty).expect("bins");
-            let p = blend::BlendParams {
-                width: cam.width,
-                height: cam.height,
-                max_alpha: opts.max_alpha,
-                background: [0.0; 3],
-                simd,
-                count_useful: false,
-            };
             let mut contributed = 0;
             for t in 0..(tx * ty) as usize {
                 let (x0, y0) = ((t as u32 % tx) * 16, (t as u32 / tx) * 16);
