@@ -685,6 +685,86 @@ fn blend_frame_impl(
     }
 }
 
+/// One frame projected, depth-sorted and binned once (as [`super::render_into`] does), so that a
+/// benchmark can time the blend stage alone on a fixed workload (`benches/raster.rs`, group
+/// `blend_1thread`): the kernels' own cost without the projection, sort and binning around
+/// them, and without their run-to-run variation.
+pub struct FrozenFrame {
+    sorted: Vec<Splat>,
+    bins: TileBins,
+    params: BlendParams,
+}
+
+impl FrozenFrame {
+    /// Project, sort and bin `scene` seen by `cam` with `opts` (their `simd` picks the kernel,
+    /// `count_useful` whether it counts).
+    pub fn new(
+        scene: &crate::scene::SceneView<'_>,
+        cam: &crate::camera::Camera,
+        opts: &super::RenderOptions,
+    ) -> crate::error::Result<Self> {
+        cam.validate()?;
+        opts.validate()?;
+        scene.validate()?;
+        let degree = opts.effective_sh_degree(scene.sh_degree)?;
+        let proj = super::project::Projector::new(cam, opts, degree);
+        let mut parts = Vec::new();
+        let n = super::project::project_visible_into(
+            scene,
+            &proj,
+            super::share::FrameColours::Off,
+            &mut parts,
+        );
+        let (mut keys, mut tmp, mut sorted) = (Vec::new(), Vec::new(), Vec::new());
+        let mut fp = super::sort::Footprints::default();
+        super::sort::sort_by_depth_into(
+            &parts[..n],
+            &mut keys,
+            &mut tmp,
+            &mut sorted,
+            &mut fp,
+            cam.tiles(),
+            super::footprint::Mode::current(),
+        );
+        let mut bins = TileBins::default();
+        let (tx, ty) = cam.tiles();
+        bins.rebuild_from_footprints(&fp, tx, ty)?;
+        let params = BlendParams {
+            width: cam.width,
+            height: cam.height,
+            max_alpha: opts.max_alpha,
+            background: opts.background,
+            simd: opts.simd.resolve(),
+            count_useful: opts.count_useful,
+        };
+        Ok(FrozenFrame {
+            sorted,
+            bins,
+            params,
+        })
+    }
+
+    /// Blend the frame into `rgb` (H*W*3), `depth` and `alpha` (H*W), with the expected depth
+    /// (`depth` true, as a render) or none (the fit's forward); returns the evaluations and the
+    /// useful ones (0 unless counted).
+    pub fn blend(
+        &self,
+        rgb: &mut [f32],
+        depth: &mut [f32],
+        alpha: &mut [f32],
+        with_depth: bool,
+    ) -> (u64, u64) {
+        let mode = if with_depth {
+            DepthOut::Expected
+        } else {
+            DepthOut::Skip
+        };
+        let d: &mut [f32] = if with_depth { depth } else { &mut [] };
+        let c = blend_frame_impl(&self.sorted, &self.bins, &self.params, rgb, d, alpha, None, mode);
+        (c.evals, c.useful)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
