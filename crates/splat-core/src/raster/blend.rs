@@ -238,10 +238,16 @@ impl<'a, I: Iterator<Item = &'a [u32]>> Stream<'a, I> {
         Stream { lists, rest: &[] }
     }
 
-    /// Copy the next (up to) N entries into `buf`; returns how many (fewer than N only at the
-    /// stream's end).
+    /// Copy the next (up to) N entries into `buf`, each run of them by `copy(src, dst)` (equal
+    /// lengths, at most N: the kernels copy with masked vector moves, where `copy_from_slice`
+    /// of a variable length calls `memcpy`, a few percent of grid-5's blend); returns how many
+    /// (fewer than N only at the stream's end).
     #[inline(always)]
-    pub(super) fn fill<const N: usize>(&mut self, buf: &mut [u32; N]) -> usize {
+    pub(super) fn fill<const N: usize>(
+        &mut self,
+        buf: &mut [u32; N],
+        copy: impl Fn(&[u32], &mut [u32]),
+    ) -> usize {
         let mut n = 0;
         while n < N {
             if self.rest.is_empty() {
@@ -252,7 +258,7 @@ impl<'a, I: Iterator<Item = &'a [u32]>> Stream<'a, I> {
                 continue;
             }
             let k = (N - n).min(self.rest.len());
-            buf[n..n + k].copy_from_slice(&self.rest[..k]);
+            copy(&self.rest[..k], &mut buf[n..n + k]);
             self.rest = &self.rest[k..];
             n += k;
         }

@@ -295,14 +295,28 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool, const DEPTH: bool>(
     // the tile's lists as one stream of batches, the next batch's splats prefetched while
     // this one is blended (batches and prefetch run across the lists' ends)
     let mut stream = Stream::new(lists);
+    // up to 32 entries by two masked moves (masked-off lanes are neither read nor written)
+    let copy = |src: &[u32], dst: &mut [u32]| {
+        let k = src.len().min(dst.len()).min(BATCH);
+        let m = (u32::MAX as u64 >> (32 - k)) as u32;
+        // SAFETY: the masks cover the first k <= 32 entries of both slices only.
+        unsafe {
+            let lo = _mm512_maskz_loadu_epi32(m as u16, src.as_ptr() as *const i32);
+            _mm512_mask_storeu_epi32(dst.as_mut_ptr() as *mut i32, m as u16, lo);
+            if k > 16 {
+                let hi = _mm512_maskz_loadu_epi32((m >> 16) as u16, src.as_ptr().add(16) as _);
+                _mm512_mask_storeu_epi32(dst.as_mut_ptr().add(16) as _, (m >> 16) as u16, hi);
+            }
+        }
+    };
     let mut next = [0u32; BATCH];
-    let mut n_next = stream.fill(&mut next);
+    let mut n_next = stream.fill(&mut next, copy);
     for &gi in &next[..n_next] {
         prefetch(splats, gi as usize);
     }
     while n_next != 0 {
         let (batch, n) = (next, n_next);
-        n_next = stream.fill(&mut next);
+        n_next = stream.fill(&mut next, copy);
         {
             // phase 1, branch-free per splat: which blocks of the tile it reaches, and the
             // per-row and per-column terms of its exponent
