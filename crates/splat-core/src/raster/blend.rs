@@ -215,10 +215,10 @@ pub(super) struct Slot {
     pub splat: Splat,
 }
 
-/// How many list entries ahead to prefetch splats (the lists jump through the sorted array):
-/// one batch of the AVX2 kernel, so a splat's load is asked for a whole phase 2 before its
-/// phase 1 (16 measured 1.8% less frame CPU than 8 on garden, 1 thread). The AVX-512 kernel,
-/// whose batches are 32 splats, prefetches 32 ahead (its own `PREFETCH`).
+/// How many list entries ahead the plain kernel and the backward kernels prefetch splats (the
+/// lists jump through the sorted array; 16 measured 1.8% less frame CPU than 8 on garden, 1
+/// thread). The explicit forward kernels prefetch their whole next batch instead, across the
+/// lists' ends ([`Stream`]).
 pub(super) const PREFETCH_AHEAD: usize = 16;
 
 /// A tile's lists (one per binning chunk, in order) as one stream of list entries, taken in
