@@ -138,7 +138,12 @@ fn bench_blend(c: &mut Criterion) {
     let cases = [
         ("garden", &scene, cams[0], true),
         ("garden_nodepth", &scene, cams[0], false),
-        ("grid5_1920x1080", &grid, resized(&gcams[0], 1920, 1080), true),
+        (
+            "grid5_1920x1080",
+            &grid,
+            resized(&gcams[0], 1920, 1080),
+            true,
+        ),
     ];
     let mut g = c.benchmark_group("blend_1thread");
     g.sample_size(20);
@@ -181,5 +186,11 @@ fn thread_cpu() -> Option<std::time::Duration> {
     None
 }
 
-criterion_group!(benches, bench_garden, bench_grid5, bench_project, bench_blend);
+criterion_group!(
+    benches,
+    bench_garden,
+    bench_grid5,
+    bench_project,
+    bench_blend
+);
 criterion_main!(benches);

@@ -835,7 +835,16 @@ impl FrozenFrame {
             DepthOut::Skip
         };
         let d: &mut [f32] = if with_depth { depth } else { &mut [] };
-        let c = blend_frame_impl(&self.sorted, &self.bins, &self.params, rgb, d, alpha, None, mode);
+        let c = blend_frame_impl(
+            &self.sorted,
+            &self.bins,
+            &self.params,
+            rgb,
+            d,
+            alpha,
+            None,
+            mode,
+        );
         (c.evals, c.useful)
     }
 }
