@@ -853,6 +853,75 @@ impl FrozenFrame {
 mod tests {
     use super::*;
 
+    /// A frozen frame (what `blend_1thread` times) blends to the bits and evaluation count of
+    /// a render of the same frame, with every kernel this CPU has, with and without depth
+    /// (40,000 Gaussians: several binning chunks, so several lists per tile, as grid-5 has).
+    /// The explicit kernels' stream across the lists' ends is held to the generic kernel by
+    /// `explicit_kernels_give_the_generic_kernels_bits_tile_by_tile` (two chunks there).
+    #[test]
+    fn frozen_frame_blends_as_a_render() {
+        use crate::camera::Camera;
+        use crate::raster::{render_into, RenderOptions, Simd};
+        use crate::scene::Scene;
+        let mut s = Scene::empty(0);
+        let mut h = 0x9e37_79b9u64;
+        let mut next = || {
+            h ^= h << 13;
+            h ^= h >> 7;
+            h ^= h << 17;
+            (h >> 40) as f32 / (1u64 << 24) as f32
+        };
+        for _ in 0..40_000 {
+            s.means
+                .extend([next() * 2.0 - 1.0, next() * 2.0 - 1.0, next() * 2.0 - 1.0]);
+            s.quats
+                .extend([1.0, next() - 0.5, next() - 0.5, next() - 0.5]);
+            s.log_scales
+                .extend([-4.0 - next(), -4.0 - next(), -3.5 - next()]);
+            s.opacity_logits.push(next() * 4.0 - 2.0);
+            s.sh0.extend([next() - 0.5, next() - 0.5, next() - 0.5]);
+        }
+        s.normalize_quats();
+        let mut m = [[0.0; 4]; 4];
+        for (i, row) in m.iter_mut().enumerate() {
+            row[i] = 1.0;
+        }
+        m[2][3] = 4.0;
+        let cam = Camera::new(300.0, 300.0, 100.0, 70.0, 200, 140, m);
+        let n = 200 * 140;
+        let mut levels = vec![Simd::Scalar];
+        for simd in [Simd::Avx2, Simd::Avx512] {
+            if simd.resolve() == simd {
+                levels.push(simd);
+            }
+        }
+        for simd in levels {
+            let opts = RenderOptions {
+                simd,
+                ..Default::default()
+            };
+            let (mut rgb, mut depth, mut alpha) = (vec![0.0; n * 3], vec![0.0; n], vec![0.0; n]);
+            let st = render_into(&s.view(), &cam, &opts, &mut rgb, &mut depth, &mut alpha)
+                .expect("render");
+            assert!(st.visible > 2 * TileBins::CHUNK as u64, "{}", st.visible);
+            let frame = FrozenFrame::new(&s.view(), &cam, &opts).expect("frame");
+            let (mut rgb2, mut depth2, mut alpha2) = (vec![1.0; n * 3], vec![1.0; n], vec![1.0; n]);
+            let (evals, _) = frame.blend(&mut rgb2, &mut depth2, &mut alpha2, true);
+            assert_eq!(evals, st.evaluations, "{simd:?}");
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&rgb2), bits(&rgb), "{simd:?}");
+            assert_eq!(bits(&depth2), bits(&depth), "{simd:?}");
+            assert_eq!(bits(&alpha2), bits(&alpha), "{simd:?}");
+            // without depth: the same colour and alpha, the depth image untouched
+            let (mut rgb3, mut alpha3) = (vec![1.0; n * 3], vec![1.0; n]);
+            let mut none = vec![7.0f32; n];
+            frame.blend(&mut rgb3, &mut none, &mut alpha3, false);
+            assert_eq!(bits(&rgb3), bits(&rgb), "{simd:?}");
+            assert_eq!(bits(&alpha3), bits(&alpha), "{simd:?}");
+            assert!(none.iter().all(|&v| v == 7.0));
+        }
+    }
+
     #[test]
     fn opacity_exp_matches_float64() {
         let mut worst = 0.0f64;
