@@ -10,6 +10,7 @@
 //!     MORPHGS_FIXTURES=/path/to/fixtures cargo bench -p splat-core --bench raster
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use splat_core::camera::Camera;
+use splat_core::raster::blend::FrozenFrame;
 use splat_core::raster::project::project_frame;
 use splat_core::raster::{render_into, RenderOptions, RenderStats, Simd};
 use splat_core::Scene;
@@ -123,5 +124,73 @@ fn bench_project(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench_garden, bench_grid5, bench_project);
+/// The blend stage alone, one thread, on frames projected, sorted and binned once
+/// ([`FrozenFrame`]): garden camera 0 with the render's expected depth and without depth (as the
+/// fit's forward blends), and grid-5 at 1920x1080. Timed in the thread's CPU time where the OS
+/// gives it (Linux), so other jobs on the machine disturb it less than wall time.
+fn bench_blend(c: &mut Criterion) {
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("pool");
+    let (scene, cams) = garden(1);
+    let (grid, gcams) = garden(5);
+    let cases = [
+        ("garden", &scene, cams[0], true),
+        ("garden_nodepth", &scene, cams[0], false),
+        (
+            "grid5_1920x1080",
+            &grid,
+            resized(&gcams[0], 1920, 1080),
+            true,
+        ),
+    ];
+    let mut g = c.benchmark_group("blend_1thread");
+    g.sample_size(20);
+    for (name, s, cam, depth) in cases {
+        let opts = RenderOptions::default();
+        let frame = FrozenFrame::new(&s.view(), &cam, &opts).expect("frame");
+        let n = cam.width as usize * cam.height as usize;
+        let (mut rgb, mut d, mut alpha) = (vec![0.0; n * 3], vec![0.0; n], vec![0.0; n]);
+        let (evals, _) = frame.blend(&mut rgb, &mut d, &mut alpha, depth);
+        println!("blend {name}: {:.2}M evaluations", evals as f64 / 1e6);
+        g.throughput(Throughput::Elements(evals));
+        g.bench_function(name, |b| {
+            b.iter_custom(|iters| {
+                one.install(|| {
+                    let (t0, c0) = (std::time::Instant::now(), thread_cpu());
+                    for _ in 0..iters {
+                        frame.blend(&mut rgb, &mut d, &mut alpha, depth);
+                    }
+                    c0.map_or(t0.elapsed(), |c0| thread_cpu().expect("clock") - c0)
+                })
+            })
+        });
+    }
+    g.finish();
+}
+
+/// The calling thread's CPU time (None where not available).
+fn thread_cpu() -> Option<std::time::Duration> {
+    #[cfg(target_os = "linux")]
+    {
+        let mut ts = libc::timespec {
+            tv_sec: 0,
+            tv_nsec: 0,
+        };
+        // SAFETY: `ts` is a valid timespec to write.
+        let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
+        (rc == 0).then(|| std::time::Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32))
+    }
+    #[cfg(not(target_os = "linux"))]
+    None
+}
+
+criterion_group!(
+    benches,
+    bench_garden,
+    bench_grid5,
+    bench_project,
+    bench_blend
+);
 criterion_main!(benches);

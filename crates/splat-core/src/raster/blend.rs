@@ -215,11 +215,56 @@ pub(super) struct Slot {
     pub splat: Splat,
 }
 
-/// How many list entries ahead to prefetch splats (the lists jump through the sorted array):
-/// one batch of the AVX2 kernel, so a splat's load is asked for a whole phase 2 before its
-/// phase 1 (16 measured 1.8% less frame CPU than 8 on garden, 1 thread). The AVX-512 kernel,
-/// whose batches are 32 splats, prefetches 32 ahead (its own `PREFETCH`).
+/// How many list entries ahead the plain kernel and the backward kernels prefetch splats (the
+/// lists jump through the sorted array; 16 measured 1.8% less frame CPU than 8 on garden, 1
+/// thread). The explicit forward kernels prefetch their whole next batch instead, across the
+/// lists' ends ([`Stream`]).
 pub(super) const PREFETCH_AHEAD: usize = 16;
+
+/// A tile's lists (one per binning chunk, in order) as one stream of list entries, taken in
+/// batches that run across the lists' ends: a frame with many binning chunks (grid-5: 40) gives
+/// each tile many short lists, and batching or prefetching per list left the explicit kernels
+/// partial batches and no splat prefetched at all (the prefetch ran ahead inside a list only).
+/// The entries come in the same order, so the blend is the same.
+#[cfg(target_arch = "x86_64")]
+pub(super) struct Stream<'a, I: Iterator<Item = &'a [u32]>> {
+    lists: I,
+    rest: &'a [u32],
+}
+
+#[cfg(target_arch = "x86_64")]
+impl<'a, I: Iterator<Item = &'a [u32]>> Stream<'a, I> {
+    pub(super) fn new(lists: I) -> Self {
+        Stream { lists, rest: &[] }
+    }
+
+    /// Copy the next (up to) N entries into `buf`, each run of them by `copy(src, dst)` (equal
+    /// lengths, at most N: the kernels copy with masked vector moves, where `copy_from_slice`
+    /// of a variable length calls `memcpy`, a few percent of grid-5's blend); returns how many
+    /// (fewer than N only at the stream's end).
+    #[inline(always)]
+    pub(super) fn fill<const N: usize>(
+        &mut self,
+        buf: &mut [u32; N],
+        copy: impl Fn(&[u32], &mut [u32]),
+    ) -> usize {
+        let mut n = 0;
+        while n < N {
+            if self.rest.is_empty() {
+                match self.lists.next() {
+                    Some(l) => self.rest = l,
+                    None => break,
+                }
+                continue;
+            }
+            let k = (N - n).min(self.rest.len());
+            copy(&self.rest[..k], &mut buf[n..n + k]);
+            self.rest = &self.rest[k..];
+            n += k;
+        }
+        n
+    }
+}
 
 /// Hint the CPU to load splat `i` (both cache lines it may span) into L1.
 #[inline(always)]
@@ -537,6 +582,35 @@ struct FrameOut {
 unsafe impl Sync for FrameOut {}
 
 impl FrameOut {
+    /// Ask for the cache lines of the tile at (x0, y0) in the output images, for writing, before
+    /// its blend: [`FrameOut::tile`] then writes lines already in cache instead of stalling on
+    /// each one (a 1080p frame's images, 41 MB, are not in cache when a frame starts; the stores'
+    /// misses were about a seventh of the blend stage on grid-5).
+    fn prefetch(&self, x0: usize, y0: usize) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_ET0};
+            let cols = LANES.min(self.width - x0);
+            let lines = |p: *const f32, n: usize| {
+                let (a, b) = (p as usize, p as usize + 4 * n - 1);
+                for line in (a & !63..=b).step_by(64) {
+                    // SAFETY: prefetching never faults; the address lies inside the image row.
+                    unsafe { _mm_prefetch::<_MM_HINT_ET0>(line.max(a) as *const i8) };
+                }
+            };
+            for r in 0..LANES.min(self.height - y0) {
+                let i = (y0 + r) * self.width + x0;
+                lines(self.rgb.wrapping_add(i * 3), cols * 3);
+                lines(self.alpha.wrapping_add(i), cols);
+                if self.depth_out != DepthOut::Skip {
+                    lines(self.depth.wrapping_add(i), cols);
+                }
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = (x0, y0);
+    }
+
     /// Write the final colour, depth and alpha of the tile at (x0, y0): colour plus the
     /// background seen through the remaining transmittance, alpha = 1 - T, expected depth.
     /// `tile` None means no Gaussian touches it (background, zero alpha and depth). Without
@@ -655,6 +729,7 @@ fn blend_frame_impl(
             unsafe { out.tile(x0, y0, None, p.background) };
             return Counts::default();
         }
+        out.prefetch(x0, y0);
         let evals = blend_tile(
             x0 as u32,
             y0 as u32,
@@ -685,9 +760,167 @@ fn blend_frame_impl(
     }
 }
 
+/// One frame projected, depth-sorted and binned once (as [`super::render_into`] does), so that a
+/// benchmark can time the blend stage alone on a fixed workload (`benches/raster.rs`, group
+/// `blend_1thread`): the kernels' own cost without the projection, sort and binning around
+/// them, and without their run-to-run variation.
+pub struct FrozenFrame {
+    sorted: Vec<Splat>,
+    bins: TileBins,
+    params: BlendParams,
+}
+
+impl FrozenFrame {
+    /// Project, sort and bin `scene` seen by `cam` with `opts` (their `simd` picks the kernel,
+    /// `count_useful` whether it counts).
+    pub fn new(
+        scene: &crate::scene::SceneView<'_>,
+        cam: &crate::camera::Camera,
+        opts: &super::RenderOptions,
+    ) -> crate::error::Result<Self> {
+        cam.validate()?;
+        opts.validate()?;
+        scene.validate()?;
+        let degree = opts.effective_sh_degree(scene.sh_degree)?;
+        let proj = super::project::Projector::new(cam, opts, degree);
+        let mut parts = Vec::new();
+        let n = super::project::project_visible_into(
+            scene,
+            &proj,
+            super::share::FrameColours::Off,
+            &mut parts,
+        );
+        let (mut keys, mut tmp, mut sorted) = (Vec::new(), Vec::new(), Vec::new());
+        let mut fp = super::sort::Footprints::default();
+        super::sort::sort_by_depth_into(
+            &parts[..n],
+            &mut keys,
+            &mut tmp,
+            &mut sorted,
+            &mut fp,
+            cam.tiles(),
+            super::footprint::Mode::current(),
+        );
+        let mut bins = TileBins::default();
+        let (tx, ty) = cam.tiles();
+        bins.rebuild_from_footprints(&fp, tx, ty)?;
+        let params = BlendParams {
+            width: cam.width,
+            height: cam.height,
+            max_alpha: opts.max_alpha,
+            background: opts.background,
+            simd: opts.simd.resolve(),
+            count_useful: opts.count_useful,
+        };
+        Ok(FrozenFrame {
+            sorted,
+            bins,
+            params,
+        })
+    }
+
+    /// Blend the frame into `rgb` (H*W*3), `depth` and `alpha` (H*W), with the expected depth
+    /// (`depth` true, as a render) or none (the fit's forward); returns the evaluations and the
+    /// useful ones (0 unless counted).
+    pub fn blend(
+        &self,
+        rgb: &mut [f32],
+        depth: &mut [f32],
+        alpha: &mut [f32],
+        with_depth: bool,
+    ) -> (u64, u64) {
+        let mode = if with_depth {
+            DepthOut::Expected
+        } else {
+            DepthOut::Skip
+        };
+        let d: &mut [f32] = if with_depth { depth } else { &mut [] };
+        let c = blend_frame_impl(
+            &self.sorted,
+            &self.bins,
+            &self.params,
+            rgb,
+            d,
+            alpha,
+            None,
+            mode,
+        );
+        (c.evals, c.useful)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A frozen frame (what `blend_1thread` times) blends to the bits and evaluation count of
+    /// a render of the same frame, with every kernel this CPU has, with and without depth
+    /// (40,000 Gaussians: several binning chunks, so several lists per tile, as grid-5 has).
+    /// The explicit kernels' stream across the lists' ends is held to the generic kernel by
+    /// `explicit_kernels_give_the_generic_kernels_bits_tile_by_tile` (two chunks there).
+    #[test]
+    fn frozen_frame_blends_as_a_render() {
+        use crate::camera::Camera;
+        use crate::raster::{render_into, RenderOptions, Simd};
+        use crate::scene::Scene;
+        let mut s = Scene::empty(0);
+        let mut h = 0x9e37_79b9u64;
+        let mut next = || {
+            h ^= h << 13;
+            h ^= h >> 7;
+            h ^= h << 17;
+            (h >> 40) as f32 / (1u64 << 24) as f32
+        };
+        for _ in 0..40_000 {
+            s.means
+                .extend([next() * 2.0 - 1.0, next() * 2.0 - 1.0, next() * 2.0 - 1.0]);
+            s.quats
+                .extend([1.0, next() - 0.5, next() - 0.5, next() - 0.5]);
+            s.log_scales
+                .extend([-4.0 - next(), -4.0 - next(), -3.5 - next()]);
+            s.opacity_logits.push(next() * 4.0 - 2.0);
+            s.sh0.extend([next() - 0.5, next() - 0.5, next() - 0.5]);
+        }
+        s.normalize_quats();
+        let mut m = [[0.0; 4]; 4];
+        for (i, row) in m.iter_mut().enumerate() {
+            row[i] = 1.0;
+        }
+        m[2][3] = 4.0;
+        let cam = Camera::new(300.0, 300.0, 100.0, 70.0, 200, 140, m);
+        let n = 200 * 140;
+        let mut levels = vec![Simd::Scalar];
+        for simd in [Simd::Avx2, Simd::Avx512] {
+            if simd.resolve() == simd {
+                levels.push(simd);
+            }
+        }
+        for simd in levels {
+            let opts = RenderOptions {
+                simd,
+                ..Default::default()
+            };
+            let (mut rgb, mut depth, mut alpha) = (vec![0.0; n * 3], vec![0.0; n], vec![0.0; n]);
+            let st = render_into(&s.view(), &cam, &opts, &mut rgb, &mut depth, &mut alpha)
+                .expect("render");
+            assert!(st.visible > 2 * TileBins::CHUNK as u64, "{}", st.visible);
+            let frame = FrozenFrame::new(&s.view(), &cam, &opts).expect("frame");
+            let (mut rgb2, mut depth2, mut alpha2) = (vec![1.0; n * 3], vec![1.0; n], vec![1.0; n]);
+            let (evals, _) = frame.blend(&mut rgb2, &mut depth2, &mut alpha2, true);
+            assert_eq!(evals, st.evaluations, "{simd:?}");
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&rgb2), bits(&rgb), "{simd:?}");
+            assert_eq!(bits(&depth2), bits(&depth), "{simd:?}");
+            assert_eq!(bits(&alpha2), bits(&alpha), "{simd:?}");
+            // without depth: the same colour and alpha, the depth image untouched
+            let (mut rgb3, mut alpha3) = (vec![1.0; n * 3], vec![1.0; n]);
+            let mut none = vec![7.0f32; n];
+            frame.blend(&mut rgb3, &mut none, &mut alpha3, false);
+            assert_eq!(bits(&rgb3), bits(&rgb), "{simd:?}");
+            assert_eq!(bits(&alpha3), bits(&alpha), "{simd:?}");
+            assert!(none.iter().all(|&v| v == 7.0));
+        }
+    }
 
     #[test]
     fn opacity_exp_matches_float64() {

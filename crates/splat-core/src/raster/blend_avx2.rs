@@ -5,8 +5,8 @@
 //! so a half the footprint misses is skipped. Same formulas and operation order as
 //! `blend_tile_impl::<true>`, so the same image bits (tested).
 use super::blend::{
-    prefetch, BlendParams, Counts, Slot, TileOut, CHUNK, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16,
-    EXP_MAGIC, LANES, PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
+    prefetch, BlendParams, Counts, Slot, Stream, TileOut, CHUNK, EXP2_16THS, EXP_C_HI, EXP_C_LO,
+    EXP_K16, EXP_MAGIC, LANES, SIGMA_CLAMP, T_MIN,
 };
 use super::project::{Splat, ALPHA_THRESHOLD};
 use std::mem::MaybeUninit;
@@ -96,14 +96,40 @@ pub(super) fn blend_tile_avx2<'a, const COUNT: bool, const DEPTH: bool>(
     let c1_ptr = out.c[1].as_mut_ptr() as *mut f32;
     let c2_ptr = out.c[2].as_mut_ptr() as *mut f32;
     let d_ptr = out.d.as_mut_ptr() as *mut f32;
-    for list in lists {
-        for (c, chunk) in list.chunks(CHUNK).enumerate() {
+    // the tile's lists as one stream of batches, the next batch's splats prefetched while
+    // this one is blended (batches and prefetch run across the lists' ends)
+    let mut stream = Stream::new(lists);
+    // up to 16 entries by two masked moves (masked-off lanes are neither read nor written)
+    let copy = |src: &[u32], dst: &mut [u32]| {
+        let k = src.len().min(dst.len()).min(CHUNK) as i32;
+        let idx = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+        let m_lo = _mm256_cmpgt_epi32(_mm256_set1_epi32(k), idx);
+        let m_hi = _mm256_cmpgt_epi32(_mm256_set1_epi32(k - HALF as i32), idx);
+        // SAFETY: the masks cover the first k <= 16 entries of both slices only.
+        unsafe {
+            let (s, d) = (src.as_ptr() as *const i32, dst.as_mut_ptr() as *mut i32);
+            _mm256_maskstore_epi32(d, m_lo, _mm256_maskload_epi32(s, m_lo));
+            if k > HALF as i32 {
+                let (s, d) = (s.add(HALF), d.add(HALF));
+                _mm256_maskstore_epi32(d, m_hi, _mm256_maskload_epi32(s, m_hi));
+            }
+        }
+    };
+    let mut next = [0u32; CHUNK];
+    let mut n_next = stream.fill(&mut next, copy);
+    for &gi in &next[..n_next] {
+        prefetch(splats, gi as usize);
+    }
+    while n_next != 0 {
+        let (batch, n) = (next, n_next);
+        n_next = stream.fill(&mut next, copy);
+        {
             // phase 1, branch-free per splat: the row halves it reaches (bit r: columns 0-7 of
             // row r, bit 16 + r: columns 8-15) and its exponent's terms
             let mut masks = [0u32; CHUNK];
-            for (k, &gi) in chunk.iter().enumerate() {
-                if let Some(&ahead) = list.get(c * CHUNK + k + PREFETCH_AHEAD) {
-                    prefetch(splats, ahead as usize);
+            for (k, &gi) in batch[..n].iter().enumerate() {
+                if k < n_next {
+                    prefetch(splats, next[k] as usize);
                 }
                 let s = &splats[gi as usize];
                 let (mx, my) = (s.xy[0], s.xy[1]);

@@ -1,7 +1,7 @@
 //! The AVX-512 blend kernel, written with `core::arch` intrinsics (see `blend.rs` for the
 //! generic kernel it mirrors operation for operation, so both give the same bits).
 use super::blend::{
-    prefetch, BlendParams, Counts, Slot, TileOut, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16,
+    prefetch, BlendParams, Counts, Slot, Stream, TileOut, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16,
     EXP_MAGIC, LANES, SIGMA_CLAMP, T_MIN,
 };
 use super::project::{Splat, ALPHA_THRESHOLD};
@@ -11,11 +11,6 @@ use std::ptr::addr_of_mut;
 /// Splats per batch of this kernel (twice the AVX2 kernel's `CHUNK`): a block's state is
 /// loaded and stored once per batch, so longer batches amortise that over more splats.
 const BATCH: usize = 32;
-
-/// How many list entries ahead this kernel prefetches splats: one batch, so each splat's load
-/// is asked for a whole phase 2 before its phase 1 (the generic `PREFETCH_AHEAD` is 16, half a
-/// batch here, which left the second half of each batch waiting for its splats on grid-5).
-const PREFETCH: usize = BATCH;
 
 /// The tile's state in block order: `t[b][i]` is the pixel of lane i of block b, at tile row
 /// 4 (b / 4) + i / 4 and column 4 (b % 4) + i % 4 (see [`block_pixel`]).
@@ -297,14 +292,38 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool, const DEPTH: bool>(
             $blk.lv = _kor_mask16(_kandn_mask16(valid, $blk.lv), contrib);
         }};
     }
-    for list in lists {
-        for (c, chunk) in list.chunks(BATCH).enumerate() {
+    // the tile's lists as one stream of batches, the next batch's splats prefetched while
+    // this one is blended (batches and prefetch run across the lists' ends)
+    let mut stream = Stream::new(lists);
+    // up to 32 entries by two masked moves (masked-off lanes are neither read nor written)
+    let copy = |src: &[u32], dst: &mut [u32]| {
+        let k = src.len().min(dst.len()).min(BATCH);
+        let m = (u32::MAX as u64 >> (32 - k)) as u32;
+        // SAFETY: the masks cover the first k <= 32 entries of both slices only.
+        unsafe {
+            let lo = _mm512_maskz_loadu_epi32(m as u16, src.as_ptr() as *const i32);
+            _mm512_mask_storeu_epi32(dst.as_mut_ptr() as *mut i32, m as u16, lo);
+            if k > 16 {
+                let hi = _mm512_maskz_loadu_epi32((m >> 16) as u16, src.as_ptr().add(16) as _);
+                _mm512_mask_storeu_epi32(dst.as_mut_ptr().add(16) as _, (m >> 16) as u16, hi);
+            }
+        }
+    };
+    let mut next = [0u32; BATCH];
+    let mut n_next = stream.fill(&mut next, copy);
+    for &gi in &next[..n_next] {
+        prefetch(splats, gi as usize);
+    }
+    while n_next != 0 {
+        let (batch, n) = (next, n_next);
+        n_next = stream.fill(&mut next, copy);
+        {
             // phase 1, branch-free per splat: which blocks of the tile it reaches, and the
             // per-row and per-column terms of its exponent
             let mut masks = [0u32; BATCH];
-            for (k, &gi) in chunk.iter().enumerate() {
-                if let Some(&ahead) = list.get(c * BATCH + k + PREFETCH) {
-                    prefetch(splats, ahead as usize);
+            for (k, &gi) in batch[..n].iter().enumerate() {
+                if k < n_next {
+                    prefetch(splats, next[k] as usize);
                 }
                 let s = &splats[gi as usize];
                 let (mx, my) = (s.xy[0], s.xy[1]);
