@@ -48,6 +48,19 @@ impl Default for PixIn {
 /// call `put` or `zero` exactly once per entry of the tile's list, in list order.
 pub(crate) trait SlotSink {
     fn put(&mut self, pos: u32, vals: &[f32; slot::LEN]);
+    /// `put` with the values in lanes 0..12 of an AVX-512 vector (the AVX-512 kernel's sums),
+    /// so a sink may store them without a trip through an array.
+    ///
+    /// # Safety
+    /// The CPU has AVX-512F.
+    #[cfg(target_arch = "x86_64")]
+    #[inline]
+    unsafe fn put_m512(&mut self, pos: u32, v: std::arch::x86_64::__m512) {
+        let mut lanes = [0.0f32; 16];
+        // SAFETY: `lanes` holds 16 floats; AVX-512F is present (the caller's contract).
+        unsafe { std::arch::x86_64::_mm512_storeu_ps(lanes.as_mut_ptr(), v) };
+        self.put(pos, &std::array::from_fn(|i| lanes[i]));
+    }
     /// Entry `pos` has no slot to add: it comes after the tile finished. Its sums would be
     /// +0.0 zeros, which leave any running sum unchanged, so a sink may skip it; by default it
     /// puts them. (Splats none of whose rows passes the contour test still put their zero sums:

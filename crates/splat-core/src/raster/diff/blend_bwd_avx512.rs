@@ -30,11 +30,10 @@ struct Rows([[f32; LANES]; LANES]);
 struct Row([f32; LANES]);
 
 /// The 16-lane sums of 12 vectors, each in the canonical halving-tree order (i + 8, i + 4,
-/// i + 2, i + 1), computed together: lane 4k + m of the result holds vector k + 4m's sum
-/// (k < 4, m < 3).
+/// i + 2, i + 1), computed together: lane i of the result holds vector i's sum (i < 12).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
-fn hsum12(v: &[__m512; 12]) -> [f32; slot::LEN] {
+fn hsum12(v: &[__m512; 12]) -> __m512 {
     // i + 8: pairs (a, b) -> [a lo8 + a hi8, b lo8 + b hi8]
     let mut s1 = [_mm512_setzero_ps(); 6];
     for i in 0..6 {
@@ -68,16 +67,9 @@ fn hsum12(v: &[__m512; 12]) -> [f32; slot::LEN] {
         _mm512_shuffle_ps::<0x88>(s3a, s3b),
         _mm512_shuffle_ps::<0xDD>(s3a, s3b),
     );
-    let mut lanes = Row::default();
-    // SAFETY: `lanes` holds 16 aligned floats.
-    unsafe { _mm512_store_ps(lanes.0.as_mut_ptr(), r) };
-    let mut out = [0.0f32; slot::LEN];
-    for k in 0..4 {
-        out[k] = lanes.0[4 * k];
-        out[k + 4] = lanes.0[4 * k + 1];
-        out[k + 8] = lanes.0[4 * k + 2];
-    }
-    out
+    // lane i of the result: vector i's sum (i < 12), from lane 4 (i % 4) + i / 4 of r
+    let idx = _mm512_setr_epi32(0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15);
+    _mm512_permutexvar_ps(idx, r)
 }
 
 /// Replay one tile's list with AVX-512 and emit every entry's slot (see the generic kernel):
@@ -358,7 +350,8 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, const DEPTH: bool, S: SlotSin
                         }
                     }
                 }
-                sink.put(gi, &hsum12(&acc));
+                // SAFETY: AVX-512F is present (this function's target features).
+                unsafe { sink.put_m512(gi, hsum12(&acc)) };
             }
         }
     }
@@ -393,7 +386,9 @@ mod tests {
             // SAFETY: the features are present (checked above); each array holds 16 floats.
             let got = unsafe {
                 let v: [__m512; 12] = std::array::from_fn(|i| _mm512_loadu_ps(vals[i].as_ptr()));
-                hsum12(&v)
+                let mut lanes = [0.0f32; 16];
+                _mm512_storeu_ps(lanes.as_mut_ptr(), hsum12(&v));
+                lanes
             };
             for i in 0..12 {
                 assert_eq!(got[i].to_bits(), hsum16(&vals[i]).to_bits(), "vector {i}");

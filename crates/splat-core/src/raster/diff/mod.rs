@@ -1087,6 +1087,22 @@ impl blend_bwd::SlotSink for TileSink<'_> {
         }
     }
 
+    #[cfg(target_arch = "x86_64")]
+    #[inline]
+    unsafe fn put_m512(&mut self, _pos: u32, v: std::arch::x86_64::__m512) {
+        let i = self.next_slot();
+        // SAFETY: as in `put`; lanes 0..12 are stored, the slot's 12 floats; AVX-512F is
+        // present (the caller's contract).
+        unsafe {
+            std::arch::x86_64::_mm512_mask_storeu_ps(
+                self.w.base.add(i) as *mut f32,
+                (1 << slot::LEN) - 1,
+                v,
+            );
+            *self.w.written.add(i) = 1;
+        }
+    }
+
     #[inline]
     fn zero(&mut self, _pos: u32) {
         let i = self.next_slot();
