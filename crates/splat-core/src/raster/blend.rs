@@ -215,10 +215,10 @@ pub(super) struct Slot {
     pub splat: Splat,
 }
 
-/// How many list entries ahead the plain kernel and the backward kernels prefetch splats (the
-/// lists jump through the sorted array; 16 measured 1.8% less frame CPU than 8 on garden, 1
-/// thread). The explicit forward kernels prefetch their whole next batch instead, across the
-/// lists' ends ([`Stream`]).
+/// How many list entries ahead the plain kernels and the AVX2 backward kernel prefetch splats
+/// (the lists jump through the sorted array; 16 measured 1.8% less frame CPU than 8 on garden,
+/// 1 thread). The explicit forward kernels and the AVX-512 backward kernel prefetch their whole
+/// next batch instead, across the lists' ends ([`Stream`]).
 pub(super) const PREFETCH_AHEAD: usize = 16;
 
 /// A tile's lists (one per binning chunk, in order) as one stream of list entries, taken in

@@ -88,6 +88,26 @@ pub(crate) fn reached_blocks(
     _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(blocks, r, v_bxl)
 }
 
+/// [`Stream::fill`]'s copy for the AVX-512 kernels: the first min(len) entries of `src`, at most
+/// 32, to the front of `dst` by two masked moves (masked-off lanes are neither read nor
+/// written), where a `copy_from_slice` of a variable length calls `memcpy`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
+pub(crate) fn copy_entries(src: &[u32], dst: &mut [u32]) {
+    use std::arch::x86_64::*;
+    let k = src.len().min(dst.len()).min(32);
+    let m = (u32::MAX as u64 >> (32 - k)) as u32;
+    // SAFETY: the masks cover the first k <= 32 entries of both slices only.
+    unsafe {
+        let lo = _mm512_maskz_loadu_epi32(m as u16, src.as_ptr() as *const i32);
+        _mm512_mask_storeu_epi32(dst.as_mut_ptr() as *mut i32, m as u16, lo);
+        if k > 16 {
+            let hi = _mm512_maskz_loadu_epi32((m >> 16) as u16, src.as_ptr().add(16) as _);
+            _mm512_mask_storeu_epi32(dst.as_mut_ptr().add(16) as _, (m >> 16) as u16, hi);
+        }
+    }
+}
+
 /// Explicit AVX-512 kernel: per pixel the same formulas and operation order as
 /// `blend_tile_impl::<true>`, so the same image bits, organised for the CPU rather than per
 /// splat. The work unit is a 4x4-pixel block (one 16-lane vector): a splat's footprint of about
@@ -295,20 +315,7 @@ pub(super) fn blend_tile_avx512<'a, const COUNT: bool, const DEPTH: bool>(
     // the tile's lists as one stream of batches, the next batch's splats prefetched while
     // this one is blended (batches and prefetch run across the lists' ends)
     let mut stream = Stream::new(lists);
-    // up to 32 entries by two masked moves (masked-off lanes are neither read nor written)
-    let copy = |src: &[u32], dst: &mut [u32]| {
-        let k = src.len().min(dst.len()).min(BATCH);
-        let m = (u32::MAX as u64 >> (32 - k)) as u32;
-        // SAFETY: the masks cover the first k <= 32 entries of both slices only.
-        unsafe {
-            let lo = _mm512_maskz_loadu_epi32(m as u16, src.as_ptr() as *const i32);
-            _mm512_mask_storeu_epi32(dst.as_mut_ptr() as *mut i32, m as u16, lo);
-            if k > 16 {
-                let hi = _mm512_maskz_loadu_epi32((m >> 16) as u16, src.as_ptr().add(16) as _);
-                _mm512_mask_storeu_epi32(dst.as_mut_ptr().add(16) as _, (m >> 16) as u16, hi);
-            }
-        }
-    };
+    let copy = |src: &[u32], dst: &mut [u32]| copy_entries(src, dst);
     let mut next = [0u32; BATCH];
     let mut n_next = stream.fill(&mut next, copy);
     for &gi in &next[..n_next] {

@@ -8,10 +8,10 @@
 use super::blend_bwd::{block_lane, PixIn, SlotSink};
 use super::slot;
 use crate::raster::blend::{
-    prefetch, row_mask, BlendParams, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16, EXP_MAGIC, LANES,
-    PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,
+    prefetch, row_mask, BlendParams, Stream, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16, EXP_MAGIC,
+    LANES, SIGMA_CLAMP, T_MIN,
 };
-use crate::raster::blend_avx512::reached_blocks;
+use crate::raster::blend_avx512::{copy_entries, reached_blocks};
 use crate::raster::project::{Splat, ALPHA_THRESHOLD};
 
 #[cfg(target_arch = "x86_64")]
@@ -159,12 +159,25 @@ pub(super) fn bwd_tile_avx512<'a, const ABS: bool, const DEPTH: bool, S: SlotSin
     // latency) then does not wait behind the replay of the splats before it in the
     // out-of-order window, and its block loop starts on a known mask
     let mut reach = [0u16; REACH_CHUNK];
-    for list in lists {
-        for (c, chunk) in list.chunks(REACH_CHUNK).enumerate() {
+    // the tile's lists as one stream of chunks (a frame of many binning chunks gives a tile many
+    // short lists): the next chunk's splats are prefetched during this one's reach tests,
+    // across the lists' ends, as the forward kernel does (`blend::Stream`)
+    let mut stream = Stream::new(lists);
+    let copy = |src: &[u32], dst: &mut [u32]| copy_entries(src, dst);
+    let mut next = [0u32; REACH_CHUNK];
+    let mut n_next = stream.fill(&mut next, copy);
+    for &gi in &next[..n_next] {
+        prefetch(splats, gi as usize);
+    }
+    while n_next != 0 {
+        let (cur, n) = (next, n_next);
+        n_next = stream.fill(&mut next, copy);
+        let chunk = &cur[..n];
+        {
             if !done {
                 for (j, (&gi, reached)) in chunk.iter().zip(reach.iter_mut()).enumerate() {
-                    if let Some(&ahead) = list.get(c * REACH_CHUNK + j + PREFETCH_AHEAD) {
-                        prefetch(splats, ahead as usize);
+                    if j < n_next {
+                        prefetch(splats, next[j] as usize);
                     }
                     let s = &splats[gi as usize];
                     let my = s.xy[1];
