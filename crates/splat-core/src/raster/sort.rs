@@ -732,7 +732,7 @@ mod tests {
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
                 .build()
-                .unwrap();
+                .expect("pool");
             // reused buffers holding another frame's keys
             let (mut keys, mut tmp) = (vec![(7, 7); 5], vec![(9, 9); 70_000]);
             pool.install(|| sorted_keys(parts, &mut keys, &mut tmp));
