@@ -218,51 +218,149 @@ fn part_ref<T>(parts: &[Vec<T>], payload: u32) -> &T {
         [(payload & ((1 << PROJECT_CHUNK_BITS) - 1)) as usize]
 }
 
-/// The (depth bits, payload) keys of all parts sorted front to back by a stable LSD radix sort,
-/// in `keys` (`tmp` is scratch). Both buffers are reused: only their capacity survives.
+/// Bits of the most significant digit, sorted first over all keys (sign, exponent and two
+/// mantissa bits: quarter octaves of depth); the 21 bits below are sorted within each of its
+/// buckets.
+const TOP_SHIFT: u32 = 32 - RADIX_BITS;
+/// Buckets up to this size are sorted by comparison instead of radix passes (whose histograms
+/// would cost more than the keys).
+const SMALL_BUCKET: usize = 256;
+
+/// The (depth bits, payload) keys of all parts sorted front to back, in `keys` (`tmp` is
+/// scratch). Both buffers are reused: only their capacity survives.
+///
+/// A hybrid radix sort: one parallel, stable MSD scatter on the top [`RADIX_BITS`] bits (each
+/// part writes its keys at the digit's global offset plus the counts of the earlier parts),
+/// then each top-digit bucket, an independent range small enough to stay in cache, sorted on
+/// the lower bits by stable LSD passes, the buckets in parallel. Payloads grow with the
+/// Gaussian index and are unique, so the stable sort by depth is the sort by (depth, payload),
+/// whatever the thread count.
 fn sorted_keys(parts: &[Vec<Splat>], keys: &mut Vec<(u32, u32)>, tmp: &mut Vec<(u32, u32)>) {
     let n: usize = parts.iter().map(Vec::len).sum();
-    let passes = 32u32.div_ceil(RADIX_BITS) as usize;
-    // every key is written below and every pass writes all of `tmp`: only the part of a buffer
-    // beyond what an earlier frame left needs initialising
+    // every key is written below (into `tmp`, then scattered into `keys`): only the part of a
+    // buffer beyond what an earlier frame left needs initialising
     keys.truncate(n);
     keys.resize(n, (0, 0));
+    tmp.truncate(n);
+    tmp.resize(n, (0, 0));
     // each part's keys go straight to their place; (depth bits, payload), positive floats
-    // ordering like their bit patterns, and the histograms of every digit, in one parallel pass
-    let mut outs: Vec<&mut [(u32, u32)]> = Vec::with_capacity(parts.len());
-    let mut rest = keys.as_mut_slice();
-    for part in parts {
-        let (head, tail) = rest.split_at_mut(part.len());
-        outs.push(head);
-        rest = tail;
-    }
+    // ordering like their bit patterns, and each part's histogram of the top digit, in one
+    // parallel pass
     let hists: Vec<Vec<u32>> = parts
         .par_iter()
-        .zip(outs.into_par_iter())
+        .zip(split_like(tmp, parts).into_par_iter())
         .enumerate()
         .map(|(c, (part, out))| {
             let base = (c as u32) << PROJECT_CHUNK_BITS;
-            let mut hist = vec![0u32; RADIX * passes];
+            let mut hist = vec![0u32; RADIX];
             for (j, (s, k)) in part.iter().zip(out.iter_mut()).enumerate() {
                 let key = s.depth.to_bits();
-                for (pass, h) in hist.chunks_exact_mut(RADIX).enumerate() {
-                    h[((key >> (pass as u32 * RADIX_BITS)) as usize) & (RADIX - 1)] += 1;
-                }
+                hist[(key >> TOP_SHIFT) as usize] += 1;
                 *k = (key, base | j as u32);
             }
             hist
         })
         .collect();
-    let mut hist = vec![0usize; RADIX * passes];
+    let mut total = vec![0usize; RADIX];
     for h in &hists {
-        for (a, &b) in hist.iter_mut().zip(h) {
+        for (a, &b) in total.iter_mut().zip(h) {
             *a += b as usize;
         }
     }
-    tmp.truncate(n);
-    tmp.resize(n, (0, 0));
-    for (pass, h) in hist.chunks_exact_mut(RADIX).enumerate() {
-        // a digit all keys share needs no pass (the exponent bits of depths of one scale)
+    // bucket starts: the digit's global prefix
+    let mut starts = Vec::with_capacity(RADIX + 1);
+    let mut sum = 0;
+    for &c in &total {
+        starts.push(sum);
+        sum += c;
+    }
+    starts.push(n);
+    if total.contains(&n) {
+        // one bucket holds every key (depths within a quarter octave): no scatter
+        std::mem::swap(keys, tmp);
+    } else {
+        // each part's cursor per digit: the digit's start plus the earlier parts' counts
+        let mut cursors = Vec::with_capacity(parts.len());
+        let mut next = starts[..RADIX].to_vec();
+        for h in &hists {
+            cursors.push(next.clone());
+            for (a, &b) in next.iter_mut().zip(h) {
+                *a += b as usize;
+            }
+        }
+        let dst = SendPtr(keys.as_mut_ptr());
+        split_like(tmp, parts)
+            .into_par_iter()
+            .zip(cursors.into_par_iter())
+            .for_each(|(src, mut cur)| {
+                let dst = &dst;
+                for &k in src.iter() {
+                    let c = &mut cur[(k.0 >> TOP_SHIFT) as usize];
+                    // SAFETY: the parts' cursor ranges per digit are disjoint and within
+                    // [0, n) (prefix sums of the counts of that digit), so every position is
+                    // written by exactly one part, once.
+                    unsafe { dst.0.add(*c).write(k) };
+                    *c += 1;
+                }
+            });
+    }
+    // the buckets, largest first, sorted on their lower bits in parallel
+    let mut buckets: Vec<(&mut [(u32, u32)], &mut [(u32, u32)])> = Vec::new();
+    let (mut rk, mut rt) = (keys.as_mut_slice(), tmp.as_mut_slice());
+    for w in starts.windows(2) {
+        let len = w[1] - w[0];
+        let (bk, tk) = rk.split_at_mut(len);
+        let (bt, tt) = rt.split_at_mut(len);
+        (rk, rt) = (tk, tt);
+        if len > 1 {
+            buckets.push((bk, bt));
+        }
+    }
+    buckets.sort_by_key(|b| std::cmp::Reverse(b.0.len()));
+    buckets
+        .into_par_iter()
+        .with_max_len(1)
+        .for_each(|(b, scratch)| sort_low(b, scratch));
+}
+
+/// A raw pointer the scatter's parts share (they write disjoint positions).
+struct SendPtr<T>(*mut T);
+// SAFETY: used only for writes to disjoint positions, see the scatter in `sorted_keys`.
+unsafe impl<T: Send> Send for SendPtr<T> {}
+unsafe impl<T: Send> Sync for SendPtr<T> {}
+
+/// `buf` cut into consecutive slices as long as the parts.
+fn split_like<'a, T>(buf: &'a mut [T], parts: &[Vec<Splat>]) -> Vec<&'a mut [T]> {
+    let mut outs = Vec::with_capacity(parts.len());
+    let mut rest = buf;
+    for part in parts {
+        let (head, tail) = rest.split_at_mut(part.len());
+        outs.push(head);
+        rest = tail;
+    }
+    outs
+}
+
+/// Sort one top-digit bucket `b` (keys sharing their top bits, in payload order) by the lower
+/// [`TOP_SHIFT`] bits, stably, in place (`scratch` is as long, its contents are overwritten):
+/// LSD passes of [`RADIX_BITS`] bits, a digit all keys share skipped; small buckets by
+/// comparison on (depth, payload), the same order.
+fn sort_low(b: &mut [(u32, u32)], scratch: &mut [(u32, u32)]) {
+    if b.len() <= SMALL_BUCKET {
+        b.sort_unstable();
+        return;
+    }
+    const PASSES: usize = TOP_SHIFT.div_ceil(RADIX_BITS) as usize;
+    let mut hist = [[0u32; RADIX]; PASSES];
+    for k in b.iter() {
+        for (pass, h) in hist.iter_mut().enumerate() {
+            h[((k.0 >> (pass as u32 * RADIX_BITS)) as usize) & (RADIX - 1)] += 1;
+        }
+    }
+    let n = b.len() as u32;
+    let (mut src, mut dst) = (&mut *b, &mut *scratch);
+    let mut in_scratch = false;
+    for (pass, h) in hist.iter_mut().enumerate() {
         if h.contains(&n) {
             continue;
         }
@@ -273,12 +371,16 @@ fn sorted_keys(parts: &[Vec<Splat>], keys: &mut Vec<(u32, u32)>, tmp: &mut Vec<(
             *c = sum;
             sum += v;
         }
-        for k in keys.iter() {
-            let b = ((k.0 >> shift) as usize) & (RADIX - 1);
-            tmp[h[b]] = *k;
-            h[b] += 1;
+        for k in src.iter() {
+            let d = ((k.0 >> shift) as usize) & (RADIX - 1);
+            dst[h[d] as usize] = *k;
+            h[d] += 1;
         }
-        std::mem::swap(keys, tmp);
+        std::mem::swap(&mut src, &mut dst);
+        in_scratch = !in_scratch;
+    }
+    if in_scratch {
+        b.copy_from_slice(scratch);
     }
 }
 
@@ -611,6 +713,74 @@ mod tests {
                 assert_eq!(g, &parts[c][j]);
             }
         }
+    }
+
+    /// `sorted_keys` of `parts` under pools of 1, 2 and 3 threads, each against the sort of
+    /// (depth bits, payload).
+    fn check_keys(parts: &[Vec<Splat>]) {
+        let mut want: Vec<(u32, u32)> = Vec::new();
+        for (c, p) in parts.iter().enumerate() {
+            let base = (c as u32) << PROJECT_CHUNK_BITS;
+            want.extend(
+                p.iter()
+                    .enumerate()
+                    .map(|(j, s)| (s.depth.to_bits(), base | j as u32)),
+            );
+        }
+        want.sort_by_key(|&(d, _)| d); // stable: ties keep payload order
+        for threads in 1..=3 {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("pool");
+            // reused buffers holding another frame's keys
+            let (mut keys, mut tmp) = (vec![(7, 7); 5], vec![(9, 9); 70_000]);
+            pool.install(|| sorted_keys(parts, &mut keys, &mut tmp));
+            assert!(keys == want, "{threads} threads, {} keys", want.len());
+        }
+    }
+
+    #[test]
+    fn hybrid_radix_sort_equals_a_stable_sort_on_adversarial_depths() {
+        let mut h = 11u64;
+        let mut next = move || {
+            h = h.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+            (h >> 33) as u32
+        };
+        let parts_of = |sizes: &[usize], d: &mut dyn FnMut() -> f32| -> Vec<Vec<Splat>> {
+            sizes
+                .iter()
+                .map(|&n| (0..n).map(|_| splat(d(), 0.0, 0.0)).collect())
+                .collect()
+        };
+        // no keys, one key
+        check_keys(&[]);
+        check_keys(&parts_of(&[0, 0], &mut || 1.0));
+        check_keys(&parts_of(&[1], &mut || 3.5));
+        // all equal (one bucket, every digit shared), in several parts
+        check_keys(&parts_of(&[4000, 1, 2500], &mut || 2.25));
+        // one bucket holding everything: depths within a quarter octave, many ties
+        let mut one = || f32::from_bits(0x4000_0000 | (next() % 0x10_0000));
+        check_keys(&parts_of(&[30_000, 7, 20_000], &mut one));
+        // one huge bucket and tiny ones around it
+        let mut skew = || {
+            let r = next();
+            if r % 100 < 97 {
+                5.0 + (r % 1000) as f32 * 1e-4
+            } else {
+                f32::from_bits(0x3000_0000 + r % 0x1800_0000)
+            }
+        };
+        check_keys(&parts_of(&[20_000, 0, 13_000], &mut skew));
+        // many tiny buckets: depths spanning many octaves
+        let mut wide = || f32::from_bits(0x0080_0000 + next() % 0x7e00_0000);
+        check_keys(&parts_of(&[9000, 3000, 1], &mut wide));
+        // buckets just around the comparison-sort threshold
+        let mut edge = || {
+            let r = next() % (3 * SMALL_BUCKET as u32);
+            f32::from_bits(((1 + r / (SMALL_BUCKET as u32 + 1)) << TOP_SHIFT) | (r % 5))
+        };
+        check_keys(&parts_of(&[3 * SMALL_BUCKET], &mut edge));
     }
 
     #[test]
