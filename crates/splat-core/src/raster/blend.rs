@@ -862,26 +862,7 @@ mod tests {
     fn frozen_frame_blends_as_a_render() {
         use crate::camera::Camera;
         use crate::raster::{render_into, RenderOptions, Simd};
-        use crate::scene::Scene;
-        let mut s = Scene::empty(0);
-        let mut h = 0x9e37_79b9u64;
-        let mut next = || {
-            h ^= h << 13;
-            h ^= h >> 7;
-            h ^= h << 17;
-            (h >> 40) as f32 / (1u64 << 24) as f32
-        };
-        for _ in 0..40_000 {
-            s.means
-                .extend([next() * 2.0 - 1.0, next() * 2.0 - 1.0, next() * 2.0 - 1.0]);
-            s.quats
-                .extend([1.0, next() - 0.5, next() - 0.5, next() - 0.5]);
-            s.log_scales
-                .extend([-4.0 - next(), -4.0 - next(), -3.5 - next()]);
-            s.opacity_logits.push(next() * 4.0 - 2.0);
-            s.sh0.extend([next() - 0.5, next() - 0.5, next() - 0.5]);
-        }
-        s.normalize_quats();
+        let s = crate::raster::tests::cloud(40_000, 0x9e37_79b9, -4.0);
         let mut m = [[0.0; 4]; 4];
         for (i, row) in m.iter_mut().enumerate() {
             row[i] = 1.0;

@@ -529,9 +529,14 @@ mod tests {
     use crate::Scene;
 
     fn scene(n: usize) -> Scene {
-        // a deterministic cloud in front of the camera
+        cloud(n, 0x1234_5678, -3.0)
+    }
+
+    /// A deterministic cloud of `n` Gaussians in [-1, 1]^3 (xorshift from `seed`), log-scales
+    /// `log_scale` - U(0, 1) (the third axis 0.5 more), for tests in front of a camera.
+    pub(crate) fn cloud(n: usize, seed: u64, log_scale: f32) -> Scene {
         let mut s = Scene::empty(0);
-        let mut h = 0x1234_5678u64;
+        let mut h = seed;
         let mut next = || {
             h ^= h << 13;
             h ^= h >> 7;
@@ -543,8 +548,11 @@ mod tests {
                 .extend([next() * 2.0 - 1.0, next() * 2.0 - 1.0, next() * 2.0 - 1.0]);
             s.quats
                 .extend([1.0, next() - 0.5, next() - 0.5, next() - 0.5]);
-            s.log_scales
-                .extend([-3.0 - next(), -3.0 - next(), -2.5 - next()]);
+            s.log_scales.extend([
+                log_scale - next(),
+                log_scale - next(),
+                (log_scale + 0.5) - next(),
+            ]);
             s.opacity_logits.push(next() * 4.0 - 2.0);
             s.sh0.extend([next() - 0.5, next() - 0.5, next() - 0.5]);
         }
