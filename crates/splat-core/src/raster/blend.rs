@@ -75,6 +75,21 @@ pub(crate) struct BlendParams {
     pub count_useful: bool,
 }
 
+impl BlendParams {
+    /// A frame of `cam` rendered with `opts`: its size, and the options' alpha cap,
+    /// background, kernel level and useful-evaluation count.
+    pub(crate) fn of(cam: &crate::camera::Camera, opts: &super::RenderOptions) -> Self {
+        BlendParams {
+            width: cam.width,
+            height: cam.height,
+            max_alpha: opts.max_alpha,
+            background: opts.background,
+            simd: opts.simd.resolve(),
+            count_useful: opts.count_useful,
+        }
+    }
+}
+
 #[inline(always)]
 fn fmadd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
     if FMA {
@@ -804,14 +819,7 @@ impl FrozenFrame {
         let mut bins = TileBins::default();
         let (tx, ty) = cam.tiles();
         bins.rebuild_from_footprints(&fp, tx, ty)?;
-        let params = BlendParams {
-            width: cam.width,
-            height: cam.height,
-            max_alpha: opts.max_alpha,
-            background: opts.background,
-            simd: opts.simd.resolve(),
-            count_useful: opts.count_useful,
-        };
+        let params = BlendParams::of(cam, opts);
         Ok(FrozenFrame {
             sorted,
             bins,

@@ -273,14 +273,7 @@ fn render_into_sharing(
         .rebuild_from_footprints(&s.footprints, tiles_x, tiles_y)?;
     stats.intersections = s.bins.intersections();
     let t3 = Instant::now();
-    let params = blend::BlendParams {
-        width: cam.width,
-        height: cam.height,
-        max_alpha: opts.max_alpha,
-        background: opts.background,
-        simd: opts.simd.resolve(),
-        count_useful: opts.count_useful,
-    };
+    let params = blend::BlendParams::of(cam, opts);
     let counts = blend::blend_frame(&s.sorted, &s.bins, &params, rgb, depth, alpha);
     stats.evaluations = counts.evals;
     stats.useful = counts.useful;

@@ -475,14 +475,7 @@ impl Workspace {
         self.bins.rebuild(&self.sorted, tiles_x, tiles_y)?;
         stats.intersections = self.bins.intersections();
         let t3 = Instant::now();
-        let blend = BlendParams {
-            width: cam.width,
-            height: cam.height,
-            max_alpha: opts.render.max_alpha,
-            background: opts.render.background,
-            simd: opts.render.simd.resolve(),
-            count_useful: opts.render.count_useful,
-        };
+        let blend = BlendParams::of(cam, &opts.render);
         self.tiles
             .resize_with((tiles_x * tiles_y) as usize, TileOut::default);
         let counts = blend::blend_frame_saving(
