@@ -23,7 +23,7 @@ import numpy as np
 from morphgs._core import MorphgsError
 from morphgs.camera import Camera, Cameras
 
-__all__ = ["SCENE_EXTENSIONS", "SceneSource", "builtin_sources", "discover"]
+__all__ = ["SCENE_EXTENSIONS", "SceneSource", "builtin_sources", "discover", "slug"]
 
 SCENE_EXTENSIONS = (".ply", ".splat", ".spz", ".ksplat", ".sog", ".glb", ".gltf")
 _PREFERRED = ("point_cloud.ply", "splat.ply", "scene.ply", "splat.splat", "scene.splat")
@@ -105,9 +105,12 @@ def read_inria_cameras(path: str | os.PathLike[str], *, resolution: tuple[int, i
     return Cameras.from_list(cams)
 
 
-def _slug(name: str) -> str:
+def slug(name: str, fallback: str = "scene") -> str:
+    """`name` as a file or folder name: every run of characters other than letters, digits, '.',
+    '_' and '-' becomes one '-', leading and trailing '-' and '.' dropped (`fallback` if nothing is
+    left). The one rule for names morphgs derives from scene, regime and condition names."""
     s = re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-.")
-    return s or "scene"
+    return s or fallback
 
 
 def scene_file_in(folder: Path) -> Path:
@@ -179,7 +182,7 @@ def discover(inputs: Sequence[str | os.PathLike[str]]) -> tuple[list[SceneSource
         except (OSError, MorphgsError) as e:
             problems.append((str(raw), str(e)))
             continue
-        found.append((str(p.resolve()), SceneSource(id=_slug(name), path=str(scene_file), cameras=cams,
+        found.append((str(p.resolve()), SceneSource(id=slug(name), path=str(scene_file), cameras=cams,
                                                     cameras_kind=kind)))
     counts: dict[str, int] = {}
     for _, s in found:

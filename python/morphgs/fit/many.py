@@ -68,11 +68,11 @@ def expand_inputs(inputs: Sequence[str]) -> list[str]:
 
 
 def _names(inputs: Sequence[str]) -> list[str]:
-    from morphgs.curation.sources import _slug
+    from morphgs.curation.sources import slug
 
     def base(p: str) -> str:
         q = Path(p).resolve()
-        return _slug(q.parent.name if q.is_file() else q.name)
+        return slug(q.parent.name if q.is_file() else q.name)
 
     bases = [base(p) for p in inputs]
     return [b if bases.count(b) == 1 else f"{b}-{hashlib.sha256(str(Path(p).resolve()).encode()).hexdigest()[:8]}"
