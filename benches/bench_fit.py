@@ -324,12 +324,12 @@ def opensplat_dataset(tmp: Path, quick: bool) -> tuple[Path, object, list[int]]:
 def heldout_psnr(ply: Path, data: Path, cams, held: list[int], max_alpha: float) -> float:
     """Mean per-view PSNR of a PLY's renders (clamped) against the dataset's held-out images."""
     import morphgs
-    from morphgs.media import _read_image
+    from morphgs.media import read_image
 
     scene = morphgs.load(ply)
     sub = morphgs.Cameras.from_list([cams[i] for i in held])  # type: ignore[index]
     r = np.clip(morphgs.render(scene, sub, max_alpha=max_alpha).rgb, 0, 1)
-    gt = np.stack([_read_image(data / "images" / f"view_{i:04d}.png") for i in held]).astype(np.float32) / 255
+    gt = np.stack([read_image(data / "images" / f"view_{i:04d}.png") for i in held]).astype(np.float32) / 255
     mse = ((r - gt) ** 2).mean(axis=(1, 2, 3))
     return float(np.mean(10 * np.log10(1 / mse)))
 

@@ -143,9 +143,10 @@ def test_the_calibration_key_is_the_target_sets_key_the_family_and_the_grid(tmp_
     morph, naive = base["calibration/calibrated_morphological-S8"], base["calibration/calibrated_naive-S8"]
     target = base["trainsets/target-S8"]
     # both calibrate against the one target set of the regime (also trained: targets = true)
-    assert morph.inputs["target"] == naive.inputs["target"] == target.ref.key and "training/target-S8-s0" in base
+    assert morph.inputs["real_dir"] == naive.inputs["real_dir"] == {"out": target.ref.key, "sub": "data"}
+    assert "training/target-S8-s0" in base
     assert morph.ref.key != naive.ref.key and morph.inputs["family"] == "morphological"
-    assert base["trainsets/calibrated_morphological-S8"].inputs["calibration"] == morph.ref.key
+    assert base["trainsets/calibrated_morphological-S8"].inputs["calibration_dir"] == {"out": morph.ref.key, "sub": ""}
     # a change of the target's sparse fits changes the calibration and what reads it, not the others
     other = plan('[conditions]\ntrain = ["calibrated:morphological", "calibrated:naive"]\n[sparse]\nsteps = 151\n')
     assert other["calibration/calibrated_morphological-S8"].ref.key != morph.ref.key

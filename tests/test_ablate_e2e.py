@@ -213,12 +213,28 @@ def test_changing_one_condition_recomputes_only_that_condition(smoke: Path, tmp_
     assert [r for r in res["records"] if r["condition"] != "spatial"] == keep  # unchanged rows: the same values
 
 
+def test_bumping_a_stage_version_remakes_it_and_what_reads_it_nothing_else(
+        smoke: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from morphgs.ablation import load_study, run_study
+    from morphgs.ablation.stages import metrics2d
+
+    out = tmp_path / "bumped"
+    shutil.copytree(smoke, out, symlinks=True)
+    monkeypatch.setattr(metrics2d, "VERSION", metrics2d.VERSION + 1)
+    monkeypatch.setenv("MORPHGS_NUM_THREADS", "2")
+    ledger = run_study(load_study(None, preset="smoke"), out, log=lambda m: None)
+    computed = sorted({e["stage"] for e in ledger.entries if e["status"] == "computed"})
+    assert computed == ["metrics2d", "report"] and ledger.counts()["metrics2d"] == {"computed": 9, "reused": 0}
+    assert (out / "results.json").read_bytes() == (smoke / "results.json").read_bytes()  # the same code: same bytes
+
+
 def test_the_2d_metrics_stage_alone_reads_lpips_as_na_with_its_reason(smoke: Path, tmp_path: Path) -> None:
     from morphgs.ablation.stages import metrics2d
 
     refined = next((smoke / "refine").glob("morphological-s0-*"))
     testset = next((smoke / "testsets").glob("sample-2-S8-*"))
-    metrics2d.make(tmp_path, testset_dir=str(testset), refined_dir=str(refined), lpips="off", lpips_net="alex",
+    note = metrics2d.lpips_status("off", "alex")
+    metrics2d.make(tmp_path, testset_dir=str(testset), refined_dir=str(refined), lpips_note=note, lpips_net="alex",
                    eflow=False, threads=1)
     out = json.loads((tmp_path / "metrics2d.json").read_text())
     assert out["lpips_note"] == 'LPIPS turned off in the study ([metrics] lpips = "off")'

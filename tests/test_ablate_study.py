@@ -16,7 +16,7 @@ import pytest
 
 from morphgs.ablation import StudyError, load_study
 from morphgs.ablation import cache
-from morphgs.ablation.report import format_table, rank_marks
+from morphgs.ablation.table import format_table, rank_marks
 from morphgs.ablation.stats import mean_ci, paired_permutation_p
 
 ENV = {**os.environ, "MORPHGS_NUM_THREADS": "1"}
@@ -104,9 +104,10 @@ def test_a_missing_study_file_is_one_line(tmp_path: Path) -> None:
 
 
 def test_stage_keys_hash_every_input_and_a_finished_stage_is_never_remade(tmp_path: Path) -> None:
-    a = cache.ref_for(tmp_path, "captures", "s0", {"views": 24, "size": [32, 32]})
-    assert a == cache.ref_for(tmp_path, "captures", "s0", {"size": [32, 32], "views": 24})  # order-free
-    assert a.key != cache.ref_for(tmp_path, "captures", "s0", {"views": 25, "size": [32, 32]}).key
+    a = cache.ref_for(tmp_path, "captures", "s0", {"views": 24, "size": [32, 32]}, version=1)
+    assert a == cache.ref_for(tmp_path, "captures", "s0", {"size": [32, 32], "views": 24}, version=1)  # order-free
+    assert a.key != cache.ref_for(tmp_path, "captures", "s0", {"views": 25, "size": [32, 32]}, version=1).key
+    assert a.key != cache.ref_for(tmp_path, "captures", "s0", {"views": 24, "size": [32, 32]}, version=2).key
     calls = []
 
     def make(w: Path) -> None:
@@ -119,7 +120,7 @@ def test_stage_keys_hash_every_input_and_a_finished_stage_is_never_remade(tmp_pa
     _, status, _ = cache.run_stage(a, {"views": 24}, make)
     assert status == "reused" and len(calls) == 1
 
-    b = cache.ref_for(tmp_path, "captures", "s1", {"views": 1})
+    b = cache.ref_for(tmp_path, "captures", "s1", {"views": 1}, version=1)
 
     def crash(w: Path) -> None:
         (w / "half.txt").write_text("half")
@@ -204,7 +205,7 @@ def test_the_capture_stage_uses_a_scene_folders_cameras_and_real_images(tmp_path
     folder = _scene_folder(tmp_path / "room", views=10)
     (src,), problems = discover([folder])
     assert not problems
-    captures.make(tmp_path / "cap", source=src, views=96, size=(32, 24))
+    captures.make(tmp_path / "cap", source=src, views=96, size=(32, 24), up="file")
     out, info = captures.load_capture(tmp_path / "cap")
     assert info["views"] == 10 and info["images"] == "images"  # its 10 cameras, not a 96-view orbit
     real = np.stack([np.asarray(Image.open(p)) for p in sorted((folder / "images").iterdir())])
@@ -247,11 +248,12 @@ def test_a_json_condition_is_read_relative_to_the_study_file_and_named_by_its_st
     jobs = build_plan(load_study(f), tmp_path / "s")
     ts = [j for j in jobs if j.ref.stage == "trainsets"]
     assert [j.ref.name for j in ts] == ["strong", "target-S8"]
-    assert ts[0].kwargs["spec"].params == cfg and ts[0].kwargs["spec"].label == "strong"
+    spec = ts[0].call_kwargs()["spec"]
+    assert spec.params == cfg and spec.label == "strong" and ts[0].inputs["spec"] == spec.as_dict()
 
 
 def test_a_study_folder_made_with_other_settings_is_refused_naming_the_keys(tmp_path: Path) -> None:
-    from morphgs.ablation.recipe import check_study_folder
+    from morphgs.ablation.executor import check_study_folder
 
     a = load_study(_study(tmp_path, 'preset = "smoke"\n'))
     check_study_folder(a, tmp_path / "s", recompute=False)

@@ -98,7 +98,7 @@ def test_views_every_k_trains_on_every_kth_view_of_the_trajectory(dataset: Path,
 
 def test_held_out_lpips_is_logged_and_leaves_the_fit_alone(dataset: Path, tmp_path: Path) -> None:
     pytest.importorskip("torch")
-    from morphgs.media import _read_image
+    from morphgs.media import read_image
     from morphgs.metrics import lpips
 
     cfg = small_config(200)
@@ -119,7 +119,7 @@ def test_held_out_lpips_is_logged_and_leaves_the_fit_alone(dataset: Path, tmp_pa
     scene = morphgs.load(on.ply)
     views = json.loads((on.run_dir / "views.json").read_text())
     cams = morphgs.trajectory.from_transforms_json(dataset / "transforms.json")
-    ref = [lpips(np.clip(morphgs.render(scene, cams[v["index"]]).rgb, 0, 1), _read_image(dataset / "images" / v["name"]))
+    ref = [lpips(np.clip(morphgs.render(scene, cams[v["index"]]).rgb, 0, 1), read_image(dataset / "images" / v["name"]))
            for v in views["heldout"]]
     assert on.heldout_lpips == pytest.approx(float(np.mean(ref)), abs=2e-3)
     assert json.loads((on.run_dir / "fit.json").read_text())["heldout_lpips"] == on.heldout_lpips

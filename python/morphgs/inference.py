@@ -55,10 +55,10 @@ def load_run(run: str | os.PathLike[str], *, checkpoint: str | os.PathLike[str] 
     """
     from morphgs.training.checkpoint import latest_checkpoint
     from morphgs.training.config import TrainConfig
-    from morphgs.training.loop import TrainingError, _read_run_file
+    from morphgs.training.loop import TrainingError, read_run_file
 
     run_dir = Path(run)
-    info = _read_run_file(run_dir)
+    info = read_run_file(run_dir)
     cfg = TrainConfig.from_dict(info["config"], source=str(run_dir / "run.json"))
     ckpt = Path(checkpoint) if checkpoint is not None else latest_checkpoint(run_dir)
     if ckpt is None:
@@ -110,7 +110,7 @@ def window_plan(n_frames: int, window: int, overlap: int) -> list[tuple[int, np.
     return plan
 
 
-def _to_model(frames: np.ndarray, device: torch.device) -> torch.Tensor:
+def to_model(frames: np.ndarray, device: torch.device) -> torch.Tensor:
     """(F, H, W, 3) uint8/float [0, 1] -> (1, 3, F, H, W) float32 in [-1, 1]."""
     t = torch.from_numpy(np.ascontiguousarray(frames))
     t = t.float() / 127.5 - 1.0 if t.dtype == torch.uint8 else t.float() * 2.0 - 1.0
@@ -169,12 +169,12 @@ def refine_clip(
     dev = torch.device(device) if device is not None else next(model.parameters()).device
     ref_t = None
     if reference is not None:
-        ref_t, _, _ = _pad_hw(_to_model(reference, dev), model.size_multiple)
+        ref_t, _, _ = _pad_hw(to_model(reference, dev), model.size_multiple)
     acc = np.zeros((n, h, w, 3), np.float32)
     total = np.zeros(n, np.float32)
     for start, weights in window_plan(n, win, ov):
         stop = min(start + win, n)
-        x, _, _ = _pad_hw(_to_model(arr[start:stop], dev), model.size_multiple)
+        x, _, _ = _pad_hw(to_model(arr[start:stop], dev), model.size_multiple)
         if x.shape[2] < win:  # a clip shorter than the window: repeat its last frame
             x = torch.cat([x, x[:, :, -1:].expand(-1, -1, win - x.shape[2], -1, -1)], dim=2)
         with torch.no_grad(), torch.autocast(dev.type, dtype=torch.bfloat16, enabled=autocast):

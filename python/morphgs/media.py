@@ -118,7 +118,12 @@ def _image_size(path: Path) -> tuple[int, int]:
     return h, w
 
 
-def _read_image(path: Path) -> np.ndarray:
+def read_image(path: Path) -> np.ndarray:
+    """One image file as (H, W, 3) uint8 RGB (grey and RGBA converted).
+
+    Raises:
+        MediaError: the file cannot be read as an image (names it).
+    """
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -193,7 +198,7 @@ def _read_images(files: Sequence[Path], rows: int | None) -> tuple[list[np.ndarr
             frames[i], sizes[i] = arr, (int(height), arr.shape[1])
     for i, f in enumerate(files):
         if frames[i] is None:
-            img = _read_image(f)
+            img = read_image(f)
             sizes[i] = img.shape[:2]
             frames[i] = img if rows is None else img[:rows]
     return [f for f in frames if f is not None], sizes

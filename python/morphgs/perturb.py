@@ -197,7 +197,8 @@ def as_config(config: str | PerturbConfig | Mapping[str, Any]) -> PerturbConfig:
     )
 
 
-def _check_seed(seed: Any) -> int:
+def check_seed(seed: Any) -> int:
+    """`seed` as an int in the u64 range (TypeError / ValueError naming the problem otherwise)."""
     if isinstance(seed, bool):
         raise TypeError("seed must be an int, got bool")
     try:
@@ -255,7 +256,7 @@ def perturb(
     if not isinstance(scene, GaussianScene):
         raise TypeError(f"scene must be a GaussianScene, got {type(scene).__name__}")
     cfg = as_config(config)
-    s = _check_seed(seed)
+    s = check_seed(seed)
     result: Any = _perturb(
         scene,
         position_jitter=cfg.position_jitter,

@@ -148,7 +148,7 @@ class Strength:
         Returns the scene, or (scene, keep-mask) with return_mask=True.
         """
         from morphgs._core import _perturb
-        from morphgs.perturb import _check_seed
+        from morphgs.perturb import check_seed
 
         if not isinstance(scene, GaussianScene):
             raise TypeError(f"scene must be a GaussianScene, got {type(scene).__name__}")
@@ -157,7 +157,7 @@ class Strength:
             scene, position_jitter=v.get("position"), color_noise=v.get("color"),
             opacity_noise=v.get("opacity"), prune=1.0 - v["keep"] if "keep" in v else None,
             scale_noise=None, rotation_noise=None, log_scale_noise=v.get("log_scale"),
-            rotation_angle=v.get("rotation"), seed=_check_seed(seed), return_mask=return_mask)
+            rotation_angle=v.get("rotation"), seed=check_seed(seed), return_mask=return_mask)
         return result
 
 

@@ -1,6 +1,7 @@
 """The stage cache: every stage output under STUDY/<stage>/<name>-<key>/, where the key is a hash
-of everything the stage reads (its settings and the keys of the stages it reads), as
-huggingface/datasets fingerprints a transform or dvc decides what to rerun.
+of everything the stage reads (its arguments, the keys of the stages it reads and the stage's code
+version; morphgs.ablation.jobs derives them), as huggingface/datasets fingerprints a transform or
+dvc decides what to rerun.
 
 - A finished output holds `stage.json` (its key and inputs) and is only ever made by renaming a
   complete work folder (`.<name>-<key>.work`) into place, so a killed study loses no finished
@@ -34,12 +35,12 @@ from morphgs.reliability import verify_checksums, write_checksums
 __all__ = ["Ledger", "StageRef", "key_of", "run_stage", "write_json_atomic"]
 
 STAGE_FILE = "stage.json"
-_VERSION = 1
 
 
-def key_of(stage: str, inputs: dict[str, Any]) -> str:
-    """The cache key of a stage output: sha256 of its canonical JSON inputs (16 hex digits)."""
-    text = json.dumps({"stage": stage, "v": _VERSION, "inputs": inputs}, sort_keys=True, separators=(",", ":"))
+def key_of(stage: str, inputs: dict[str, Any], *, version: int) -> str:
+    """The cache key of a stage output: sha256 of the stage, its code version and its canonical
+    JSON inputs (16 hex digits)."""
+    text = json.dumps({"stage": stage, "v": version, "inputs": inputs}, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
 
@@ -86,8 +87,8 @@ class Ledger:
         return out
 
 
-def ref_for(root: Path, stage: str, name: str, inputs: dict[str, Any]) -> StageRef:
-    key = key_of(stage, inputs)
+def ref_for(root: Path, stage: str, name: str, inputs: dict[str, Any], *, version: int) -> StageRef:
+    key = key_of(stage, inputs, version=version)
     return StageRef(stage, name, key, root / stage / f"{name}-{key}")
 
 

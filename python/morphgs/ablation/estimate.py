@@ -34,6 +34,7 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
     """{stage: estimated seconds of the jobs still to do} (CPU seconds on 2 cores; training of
     GPU models in GPU seconds)."""
     from morphgs.ablation import cache
+    from morphgs.ablation.jobs import resolve
 
     S = study.settings
     w, h = S["capture"]["size"]
@@ -51,7 +52,7 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
         elif st == "trainsets":
             n = len(j.kwargs["scene_dirs"]) * S["conditions"]["pairs_per_scene"]
             s = n * frames * px * gauss * 2 * UNIT["render"]
-            if getattr(j.kwargs["spec"], "kind", None) == "sparse":
+            if getattr(resolve(j.kwargs["spec"]), "kind", None) == "sparse":
                 s += len(j.kwargs["scene_dirs"]) * S["sparse"]["steps"] * px * UNIT["fit"]
         elif st == "calibration":
             # the strength scan and bisection (grid + ~10 points) plus op shares and the goodness of

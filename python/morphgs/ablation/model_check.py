@@ -32,7 +32,7 @@ def missing_model_folders(study: Study) -> list[str]:
     """'model.KEY: PATH (why)' for each required weights folder that is not there."""
     sec = _model_section(study)
     out = []
-    for key in REQUIRED_FOLDERS[study["model"]["name"]]:
+    for key in REQUIRED_FOLDERS.get(study["model"]["name"], ()):  # plugin models: none known
         v = sec.get(key, "")
         if not v:
             out.append(f"model.{key}: not set (a local folder of the weights)")

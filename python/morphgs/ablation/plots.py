@@ -11,7 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from morphgs.ablation.study import condition_regime
+from morphgs.ablation.conditions import Condition
+from morphgs.ablation.stats import mean_ci
+from morphgs.ablation.table import COLUMNS, units
 
 __all__ = ["write_all"]
 
@@ -26,26 +28,24 @@ def _plt() -> Any:
 
 
 def bars(out: Path, records: Sequence[dict[str, Any]], regimes: Sequence[str], conditions: Sequence[str]) -> None:
-    from morphgs.ablation.report import COLUMNS, CONTROLS, _units, label
-    from morphgs.ablation.stats import mean_ci
-
     plt = _plt()
     fig, axes = plt.subplots(len(regimes), len(COLUMNS), figsize=(2.6 * len(COLUMNS), 2.6 * len(regimes)),
                              squeeze=False)
     for i, rg in enumerate(regimes):
-        rows = [c for c in conditions if condition_regime(c) in (None, rg)] + ["input"]
+        rows = [c for c in conditions if Condition.parse(c).in_regime(rg)] + ["input"]
         for j, (key, name, _, _) in enumerate(COLUMNS):
             ax = axes[i][j]
             ms, cis = [], []
             for c in rows:
-                m, ci, _ = mean_ci(list(_units([r for r in records if r["regime"] == rg and r["condition"] == c],
+                m, ci, _ = mean_ci(list(units([r for r in records if r["regime"] == rg and r["condition"] == c],
                                                key).values()))
                 ms.append(m if math.isfinite(m) else 0.0)
                 cis.append(ci if math.isfinite(ci) else 0.0)
-            colors = ["0.6" if c in CONTROLS else "C3" if c.startswith("target-") else "C2" if c.startswith("calibrated:") else "C0" for c in rows]
+            kinds = [Condition.parse(c).kind for c in rows]
+            colors = [{"control": "0.6", "target": "C3", "calibrated": "C2"}.get(k, "C0") for k in kinds]
             ax.bar(range(len(rows)), ms, yerr=cis, color=colors, capsize=2)
             ax.set_xticks(range(len(rows)))
-            ax.set_xticklabels([label(c) for c in rows], rotation=70, fontsize=6)
+            ax.set_xticklabels([Condition.parse(c).label for c in rows], rotation=70, fontsize=6)
             ax.set_title(f"{rg} {name}", fontsize=8)
             ax.tick_params(axis="y", labelsize=6)
     fig.tight_layout()
@@ -59,7 +59,7 @@ def cka(out: Path, curves: Sequence[dict[str, Any]]) -> None:
     names = sorted({c["condition"] for c in curves})
     for k, name in enumerate(names):
         for n, c in enumerate(x for x in curves if x["condition"] == name):
-            ax.plot(c["steps"], c["mean"], color=f"C{k % 10}", lw=1, label=_label(name) if n == 0 else None, alpha=0.8)
+            ax.plot(c["steps"], c["mean"], color=f"C{k % 10}", lw=1, label=Condition.parse(name).label if n == 0 else None, alpha=0.8)
     ax.set_xlabel("training step")
     ax.set_ylabel("linear CKA vs initial (temporal features)")
     ax.legend(fontsize=7)
@@ -68,11 +68,11 @@ def cka(out: Path, curves: Sequence[dict[str, Any]]) -> None:
     plt.close(fig)
 
 
-def sheet(out: Path, jobs: Sequence[tuple[str, str, dict[str, Any]]], conditions: Sequence[str]) -> None:
+def sheet(out: Path, parts: Sequence[tuple[str, str, dict[str, Any]]], conditions: Sequence[str]) -> None:
     """Rows: oracle, input, then each condition's first seed; columns: the clip's frames."""
     from morphgs import media
 
-    refs = [(Path(p), m) for s, p, m in jobs if s == "refine"]
+    refs = [(Path(p), m) for s, p, m in parts if s == "refine"]
     if not refs:
         return
     first = refs[0][1]
@@ -89,7 +89,7 @@ def sheet(out: Path, jobs: Sequence[tuple[str, str, dict[str, Any]]], conditions
     fig, axes = plt.subplots(len(rows), 1, figsize=(min(16, w / 40 + 1), (h / 40 + 0.3) * len(rows)), squeeze=False)
     for ax, r, s in zip(axes[:, 0], rows, strips):
         ax.imshow(s)
-        ax.set_ylabel(_label(r), rotation=0, ha="right", fontsize=7)
+        ax.set_ylabel(Condition.parse(r).label, rotation=0, ha="right", fontsize=7)
         ax.set_xticks([])
         ax.set_yticks([])
     fig.suptitle(f"{first['scene']} {first['regime']}, clip 00", fontsize=8)
@@ -98,15 +98,9 @@ def sheet(out: Path, jobs: Sequence[tuple[str, str, dict[str, Any]]], conditions
     plt.close(fig)
 
 
-def _label(c: str) -> str:
-    from morphgs.ablation.report import label
-
-    return label(c)
-
-
 def write_all(out: Path, g: dict[str, Any], *, regimes: Sequence[str], conditions: Sequence[str],
-              jobs: Sequence[tuple[str, str, dict[str, Any]]]) -> None:
+              parts: Sequence[tuple[str, str, dict[str, Any]]]) -> None:
     out.mkdir(parents=True, exist_ok=True)
     bars(out, g["records"], regimes, conditions)
     cka(out, g["cka"])
-    sheet(out, jobs, conditions)
+    sheet(out, parts, conditions)

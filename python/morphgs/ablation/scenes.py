@@ -92,7 +92,7 @@ def resolve_scenes(study: Study, *, check_views: bool = True) -> SceneSet:
     for sid in test:
         for r in study.regimes:
             _check_regime(study, sid, views[sid], r)
-    if study["conditions"]["targets"] or any(c.startswith("calibrated:") for c in study["conditions"]["train"]):
+    if any(c.kind in ("target", "calibrated") for c in study.conditions):  # they need real pairs of the train scenes
         for sid in train:
             for r in study.regimes:
                 _check_regime(study, sid, views[sid], r)

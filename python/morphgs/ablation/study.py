@@ -21,14 +21,9 @@ from typing import Any
 
 from morphgs._core import MorphgsError
 from morphgs.ablation import presets
+from morphgs.ablation.conditions import CALIBRATED, Condition
 
-__all__ = ["CALIBRATED", "Regime", "Study", "StudyError", "calibrated_family", "condition_regime", "flatten",
-           "load_study", "to_toml"]
-
-#: The prefix of a calibrated condition in `conditions.train`: `calibrated:FAMILY` is, per regime
-#: S_K, FAMILY's strength distribution calibrated against that regime's target training set
-#: (`morphgs calibrate --real`), curated on the training scenes (condition `calibrated:FAMILY-S_K`).
-CALIBRATED = "calibrated:"
+__all__ = ["Regime", "Study", "StudyError", "flatten", "load_study", "to_toml"]
 
 
 class StudyError(MorphgsError):
@@ -65,40 +60,23 @@ class Study:
                 + [Regime(f"N{n}", {"n": int(n)}) for n in r["n"]])
 
     @property
-    def conditions(self) -> list[str]:
-        """The condition names: the training sets as written (a `calibrated:FAMILY` one per regime,
+    def conditions(self) -> list[Condition]:
+        """The trained rows: the training sets as written (a `calibrated:FAMILY` one per regime,
         `calibrated:FAMILY-S20`), then one target per regime."""
-        names = []
+        out = []
         for c in self.settings["conditions"]["train"]:
-            names += [f"{c}-{r.label}" for r in self.regimes] if c.startswith(CALIBRATED) else [c]
+            cond = Condition.parse(c)
+            if cond.kind == "calibrated":
+                out += [Condition.calibrated(str(cond.family), r.label) for r in self.regimes]
+            else:
+                out.append(cond)
         if self.settings["conditions"]["targets"]:
-            names += [target_name(r) for r in self.regimes]
-        return names
+            out += [Condition.target(r.label) for r in self.regimes]
+        return out
 
     @property
     def seeds(self) -> list[int]:
         return [int(s) for s in self.settings["study"]["seeds"]]
-
-
-def target_name(regime: Regime) -> str:
-    return f"target-{regime.label}"
-
-
-def calibrated_family(condition: str) -> str | None:
-    """The family of a calibrated condition (`calibrated:FAMILY` or `calibrated:FAMILY-S20`), else None."""
-    if not condition.startswith(CALIBRATED):
-        return None
-    return condition[len(CALIBRATED):].split("-", 1)[0]
-
-
-def condition_regime(condition: str) -> str | None:
-    """The regime label a condition belongs to (`target-S20`, `calibrated:FAMILY-S20`: S20), or None
-    for a condition shown in every regime."""
-    if condition.startswith("target-"):
-        return condition[len("target-"):]
-    if condition.startswith(CALIBRATED) and "-" in condition:
-        return condition.rsplit("-", 1)[1]
-    return None
 
 
 def _where(source: str, key: str) -> str:
@@ -159,7 +137,11 @@ def _validate(s: dict[str, Any], source: str) -> None:
     for c in names:
         if not isinstance(c, str):
             raise StudyError(f"{_where(source, 'conditions.train')}: {c!r} is not a curate config string")
-        if c.startswith(CALIBRATED):
+        cond = Condition.parse(c)
+        if cond.kind in ("target", "control"):
+            raise StudyError(f"{_where(source, 'conditions.train')}: {c!r} is not a training set "
+                             "(targets come from conditions.targets; input, identity and oracle are always shown)")
+        if cond.kind == "calibrated":
             from morphgs.strength import FAMILIES
 
             fam = c[len(CALIBRATED):]
@@ -201,9 +183,11 @@ def _validate(s: dict[str, Any], source: str) -> None:
             raise StudyError(f"{_where(source, sec + '.steps')} must be >= 1")
     if s["training"]["probe_every"] < 1:
         raise StudyError(f"{_where(source, 'training.probe_every')} must be >= 1")
-    if s["model"]["name"] not in ("tiny", "sandbox", "controlnet"):
-        raise StudyError(f"{_where(source, 'model.name')} must be tiny, sandbox or controlnet, "
-                         f"got {s['model']['name']!r}")
+    from morphgs.models.registry import list_models
+
+    if s["model"]["name"] not in list_models():
+        raise StudyError(f"{_where(source, 'model.name')}: unknown model {s['model']['name']!r} "
+                         f"(the registry's models: {', '.join(list_models())})")
     if s["metrics"]["lpips"] not in ("auto", "off"):
         raise StudyError(f"{_where(source, 'metrics.lpips')} must be 'auto' or 'off'")
     if not s["metrics"]["fscore"] or not all(isinstance(t, (int, float)) and 0 < t < 1 for t in s["metrics"]["fscore"]):

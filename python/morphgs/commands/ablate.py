@@ -40,8 +40,9 @@ def _plan_text(study: Any, out: Path, workers: int) -> str:
     from morphgs.ablation import cache
     from morphgs.ablation.estimate import estimate
     from morphgs.ablation.model_check import missing_model_folders
-    from morphgs.ablation.recipe import STAGES, build_plan
+    from morphgs.ablation.recipe import build_plan
     from morphgs.ablation.scenes import resolve_scenes
+    from morphgs.ablation.stages import STAGES
 
     sc = resolve_scenes(study)
     jobs = build_plan(study, out, sc)
@@ -51,7 +52,7 @@ def _plan_text(study: Any, out: Path, workers: int) -> str:
     lines = [f"study {study.source} (preset {study.preset}) -> {out}",
              f"scenes: {len(sc.train)} train, {len(sc.test)} test ({', '.join(sc.test[:6])}"
              f"{' ...' if len(sc.test) > 6 else ''})",
-             f"conditions: {', '.join(study.conditions)}; regimes: {', '.join(r.label for r in study.regimes)}; "
+             f"conditions: {', '.join(c.name for c in study.conditions)}; regimes: {', '.join(r.label for r in study.regimes)}; "
              f"seeds: {study.seeds}; model: {study['model']['name']}",
              "stage        jobs   to do   estimate"]
     total = 0.0

@@ -165,7 +165,8 @@ class _PlainProgress:
         pass
 
 
-def _progress(total: int, enabled: bool, desc: str = "curate", unit: str = "pair") -> Any:
+def progress_bar(total: int, enabled: bool, desc: str = "curate", unit: str = "pair") -> Any:
+    """curate's progress bar on stderr: tqdm, or one plain line per step without it."""
     try:
         from tqdm import tqdm
     except ImportError:
@@ -321,7 +322,7 @@ def _curate(*, scenes: Iterable[str | os.PathLike[str]], out: str | os.PathLike[
         say(f"morphgs curate: {man_path}: rewrote it with one line per finished pair ({removed} duplicate or "
             "unfinished line(s) removed)")
     written: set[str] = set()
-    bar = _progress(len(todo), progress)
+    bar = progress_bar(len(todo), progress)
     failed_scenes: set[str] = set()
 
     def finished(job: PairJob, rec: dict[str, Any] | None, err: BaseException | None) -> None:

@@ -218,7 +218,7 @@ def _fit_dir(out_dir: Path, job: Any, fit_cfg: dict[str, Any], up: list[float] |
     return out_dir / "fits" / job.source.id / f"{job.config.label}-{job.width}x{job.height}-seed{job.run_seed}-{h}"
 
 
-def _write_data(folder: Path, cams: Any, images: list[np.ndarray]) -> None:
+def write_data(folder: Path, cams: Any, images: list[np.ndarray]) -> None:
     """transforms.json + PNGs; sizes per frame (real photos keep their own)."""
     from morphgs._core import _write_png, _write_png_batch
 
@@ -239,7 +239,7 @@ def _write_data(folder: Path, cams: Any, images: list[np.ndarray]) -> None:
     os.replace(tmp, folder / "transforms.json")
 
 
-def _views_images(source: Any, scene: Any, cams: Cameras, idx: list[int]) -> tuple[list[np.ndarray], list[Any], str]:
+def views_images(source: Any, scene: Any, cams: Cameras, idx: list[int]) -> tuple[list[np.ndarray], list[Any], str]:
     """(images, their cameras, "images" | "renders"). Real photos keep their own size and
     orientation (scaled to the pair's size, `fit_view`) and are undistorted with their camera
     when it has distortion; renders use the capture cameras."""
@@ -308,8 +308,8 @@ def sparse_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path,
             data = folder / "data"
             if not (data / "transforms.json").is_file():
                 order = train + held
-                imgs, vcams, kind = _views_images(job.source, scene, cams, order)
-                _write_data(data, vcams, imgs)
+                imgs, vcams, kind = views_images(job.source, scene, cams, order)
+                write_data(data, vcams, imgs)
                 (folder / "views.json").write_text(json.dumps(
                     {"capture_views": len(cams), "train": train, "heldout": held, "images": kind}, indent=1) + "\n")
             nt = len(train)

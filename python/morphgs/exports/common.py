@@ -89,6 +89,6 @@ def write_export_json(out: Path, *, fmt: str, source: Path, entries: Sequence[Pa
 
 def progress_bar(total: int, *, enabled: bool, unit: str) -> Any:
     """A tqdm bar on stderr (or one line per step without tqdm), as `morphgs curate` shows."""
-    from morphgs.curation.runner import _progress
+    from morphgs.curation import runner
 
-    return _progress(total, enabled, desc="export", unit=unit)
+    return runner.progress_bar(total, enabled, desc="export", unit=unit)

@@ -126,7 +126,7 @@ class PosedImages:
             mask, or one whose size disagrees with its camera. CaptureError: a distortion that
             cannot be undone.
         """
-        from morphgs.media import MediaError, _read_image
+        from morphgs.media import MediaError, read_image
 
         dists, mpaths = self.distortion or [None] * len(self), self.masks or [None] * len(self)
         images, cams, out_masks = [], [], []
@@ -135,7 +135,7 @@ class PosedImages:
             if not path.is_file():
                 raise FileNotFoundError(f"{path}: image of view {i} is missing (cameras from {self.source})")
             try:
-                img = _read_image(path)
+                img = read_image(path)
             except MediaError as e:
                 raise FitDataError(str(e)) from None
             cam = fit_camera_to_image(self.cameras[i], img.shape[1], img.shape[0], path)

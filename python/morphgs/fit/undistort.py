@@ -145,13 +145,13 @@ def cached_undistort(img_path: Path, read: Any, cam: Camera, dist: Distortion, c
     """`undistort` of the image `read()` returns, through a PNG cache in `cache` (the run
     folder's `undistorted/`; None: no cache). Cached files are written atomically."""
     from morphgs._core import _write_png
-    from morphgs.media import _read_image
+    from morphgs.media import read_image
 
     where = str(img_path)
     if cache is not None:
         target = cache / cache_name(img_path, cam, dist, kind)
         if target.is_file():
-            out = _read_image(target)
+            out = read_image(target)
             if kind == "mask":
                 out = out[..., 0]
             return np.ascontiguousarray(out), undistorted_camera(cam, dist, where)

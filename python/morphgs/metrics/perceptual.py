@@ -10,11 +10,20 @@ from typing import Any
 import numpy as np
 
 from morphgs.metrics import _arrays as A
-from morphgs.metrics._lpips_weights import check_net
+from morphgs.metrics._lpips_weights import check_net, find_weights
 
-__all__ = ["lpips", "lpips_many", "lpips_model"]
+__all__ = ["lpips", "lpips_many", "lpips_model", "lpips_weights_file"]
 
 _MODELS: dict[tuple[str, str | None, str], Any] = {}
+
+
+def lpips_weights_file(net: str = "alex") -> Path:
+    """Where the installed LPIPS weights of `net` are, without loading them (or torch).
+
+    Raises:
+        MetricError: an unknown net. LPIPSWeightsError: the weights are not installed (says how).
+    """
+    return find_weights(net)
 
 
 def lpips_model(net: str = "alex", *, weights: str | os.PathLike[str] | None = None, device: Any = "cpu") -> Any:

@@ -395,7 +395,7 @@ def _resolve(run_dir: Path, model: str | None, config: Any, overrides: Mapping[s
              data: Any) -> ResolvedConfig:
     if not resume:
         return resolve_config(model, config, dict(overrides or {}))
-    saved = _read_run_file(run_dir)
+    saved = read_run_file(run_dir)
     try:
         cfg = TrainConfig.from_dict(saved["config"], source=str(run_dir / RUN_FILE))
     except KeyError as e:
@@ -412,7 +412,12 @@ def _resolve(run_dir: Path, model: str | None, config: Any, overrides: Mapping[s
     return ResolvedConfig(cfg, text, str(saved.get("config_source", "")), dict(saved.get("overrides") or {}))
 
 
-def _read_run_file(run_dir: Path) -> dict[str, Any]:
+def read_run_file(run_dir: Path) -> dict[str, Any]:
+    """The run folder's run.json (config, data, steps), checked.
+
+    Raises:
+        FileNotFoundError: no such run folder. TrainingError: no or unreadable run.json.
+    """
     path = run_dir / RUN_FILE
     if not run_dir.is_dir():
         raise FileNotFoundError(f"{run_dir}: no such run folder")
@@ -425,13 +430,13 @@ def _read_run_file(run_dir: Path) -> dict[str, Any]:
 
 
 def _saved_data(run_dir: Path) -> Path | None:
-    d = _read_run_file(run_dir).get("data")
+    d = read_run_file(run_dir).get("data")
     return Path(d) if d else None
 
 
 def _check_run_dir(run_dir: Path, resume: bool) -> None:
     if resume:
-        _read_run_file(run_dir)
+        read_run_file(run_dir)
     elif run_dir.exists() and (not run_dir.is_dir() or any(not is_lock_file(p.name) for p in run_dir.iterdir())):
         raise TrainingError(f"{run_dir}: already exists and is not empty (pass --resume to continue that run, "
                             "or choose a new folder)")

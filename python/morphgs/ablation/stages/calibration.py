@@ -16,8 +16,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CONFIG", "SUMMARY", "make", "summary"]
+__all__ = ["CONFIG", "IGNORE", "RESUMABLE", "SUMMARY", "VERSION", "make", "summary"]
 
+VERSION = 1
+IGNORE: tuple[str, ...] = ()
+RESUMABLE = False
 CONFIG = "config.json"
 SUMMARY = "summary.json"
 

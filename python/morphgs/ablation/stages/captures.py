@@ -18,10 +18,14 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["load_capture", "make"]
+__all__ = ["IGNORE", "RESUMABLE", "VERSION", "load_cameras", "load_capture", "load_scene", "make"]
+
+VERSION = 1
+IGNORE: tuple[str, ...] = ()
+RESUMABLE = False
 
 
-def _orbit(source: Any, scene: Any, views: int, size: tuple[int, int], up: str) -> Any:
+def _orbit(source: Any, scene: Any, views: int, size: tuple[int, int], up: str | None) -> Any:
     from morphgs import synthetic, trajectory
 
     arc = 360.0 * (views - 1) / views
@@ -29,13 +33,14 @@ def _orbit(source: Any, scene: Any, views: int, size: tuple[int, int], up: str) 
         o = synthetic.suggested_orbit()
         return trajectory.orbit(o.center, o.radius, o.height - o.center[2], views, start_degrees=0.0,
                                 arc_degrees=arc, fov_y_degrees=50.0, resolution=size)
-    return trajectory.for_scene(scene, views, resolution=size, arc_degrees=arc, up=up)
+    return trajectory.for_scene(scene, views, resolution=size, arc_degrees=arc, up=up or "file")
 
 
-def make(work: Path, *, source: Any, views: int, size: tuple[int, int], up: str = "file") -> None:
-    """Write the capture folder of one scene into `work/<scene id>/`."""
+def make(work: Path, *, source: Any, views: int, size: tuple[int, int], up: str | None) -> None:
+    """Write the capture folder of one scene into `work/<scene id>/` (`up`: the orbit's world up
+    for a scene file without cameras; None for the built-in rooms, which keep their own orbit)."""
     import morphgs
-    from morphgs.curation.sparse import _views_images, _write_data
+    from morphgs.curation.sparse import views_images, write_data
 
     folder = work / source.id
     folder.mkdir(parents=True, exist_ok=True)
@@ -44,8 +49,8 @@ def make(work: Path, *, source: Any, views: int, size: tuple[int, int], up: str 
     cams = recorded if recorded is not None else _orbit(source, scene, views, size, up)
     # real photos come with their own cameras (each photo's size and orientation, undistorted);
     # transforms.json pairs every image with its camera, cameras.json keeps the study-size cameras
-    images, view_cams, kind = _views_images(source, scene, cams, list(range(len(cams))))
-    _write_data(folder, view_cams, images)
+    images, view_cams, kind = views_images(source, scene, cams, list(range(len(cams))))
+    write_data(folder, view_cams, images)
     if source.builtin is not None:
         morphgs.save(scene, folder / "scene.ply")
     else:

@@ -8,34 +8,43 @@ import json
 from pathlib import Path
 from typing import Any
 
-__all__ = ["lpips_status", "make"]
+__all__ = ["IGNORE", "RESUMABLE", "VERSION", "lpips_status", "make"]
+
+VERSION = 1
+IGNORE = ("threads",)
+RESUMABLE = False
 
 
 def lpips_status(setting: str, net: str) -> str | None:
-    """None when LPIPS can run, else why not (the report prints it)."""
+    """None when LPIPS can run, else why not (the report prints it). Cheap: it looks for torch and
+    the weight files without loading them (a plan, a dry run, reads it too)."""
+    import importlib.util
+
     if setting == "off":
         return "LPIPS turned off in the study ([metrics] lpips = \"off\")"
-    try:
-        from morphgs.metrics import lpips_model
+    if importlib.util.find_spec("torch") is None:
+        return "LPIPS needs torch (pip install 'morphgs[metrics]')"
+    from morphgs.metrics.perceptual import lpips_weights_file
 
-        lpips_model(net)
-    except Exception as e:  # noqa: BLE001 - any failure to load the weights means n/a, with its reason
+    try:
+        lpips_weights_file(net)
+    except Exception as e:  # noqa: BLE001 - any failure to find the weights means n/a, with its reason
         return f"LPIPS weights not available ({type(e).__name__}: {e})"
     return None
 
 
-def make(work: Path, *, testset_dir: str, refined_dir: str, lpips: str, lpips_net: str, eflow: bool,
+def make(work: Path, *, testset_dir: str, refined_dir: str, lpips_note: str | None, lpips_net: str, eflow: bool,
          threads: int) -> None:
-    import torch
-
+    """Score every refined clip against its clean clip into `work/metrics2d.json` (LPIPS n/a
+    with `lpips_note` as the reason when that is set)."""
     from morphgs import media
     from morphgs import metrics as M
+    from morphgs.ablation.stages.common import read_testset, torch_threads
 
-    if threads:
-        torch.set_num_threads(threads)
+    torch_threads(threads)
     ts, rd = Path(testset_dir), Path(refined_dir)
-    meta = json.loads((ts / "testset.json").read_text(encoding="utf-8"))
-    why = lpips_status(lpips, lpips_net)
+    meta = read_testset(ts)
+    why = lpips_note
     rows: dict[str, dict[str, Any]] = {}
     for j in meta["clips"]:
         gt = media.read_clip(ts / "clips" / j / "clean")

@@ -21,7 +21,11 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["depth_points", "make"]
+__all__ = ["IGNORE", "RESUMABLE", "VERSION", "depth_points", "make"]
+
+VERSION = 1
+IGNORE = ("threads",)
+RESUMABLE = True  # the re-fits resume from their checkpoints in refit/
 
 _MAX_POINTS = 20000
 
@@ -40,27 +44,25 @@ def depth_points(depth: np.ndarray, alpha: np.ndarray, cams: Any, *, scale: floa
 
 def _refit_data(folder: Path, frames: np.ndarray, clean: np.ndarray, cams: Any, held: list[int]) -> None:
     """A posed-image folder of the clip: refined frames, the held-out ones clean (only scored)."""
-    from morphgs.curation.sparse import _write_data
+    from morphgs.curation.sparse import write_data
 
     imgs = [clean[i] if i in held else frames[i] for i in range(len(cams))]
-    _write_data(folder, cams, imgs)
+    write_data(folder, cams, imgs)
 
 
 def make(work: Path, *, testset_dir: str, refined_dir: str, refit: dict[str, Any], heldout: list[int],
          thresholds: list[float], lpips_note: str | None, lpips_net: str, seed: int, threads: int) -> None:
-    import torch
-
     import morphgs
     from morphgs import media
     from morphgs import metrics as M
+    from morphgs.ablation.stages.common import read_testset, torch_threads
     from morphgs.ablation.stages.testsets import fit_config
     from morphgs.camera import Cameras
     from morphgs.fit import fit
 
-    if threads:
-        torch.set_num_threads(threads)
+    torch_threads(threads)
     ts, rd = Path(testset_dir), Path(refined_dir)
-    meta = json.loads((ts / "testset.json").read_text(encoding="utf-8"))
+    meta = read_testset(ts)
     diag = float(meta["bbox_diagonal"])
     rows: dict[str, dict[str, Any]] = {}
     for j in meta["clips"]:

@@ -18,9 +18,11 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["CONTROLS", "make"]
+__all__ = ["IGNORE", "RESUMABLE", "VERSION", "make"]
 
-CONTROLS = ("input", "identity", "oracle")
+VERSION = 1
+IGNORE = ("threads",)
+RESUMABLE = False
 
 
 def _identity_model(window: int) -> Any:
@@ -44,15 +46,13 @@ def _identity_model(window: int) -> Any:
 
 
 def make(work: Path, *, testset_dir: str, row: str, run_dir: str | None, window: int, threads: int) -> None:
-    import torch
-
     from morphgs import media
+    from morphgs.ablation.stages.common import read_testset, torch_threads
     from morphgs.inference import load_run, refine_clip
 
-    if threads:
-        torch.set_num_threads(threads)
+    torch_threads(threads)
     ts = Path(testset_dir)
-    meta = json.loads((ts / "testset.json").read_text(encoding="utf-8"))
+    meta = read_testset(ts)
     model: Any = None
     if run_dir is not None:
         model = load_run(run_dir, device="cpu").model

@@ -17,7 +17,11 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["clip_cameras", "fit_config", "make", "regime_views"]
+__all__ = ["IGNORE", "RESUMABLE", "VERSION", "clip_cameras", "fit_config", "make", "regime_views"]
+
+VERSION = 1
+IGNORE: tuple[str, ...] = ()
+RESUMABLE = True  # the sparse fit resumes from its checkpoint in fit/
 
 
 def regime_views(n: int, params: dict[str, int]) -> list[int]:

@@ -19,7 +19,11 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["CKA_PATTERN", "cka_curve", "make", "overrides_for"]
+__all__ = ["CKA_PATTERN", "IGNORE", "RESUMABLE", "VERSION", "cka_curve", "make", "overrides_for"]
+
+VERSION = 1
+IGNORE = ("threads",)
+RESUMABLE = True  # the run resumes from its latest checkpoint, to the same bits
 
 # tiny's temporal self-attention, and the motion modules' temporal attention of the diffusion refiners
 CKA_PATTERN = r"(^|\.)attention$|motion_modules\.\d+\.transformer_blocks\.\d+\.attn1$"
@@ -53,21 +57,21 @@ def cka_curve(run_dir: Path, probe: np.ndarray, *, max_rows: int) -> dict[str, A
     """{"steps": [0, s1, ...], "cka": {module: [1.0, ...]}, "mean": [...]} of a finished run."""
     import torch
 
-    from morphgs.inference import _to_model, load_run
+    from morphgs.inference import to_model, load_run
     from morphgs.metrics import linear_cka
     from morphgs.metrics.features import FeatureRecorder
     from morphgs.models.base import ModelContext
     from morphgs.models.registry import create_model
     from morphgs.training.checkpoint import list_checkpoints
     from morphgs.training.config import TrainConfig
-    from morphgs.training.loop import _read_run_file
+    from morphgs.training.loop import read_run_file
 
-    cfg = TrainConfig.from_dict(_read_run_file(run_dir)["config"], source=str(run_dir / "run.json"))
+    cfg = TrainConfig.from_dict(read_run_file(run_dir)["config"], source=str(run_dir / "run.json"))
     ctx = ModelContext(frames=cfg.data.frames, size=cfg.data.size, reference=cfg.data.reference, training=False,
                        run_dir=run_dir, cache_dir=run_dir / "cache")
     torch.manual_seed(cfg.seed)  # the loop's initial weights
     initial = create_model(cfg.model, cfg.model_config, ctx).eval()
-    x = _to_model(probe, torch.device("cpu"))
+    x = to_model(probe, torch.device("cpu"))
 
     def features(model: Any) -> dict[str, np.ndarray]:
         rec = FeatureRecorder(model, pattern=CKA_PATTERN, max_rows=max_rows, seed=0)
@@ -93,13 +97,11 @@ def make(work: Path, *, data: str, model: str, model_config: str, overrides: dic
     """Train (or resume) `work/run`, then write `work/cka.json` and `work/train.json`."""
     import shutil
 
-    import torch
-
+    from morphgs.ablation.stages.common import torch_threads
     from morphgs.training import train
     from morphgs.training.checkpoint import latest_checkpoint
 
-    if threads:
-        torch.set_num_threads(threads)
+    torch_threads(threads)
     run = work / "run"
     resume = run.is_dir() and latest_checkpoint(run) is not None
     if run.exists() and not resume:  # killed before its first checkpoint: start over

@@ -16,7 +16,11 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["calibrated_spec", "condition_spec", "make", "severity"]
+__all__ = ["IGNORE", "RESUMABLE", "VERSION", "calibrated_spec", "condition_spec", "make", "severity"]
+
+VERSION = 1
+IGNORE: tuple[str, ...] = ()
+RESUMABLE = True  # curate resumes in its output folder (a target's sparse fits are the long part)
 
 
 def condition_spec(name: str, *, blur_sigma: float, regime: dict[str, int] | None, sparse: dict[str, Any]) -> Any:
@@ -57,9 +61,9 @@ def severity(data: Path) -> dict[str, float]:
 
 
 def make(work: Path, *, scene_dirs: list[str], spec: Any, pairs_per_scene: int, frames: int,
-         size: tuple[int, int], seed: int, calibration_dir: str | None = None) -> None:
+         size: tuple[int, int], seed: int, calibration_dir: str | None) -> None:
     """Curate the condition into `work/data` and write `work/severity.json` (`spec` is the label
-    of a calibrated condition, whose config is read from `calibration_dir`)."""
+    of a calibrated condition, whose config is read from `calibration_dir`, else a ConfigSpec)."""
     from morphgs.ablation.study import StudyError
     from morphgs.curation import curate
 
