@@ -78,8 +78,7 @@ def read_inria_cameras(path: str | os.PathLike[str], *, resolution: tuple[int, i
     where [rotation | position] is the camera-to-world (OpenCV axes). Sorted by img_name. With a
     resolution, cameras of several sizes (a `morphgs fit` run of a real capture) are brought to
     it by `trajectory.resize_camera`."""
-    from morphgs.trajectory import resize_camera
-    from morphgs.trajectory._common import warn_stretch
+    from morphgs.trajectory import resize_camera, warn_stretch
 
     p = Path(path)
     try:

@@ -14,7 +14,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from morphgs.evaluation.core import METRICS, EvalReport
+from morphgs.evaluation.types import METRICS, EvalReport
 
 __all__ = ["markdown", "write_all", "write_csv", "write_plots"]
 

@@ -81,7 +81,7 @@ def _names(inputs: Sequence[str]) -> list[str]:
 
 def _fit_one(data: str, run: str, kwargs: dict[str, Any]) -> dict[str, Any]:
     """One capture, in a worker: a record for fits.json (errors caught and recorded)."""
-    from morphgs.fit import fit
+    from morphgs.fit.run import fit
 
     t = time.perf_counter()
     try:

@@ -138,14 +138,14 @@ def _lpips_scorer(setting: str, images: list[np.ndarray], *, verbose: bool,
     net = "alex" if setting == "auto" else setting
     try:
         from morphgs.metrics import lpips, lpips_model
-        from morphgs.metrics._lpips_torch import MIN_SIZE
+        from morphgs.metrics.perceptual import lpips_min_size
 
         h, w = images[0].shape[:2]
-        if min(h, w) < MIN_SIZE[net]:
+        if min(h, w) < lpips_min_size(net):
             if setting == "auto":
                 return None
             raise MorphgsError(f"output.lpips = {setting!r}: held-out images of {w}x{h} are smaller than LPIPS "
-                               f"{net} accepts ({MIN_SIZE[net]} pixels a side)")
+                               f"{net} accepts ({lpips_min_size(net)} pixels a side)")
         lpips_model(net)
     except (ImportError, MorphgsError) as e:
         if setting != "auto":

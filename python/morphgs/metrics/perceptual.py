@@ -12,9 +12,17 @@ import numpy as np
 from morphgs.metrics import _arrays as A
 from morphgs.metrics._lpips_weights import check_net, find_weights
 
-__all__ = ["lpips", "lpips_many", "lpips_model", "lpips_weights_file"]
+__all__ = ["lpips", "lpips_many", "lpips_min_size", "lpips_model", "lpips_weights_file"]
 
 _MODELS: dict[tuple[str, str | None, str], Any] = {}
+
+
+def lpips_min_size(net: str = "alex") -> int:
+    """The smallest image side `net`'s LPIPS accepts (its feature pyramid needs it), in pixels."""
+    from morphgs.metrics._lpips_torch import MIN_SIZE
+
+    check_net(net)
+    return int(MIN_SIZE[net])
 
 
 def lpips_weights_file(net: str = "alex") -> Path:

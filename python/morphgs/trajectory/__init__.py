@@ -7,7 +7,7 @@ generators make paths (`smooth_path` through keyframes, `orbit`/`ellipse`, `spir
 
 from __future__ import annotations
 
-from morphgs.trajectory._common import CaptureError, resize_camera
+from morphgs.trajectory._common import CaptureError, resize_camera, warn_stretch
 from morphgs.trajectory.colmap import ColmapView, find_colmap_model, from_colmap, read_colmap_views
 from morphgs.trajectory.generators import (
     FILE_UP,
@@ -52,4 +52,5 @@ __all__ = [
     "scene_up",
     "smooth_path",
     "spiral",
+    "warn_stretch",
 ]
