@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["auc", "classifier_auc", "compare", "distances", "stat_matrix"]
+__all__ = ["auc", "classifier_auc", "compare", "distances", "iqr_scale", "stat_matrix", "usable", "w1"]
 
 
 def stat_matrix(stats: Sequence[dict[str, Any]], names: Sequence[str]) -> np.ndarray:
@@ -34,19 +34,23 @@ def usable(names: Sequence[str], *matrices: np.ndarray) -> list[int]:
     return [k for k in range(len(names)) if all(np.all(np.isfinite(m[:, k])) for m in matrices)]
 
 
-def _w1(a: np.ndarray, b: np.ndarray) -> float:
+def w1(a: np.ndarray, b: np.ndarray) -> float:
+    """The 1-Wasserstein distance between the empirical distributions of two samples: the mean
+    absolute difference of their quantiles at p = 0, 0.01, ..., 1 (linear interpolation)."""
     q = np.linspace(0.0, 1.0, 101)
     return float(np.mean(np.abs(np.quantile(a, q) - np.quantile(b, q))))
 
 
+def iqr_scale(values: np.ndarray) -> float:
+    """The interquartile range of `values`, floored at 1e-6 of their largest magnitude (and at
+    1e-6), so that a distance divided by it is finite."""
+    iqr = float(np.subtract(*np.quantile(values, [0.75, 0.25])))
+    return max(iqr, 1e-6 * max(float(np.abs(values).max()), 1.0))
+
+
 def distances(real: np.ndarray, synth: np.ndarray, names: Sequence[str]) -> dict[str, float]:
-    """W1(real, synth) / IQR(real) per statistic (IQR floored at 1e-6 of the scale)."""
-    out = {}
-    for k in usable(names, real, synth):
-        iqr = float(np.subtract(*np.quantile(real[:, k], [0.75, 0.25])))
-        scale = max(iqr, 1e-6 * max(float(np.abs(real[:, k]).max()), 1.0))
-        out[names[k]] = _w1(real[:, k], synth[:, k]) / scale
-    return out
+    """W1(real, synth) / IQR(real) per statistic (`w1`, `iqr_scale`)."""
+    return {names[k]: w1(real[:, k], synth[:, k]) / iqr_scale(real[:, k]) for k in usable(names, real, synth)}
 
 
 def auc(scores: np.ndarray, labels: np.ndarray) -> float:

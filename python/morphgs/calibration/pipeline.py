@@ -218,9 +218,6 @@ def _search_mix(label: str, base: Strength, calib: _Side, real_psnr: np.ndarray,
     return mixed(base, chosen), info
 
 
-_SPEC = tuple(n for n in stats.STAT_NAMES if n.startswith("spectrum_"))
-
-
 def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, calib: _Side, held: _Side | None, *,
                    grid: Sequence[float], lpips: bool, say: Callable[[str], None], search_mix: bool,
                    mix_steps: int) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -269,7 +266,7 @@ def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, calib: _Sid
     plot = {"real_psnr": real_psnr.tolist(),
             "synth_psnr": np.concatenate([st["frame_psnr"] for st in synth_stats]).tolist(),
             "real_held_psnr": np.concatenate([st["frame_psnr"] for st in ev.stats]).tolist(),
-            "real_spectrum": np.nanmean(goodness.stat_matrix(ev.stats, _SPEC), axis=0).tolist(),
-            "synth_spectrum": np.nanmean(goodness.stat_matrix(synth_stats, _SPEC), axis=0).tolist(),
+            "real_spectrum": np.nanmean(goodness.stat_matrix(ev.stats, stats.SPECTRUM_NAMES), axis=0).tolist(),
+            "synth_spectrum": np.nanmean(goodness.stat_matrix(synth_stats, stats.SPECTRUM_NAMES), axis=0).tolist(),
             "sheet": sheet}
     return result, plot
