@@ -216,6 +216,15 @@ def test_family_all_and_the_ranking_order() -> None:
     assert [e["family"] for e in ranked["sparse:20"]] == ["radiometric", "spatial", "blur2d", "morphological", "naive"]
 
 
+def test_a_results_files_are_named_by_the_one_slug_rule() -> None:
+    from morphgs.calibration.outputs import result_name
+
+    assert result_name("morphological", "sparse:20") == "morphological-sparse-20"
+    assert result_name("naive", "sparse-20-1500steps") == "naive-sparse-20-1500steps"
+    assert result_name("blur2d", "blur2d-s1.5") == "blur2d-blur2d-s1.5"  # the plots too (they were blur2d-s1-5)
+    assert result_name("spatial", "my pairs: 2") == "spatial-my-pairs-2"
+
+
 def test_sparse_regime_cached_and_deterministic(tmp_path: Path) -> None:
     """The built-in default: four scenes (two calibrate, two held out), the fit length of
     --sample-fit-steps for a regime without @STEPS; resumable and the same bytes for 1 and 2 workers."""

@@ -15,13 +15,12 @@ from morphgs.calibration.pipeline import Calibration, rank_families
 __all__ = ["document", "result_name", "write_outputs"]
 
 
-def _slug(text: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "-" for c in text)
-
-
 def result_name(family: str, regime: str) -> str:
-    """The file name (no suffix) of a (family, regime) result's config file."""
-    return f"{family}-{_slug(regime)}"
+    """The file name (no suffix) of a (family, regime) result's config file and plots: the regime
+    as `morphgs.curation.sources.slug` names files (`sparse:20` -> `sparse-20`)."""
+    from morphgs.curation.sources import slug
+
+    return f"{family}-{slug(regime, fallback='regime')}"
 
 
 def document(calibration: Calibration, *, scenes: Sequence[str], real: str | None, pairs_per_scene: int, seed: int,
