@@ -80,6 +80,8 @@ def test_a_calibrated_condition_runs_end_to_end_and_is_closer_to_the_target_seve
     config = json.loads((cdir / "config.json").read_text())
     assert config["kind"] == "strength" and config["family"] == "morphological" and "quantiles" in config
     assert (cdir / "calib" / "calibration.json").is_file() and (cdir / "calib" / "report.md").is_file()
+    # written by the stage itself: no timings (wall times) and no lock file of the command
+    assert not [p for p in (cdir / "calib").rglob("*") if p.name == "timings.json" or p.name.startswith(".morphgs")]
     # every calibrated pair records the strength it drew from that distribution
     (tdir,) = (cal / "trainsets").glob("calibrated_morphological-S8-*")
     recs = [json.loads(line) for m in sorted((tdir / "data").glob("manifest*.jsonl"))

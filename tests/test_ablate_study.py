@@ -171,7 +171,8 @@ def test_table_marks_best_bold_and_second_italic_on_a_hand_made_result_set() -> 
 
 def test_mean_ci_and_paired_permutation_test() -> None:
     m, ci, n = mean_ci([1.0, 2.0, 3.0])
-    assert (m, n) == (2.0, 3) and ci == pytest.approx(4.303 * 1.0 / math.sqrt(3))
+    # t(0.975, 2 dof) = 4.302653 (SciPy's; the 3-decimal table said 4.303), standard deviation 1
+    assert (m, n) == (2.0, 3) and ci == pytest.approx(4.302653 * 1.0 / math.sqrt(3))
     assert math.isnan(mean_ci([5.0])[1]) and mean_ci([])[2] == 0
     # 5 pairs all improved by about 1: the exact two-sided p is 2/32
     assert paired_permutation_p([2.0, 3.1, 4.0, 5.2, 6.0], [1.0, 2.0, 3.0, 4.0, 5.0]) == pytest.approx(2 / 32)

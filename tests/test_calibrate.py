@@ -16,8 +16,10 @@ from PIL import Image
 import morphgs
 from morphgs import synthetic
 from morphgs.calibration import stats
-from morphgs.calibration.pairs import CalibrationError, read_real_pairs
-from morphgs.calibration.run import calibrate
+from morphgs.calibration.outputs import document
+from morphgs.calibration.pairs import CalibrationError, by_regime, read_real_pairs
+from morphgs.calibration.pipeline import calibrate_pairs, parse_family
+from morphgs.calibration.run import calibrate, find_scenes, load_scenes
 from morphgs.calibration.search import frame_strengths, log_grid, search
 from morphgs.cli import main
 from morphgs.curation import load_manifest
@@ -97,6 +99,54 @@ def test_recovers_a_reachable_hidden_strength(hidden_strength: Path, tmp_path: P
     assert json.loads((tmp_path / "calib2" / "configs" / "keep-only-hidden.json").read_text())["ops"] == {"keep": 0.5}
 
 
+def test_calibrate_pairs_gives_the_commands_results_and_writes_nothing(hidden_strength: Path, tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    doc = calibrate(out=tmp_path / "calib", real=hidden_strength, families=["morphological", "blur2d"],
+                    builtin_gaussians=GAUSSIANS, grid=GRID, plots=False, log=lambda m: None)
+    groups = by_regime(read_real_pairs(hidden_strength))
+    scenes = load_scenes(find_scenes([], builtin_gaussians=GAUSSIANS), groups)
+    empty = tmp_path / "cwd"
+    empty.mkdir()
+    monkeypatch.chdir(empty)
+    said: list[str] = []
+    cal = calibrate_pairs(groups, scenes, [parse_family("morphological"), parse_family("blur2d")], grid=GRID,
+                          say=said.append)
+    assert not list(empty.iterdir()) and len(said) == 2
+    assert [(r["family"], r["regime"]) for r in cal.results] == [("morphological", "hidden"), ("blur2d", "hidden")]
+    assert len(cal.plots) == 2 and cal.resolution == [96, 64] and cal.frames == [6]
+    # the command's calibration.json is the document of these results, byte for byte
+    mine = document(cal, scenes=doc["scenes"], real=str(hidden_strength), pairs_per_scene=2, seed=0, fit_steps={})
+    assert json.dumps(mine, indent=1) + "\n" == (tmp_path / "calib" / "calibration.json").read_text()
+
+
+def test_the_ablation_stage_writes_the_commands_bytes_and_no_timings_or_lock(hidden_strength: Path,
+                                                                              tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    from morphgs.ablation.stages.calibration import CONFIG, make
+
+    scenes = []
+    for i in range(2):  # the stand-in pairs' scene ids, as scene files
+        scenes.append(str(tmp_path / f"sample-{i}.ply"))
+        morphgs.save_ply(synthetic.scene(n_gaussians=GAUSSIANS, seed=i), scenes[-1])
+    work = tmp_path / "stage"
+    work.mkdir()
+    make(work, scene_dirs=scenes, real_dir=str(hidden_strength), family="morphological", grid=GRID)
+    calibrate(scenes, tmp_path / "cmd", real=str(hidden_strength), grid=GRID, log=lambda m: None)
+
+    def files(root: Path) -> set[str]:
+        return {str(p.relative_to(root)) for p in root.rglob("*") if p.is_file() and "real" not in p.parts}
+
+    stage, cmd = files(work / "calib"), files(tmp_path / "cmd")
+    assert {"calibration.json", "report.md", "configs/morphological-hidden.json"} <= stage
+    assert any(f.startswith("plots/") for f in stage)
+    assert not [f for f in stage if f.endswith("timings.json") or Path(f).name.startswith(".morphgs")]
+    assert cmd - stage == {"timings.json", ".morphgs.lock"}
+    for f in sorted(stage):
+        assert (work / "calib" / f).read_bytes() == (tmp_path / "cmd" / f).read_bytes(), f
+    assert json.loads((work / CONFIG).read_text()) == json.loads((work / "calib" / "configs" /
+                                                                  "morphological-hidden.json").read_text())
+
+
 def test_matches_a_hidden_paper_config(hidden_paper: Path, tmp_path: Path) -> None:
     """A hidden PerturbConfig (its own prune, absolute scale and rotation sigmas) is not in the
     strength family; the calibrated pairs on the held-out scene match its PSNR within 1 dB and
@@ -149,7 +199,7 @@ def test_cli_end_to_end_config_used_by_curate(hidden_strength: Path, tmp_path: P
 
 
 def test_family_all_and_the_ranking_order() -> None:
-    from morphgs.calibration.run import expand_families, rank_families
+    from morphgs.calibration.pipeline import expand_families, rank_families
 
     assert expand_families(["all"]) == ["spatial", "radiometric", "morphological", "naive", "blur2d"]
     assert expand_families(["mine.json", "all", "spatial"]) == ["mine.json", "spatial", "radiometric",
@@ -164,6 +214,15 @@ def test_family_all_and_the_ranking_order() -> None:
                             result("radiometric", 0.95, 40.0, matched=True)])
     # matched first; then AUC; a tie in AUC goes to the smaller excess; a NaN AUC last
     assert [e["family"] for e in ranked["sparse:20"]] == ["radiometric", "spatial", "blur2d", "morphological", "naive"]
+
+
+def test_a_results_files_are_named_by_the_one_slug_rule() -> None:
+    from morphgs.calibration.outputs import result_name
+
+    assert result_name("morphological", "sparse:20") == "morphological-sparse-20"
+    assert result_name("naive", "sparse-20-1500steps") == "naive-sparse-20-1500steps"
+    assert result_name("blur2d", "blur2d-s1.5") == "blur2d-blur2d-s1.5"  # the plots too (they were blur2d-s1-5)
+    assert result_name("spatial", "my pairs: 2") == "spatial-my-pairs-2"
 
 
 def test_sparse_regime_cached_and_deterministic(tmp_path: Path) -> None:

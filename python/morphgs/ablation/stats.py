@@ -10,15 +10,10 @@ import numpy as np
 
 __all__ = ["mean_ci", "paired_permutation_p"]
 
-# two-sided 95 % Student t quantiles for 1..30 degrees of freedom (then the normal 1.96)
-_T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145,
-         2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048,
-         2.045, 2.042)
-
-
 def mean_ci(values: Sequence[float]) -> tuple[float, float, int]:
-    """(mean, half-width of the 95 % CI, n) of the finite values; the half-width is NaN for n < 2
-    and the mean NaN for n = 0 (an infinite value, e.g. PSNR of identical clips, makes the mean inf)."""
+    """(mean, half-width of the 95 % CI, n) of the finite values: Student's t interval,
+    `scipy.stats.t.ppf(0.975, n - 1)` standard errors. The half-width is NaN for n < 2 and the
+    mean NaN for n = 0 (an infinite value, e.g. PSNR of identical clips, makes the mean inf)."""
     a = np.asarray([v for v in values if v is not None and not math.isnan(v)], np.float64)
     n = len(a)
     if n == 0:
@@ -26,8 +21,11 @@ def mean_ci(values: Sequence[float]) -> tuple[float, float, int]:
     m = float(a.mean())
     if n < 2 or not np.isfinite(a).all():
         return m, math.nan, n
-    t = _T975[n - 2] if n - 1 <= len(_T975) else 1.96
-    return m, float(t * a.std(ddof=1) / math.sqrt(n)), n
+    try:
+        from scipy.stats import t
+    except ImportError as e:  # pragma: no cover - metrics extra missing
+        raise ImportError("the report's confidence intervals need SciPy: pip install 'morphgs[metrics]'") from e
+    return m, float(t.ppf(0.975, n - 1) * a.std(ddof=1) / math.sqrt(n)), n
 
 
 def paired_permutation_p(a: Sequence[float], b: Sequence[float], *, seed: int = 0) -> float:

@@ -10,7 +10,7 @@ pair by pair), and its pairs at their matched strengths are compared with the re
 other statistics: SSIM, LPIPS (when computed), colour shift, coverage, temporal error and the
 error spectrum (its bands averaged into one term, so that they count as one statistic). The
 distance of a statistic is W1(real, synthetic) over pairs divided by the interquartile range of
-the real and every candidate's values pooled (a scale shared by the candidates, never the IQR of
+the real and every candidate's values pooled (`goodness.w1`, `goodness.iqr_scale`) (a scale shared by the candidates, never the IQR of
 a handful of real values alone); a mix's score is the mean distance over the statistics. The mix
 with the lowest score wins (ties: the earlier candidate, the preset first).
 
@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from morphgs.calibration import stats
+from morphgs.calibration.goodness import iqr_scale, w1
 from morphgs.strength import Strength
 
 __all__ = ["GROUPS", "mix_distances", "mixed", "simplex_grid"]
@@ -36,7 +38,7 @@ GROUPS: dict[str, tuple[str, ...]] = {
     "color_shift": ("color_shift",),
     "coverage": ("coverage",),
     "temporal_error": ("temporal_error",),
-    "spectrum": tuple(f"spectrum_{k}" for k in range(6)),
+    "spectrum": stats.SPECTRUM_NAMES,
 }
 
 
@@ -73,11 +75,6 @@ def mixed(base: Strength, weights: Mapping[str, float]) -> Strength:
     return Strength(base.family, 1.0, ops)
 
 
-def _w1(a: np.ndarray, b: np.ndarray) -> float:
-    q = np.linspace(0.0, 1.0, 101)
-    return float(np.mean(np.abs(np.quantile(a, q) - np.quantile(b, q))))
-
-
 def _column(stats: Sequence[Mapping[str, Any]], name: str) -> np.ndarray:
     return np.array([np.nan if s.get(name) is None else float(s[name]) for s in stats], dtype=np.float64)
 
@@ -101,11 +98,9 @@ def mix_distances(real: Sequence[Mapping[str, Any]],
             cs = [_column(c, name) for c in candidates]
             if len(r) == 0 or not all(np.all(np.isfinite(v)) and len(v) for v in [r, *cs]):
                 continue
-            pooled = np.concatenate([r, *cs])
-            iqr = float(np.subtract(*np.quantile(pooled, [0.75, 0.25])))
-            scale = max(iqr, 1e-6 * max(float(np.abs(pooled).max()), 1.0))
+            scale = iqr_scale(np.concatenate([r, *cs]))
             for k, c in enumerate(cs):
-                parts[k].append(_w1(r, c) / scale)
+                parts[k].append(w1(r, c) / scale)
         for k, p in enumerate(parts):
             if p:
                 per[k][group] = float(np.mean(p))

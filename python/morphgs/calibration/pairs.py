@@ -15,7 +15,7 @@ import numpy as np
 from morphgs._core import MorphgsError
 from morphgs.camera import Cameras
 
-__all__ = ["Bench", "CalibrationError", "RealPair", "read_real_pairs"]
+__all__ = ["Bench", "CalibrationError", "RealPair", "by_regime", "read_real_pairs"]
 
 
 class CalibrationError(MorphgsError):
@@ -88,6 +88,14 @@ def read_real_pairs(folder: str | os.PathLike[str], *, regimes: Sequence[str] | 
     if len(sizes) > 1:
         raise CalibrationError(f"--real {root}: pairs of mismatched sizes {sorted(sizes)} (field 'resolution'); "
                                "calibrate one size at a time")
+    return out
+
+
+def by_regime(pairs: Sequence[RealPair]) -> dict[str, list[RealPair]]:
+    """The pairs grouped by regime (their config name), regimes and pairs in the order given."""
+    out: dict[str, list[RealPair]] = {}
+    for p in pairs:
+        out.setdefault(p.regime, []).append(p)
     return out
 
 

@@ -175,7 +175,7 @@ def write_report(out: Path, doc: dict[str, Any], plot_data: Sequence[dict[str, A
         folder.mkdir(parents=True, exist_ok=True)
         lines += ["## Plots", ""]
         for r, pd in zip(doc["results"], plot_data):
-            name = f"{r['family']}-{''.join(c if c.isalnum() else '-' for c in r['regime'])}"
+            name = Path(r["config_file"]).stem  # the plots are named as the result's config file
             files = _plots(folder, name, pd)
             lines += [f"### {r['family']} / {r['regime']}", "",
                       "PSNR histograms (real held-out vs calibrated synthetic) and error spectra:", "",

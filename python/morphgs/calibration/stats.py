@@ -13,11 +13,15 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["BAND_EDGES", "STAT_NAMES", "color_shift", "coverage", "error_spectrum", "frame_lpips", "frame_psnr",
+__all__ = ["BANDS", "BAND_EDGES", "SPECTRUM_NAMES", "STAT_NAMES", "color_shift", "coverage", "error_spectrum", "frame_lpips", "frame_psnr",
            "frame_ssim", "pair_stats", "temporal_error"]
 
 #: Edges of the log-frequency bands of `error_spectrum`, in cycles per pixel (radial frequency).
 BAND_EDGES: tuple[float, ...] = (1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4, 1 / 2, 0.7072)
+#: The number of bands of `error_spectrum`.
+BANDS = len(BAND_EDGES) - 1
+#: The band statistics of `pair_stats`, lowest frequency first.
+SPECTRUM_NAMES: tuple[str, ...] = tuple(f"spectrum_{k}" for k in range(BANDS))
 
 
 def _check(corrupted: np.ndarray, clean: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -120,8 +124,7 @@ def temporal_error(corrupted: np.ndarray, clean: np.ndarray) -> float:
 
 
 #: The scalar statistics of `pair_stats` (besides the per-frame arrays), in report order.
-STAT_NAMES: tuple[str, ...] = ("psnr", "ssim", "lpips", "color_shift", "coverage", "temporal_error") + tuple(
-    f"spectrum_{k}" for k in range(len(BAND_EDGES) - 1))
+STAT_NAMES: tuple[str, ...] = ("psnr", "ssim", "lpips", "color_shift", "coverage", "temporal_error", *SPECTRUM_NAMES)
 
 
 def pair_stats(corrupted: np.ndarray, clean: np.ndarray, *, lpips: bool = False, **coverage_args: Any) -> dict[str, Any]:
@@ -140,5 +143,5 @@ def pair_stats(corrupted: np.ndarray, clean: np.ndarray, *, lpips: bool = False,
         "color_shift": color_shift(corrupted, clean), "coverage": coverage(corrupted, clean, **coverage_args),
         "temporal_error": temporal_error(corrupted, clean),
     }
-    out.update({f"spectrum_{k}": float(v) for k, v in enumerate(spec)})
+    out.update({name: float(v) for name, v in zip(SPECTRUM_NAMES, spec, strict=True)})
     return out

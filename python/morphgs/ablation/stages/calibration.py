@@ -42,17 +42,22 @@ def make(work: Path, *, scene_dirs: list[str], real_dir: str, family: str, grid:
     """Calibrate `family` against the curated real pairs in `real_dir` into `work/calib`; write
     `work/config.json` (the strength distribution) and `work/summary.json`."""
     from morphgs.ablation.study import StudyError
-    from morphgs.calibration.pairs import CalibrationError
-    from morphgs.calibration.run import calibrate
+    from morphgs.calibration.outputs import document, write_outputs
+    from morphgs.calibration.pairs import CalibrationError, by_regime, read_real_pairs
+    from morphgs.calibration.pipeline import calibrate_pairs, parse_family
+    from morphgs.calibration.run import find_scenes, load_scenes
 
     try:
-        doc = calibrate(scene_dirs, work / "calib", real=real_dir, families=[family], grid=list(grid), lpips=False,
-                        workers=1, plots=True, log=lambda m: None)
+        sources = find_scenes(scene_dirs)
+        groups = by_regime(read_real_pairs(real_dir))
+        calibration = calibrate_pairs(groups, load_scenes(sources, groups), [parse_family(family)], grid=list(grid))
     except CalibrationError as e:
         raise StudyError(f"calibration of {family} against {real_dir}: {e}") from None
+    # pairs_per_scene and seed: `calibrate`'s defaults, which this stage's calibration.json has
+    # always recorded (they describe the pairs of a --regime; these pairs are read, not made)
+    doc = document(calibration, scenes=[s.describe() for s in sources], real=real_dir, pairs_per_scene=2, seed=0,
+                   fit_steps={})
+    write_outputs(work / "calib", doc, calibration.plots, plots=True)
     (result,) = doc["results"]
-    (work / "calib" / "timings.json").unlink(missing_ok=True)  # wall times: not part of the stage's bytes
-    for lock in (work / "calib").glob(".morphgs*.lock"):  # calibrate's (released) lock file
-        lock.unlink()
     (work / CONFIG).write_text(json.dumps(result["config"], indent=1, sort_keys=True) + "\n", encoding="utf-8")
     (work / SUMMARY).write_text(json.dumps(summary(result), indent=1, sort_keys=True) + "\n", encoding="utf-8")
