@@ -56,9 +56,10 @@ _RESUME = {
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run one command. Every warning is one `morphgs CMD: warning: ...` line (`_cli_warnings`),
-    every failure ends in one `morphgs CMD: error: ...` line on stderr and a non-zero status (MORPHGS_TRACEBACK=1 shows the traceback instead, for bug reports); Ctrl-C
-    and SIGTERM end with a line saying how to resume (exit 130 and 143)."""
+    """Run one command. Every warning is one `morphgs CMD: warning: ...` line (`_cli_warnings`);
+    every failure ends in one `morphgs CMD: error: ...` line on stderr and a non-zero status
+    (MORPHGS_TRACEBACK=1 shows the traceback instead, for bug reports); Ctrl-C and SIGTERM end
+    with a line saying how to resume (exit 130 and 143)."""
     from morphgs.reliability import Preempted, one_line, sigterm_raises
 
     parser = build_parser()

@@ -94,7 +94,8 @@ def read_inria_cameras(path: str | os.PathLike[str], *, resolution: tuple[int, i
         raise CaptureError(f"{p}: not UTF-8 text ({e.reason} at byte {e.start})") from None
     if not isinstance(data, list) or not data:
         raise CaptureError(f"{p}: expected a non-empty list of cameras")
-    order = sorted(range(len(data)), key=lambda i: str(data[i].get("img_name", "")) if isinstance(data[i], dict) else "")
+    order = sorted(range(len(data)),
+                   key=lambda i: str(data[i].get("img_name", "")) if isinstance(data[i], dict) else "")
     cams: list[Camera] = []
     for i in order:
         c = data[i]
@@ -118,6 +119,10 @@ def read_inria_cameras(path: str | os.PathLike[str], *, resolution: tuple[int, i
     if resolution:
         warn_stretch(cams, *resolution, str(p))
         cams = [resize_camera(c, *resolution) for c in cams]
+    sizes = sorted({(c.width, c.height) for c in cams})
+    if len(sizes) > 1:
+        shown = ", ".join(f"{w}x{h}" for w, h in sizes[:6])
+        raise CaptureError(f"{p}: cameras have {len(sizes)} different image sizes ({shown}); pass a resolution")
     return Cameras.from_list(cams)
 
 

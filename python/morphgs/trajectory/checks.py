@@ -186,7 +186,8 @@ def check_quaternion(where: str, q: Any) -> np.ndarray:
 def camera_from_c2w(where: str, c2w: Any, *, fx: Any, fy: Any, width: Any, height: Any, cx: Any = None,
                     cy: Any = None, convention: str = "opencv") -> Camera:
     """A Camera from a camera-to-world pose and intrinsics, each checked (`check_c2w`,
-    `check_intrinsics`; no cx / cy: the image centre); "opengl" poses (nerfstudio, Blender) are converted to OpenCV axes."""
+    `check_intrinsics`; no cx / cy: the image centre); "opengl" poses (nerfstudio, Blender) are
+    converted to OpenCV axes."""
     fx, fy, cx, cy, w, h = check_intrinsics(where, fx, fy, cx, cy, width, height)
     m = check_c2w(where, c2w)
     if convention not in ("opencv", "opengl"):

@@ -313,7 +313,8 @@ def read_colmap_views(folder: str | os.PathLike[str], *, sort: bool = True) -> l
             raise CaptureError(f"{im.where} (camera {im.camera_id}): {e}") from None
         out.append(ColmapView(im.name, cam, c.model, c.params, im.camera_id))
     if not out:
-        raise CaptureError(f"{model_dir}: the model has no registered images")
+        images_file = model_dir / ("images.bin" if binary else "images.txt")
+        raise CaptureError(f"{images_file}: the model has no registered images")
     return out
 
 

@@ -58,9 +58,13 @@ def _load_json(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 def _num(d: dict[str, Any], key: str, path: Path, where: str) -> float:
     v = d[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise CaptureError(f"{path}: {where}field {key!r} must be a finite number, got {v!r}")
-    return float(v)
+    try:
+        f = math.inf if isinstance(v, bool) or not isinstance(v, (int, float)) else float(v)
+    except OverflowError:  # a JSON integer beyond float's range
+        f = math.inf
+    if not math.isfinite(f):
+        raise CaptureError(f"{path}: {where}field {key!r} must be a finite number, got {str(v)[:40]}")
+    return f
 
 
 def _intrinsics(frame: dict[str, Any], meta: dict[str, Any], path: Path, i: int,
