@@ -49,7 +49,7 @@ ROTATION_TOL = 1e-3
 SNAP_TOL = 1e-6
 MAX_COORDINATE = 1e8
 MAX_SIDE = 100_000
-FOCAL_RANGE = (1e-3, 1e4)
+FOCAL_RANGE = (1e-2, 1e4)  # times the larger image side: fields of view from 177 degrees to 0.006
 MAX_DISTORTION = 1e6
 
 
