@@ -345,6 +345,22 @@ def test_a_bad_rotation_entry_names_the_file_and_the_frame(entry: tuple[int, int
     assert f"{path}: frames[4] (images/orbit_01.png)" in str(info.value)
 
 
+def test_a_rotation_with_rounded_digits_is_snapped_and_a_float32_one_kept(shots: list[Shot], tmp_path: Path) -> None:
+    path = _transforms(tmp_path, shots)
+    meta = json.loads(path.read_text())
+    exact = [np.array(f["transform_matrix"]) for f in meta["frames"]]
+    meta["frames"][3]["transform_matrix"] = np.round(exact[3], 4).tolist()  # off by about 1e-4
+    path.write_text(json.dumps(meta))
+    frames = {f.entry["file_path"]: f.camera for f in read_transforms_frames(path)}
+    r = frames["images/orbit_00.png"].world_to_camera[:3, :3]
+    assert np.abs(r.T @ r - np.eye(3)).max() < 1e-12  # the nearest rotation
+    np.testing.assert_allclose(r, shots[3].camera.world_to_camera[:3, :3], atol=2e-4)
+    # the garden poses (float32, off by 6e-8) are used exactly as written: runs keep their bytes
+    g = frames["images/garden_00.jpg"].world_to_camera
+    np.testing.assert_allclose(g, shots[0].camera.world_to_camera, atol=1e-7)
+    assert np.abs(g[:3, :3].T @ g[:3, :3] - np.eye(3)).max() > 1e-9
+
+
 @pytest.mark.parametrize(("line", "token", "value", "needle"), [
     (1, 4, "-30", "focal lengths must be positive"),
     (1, 6, "5000", "principal point"),
@@ -395,12 +411,14 @@ def test_a_binary_count_that_lies_allocates_nothing(shots: list[Shot], tmp_path:
         read_colmap_views(model)
 
 
-def test_outcome_counts(capsys: pytest.CaptureFixture[str]) -> None:
+def test_outcome_counts(capsys: pytest.CaptureFixture[str], request: pytest.FixtureRequest) -> None:
     """Not a check: the tally of the mutation tests above (pytest -s shows it)."""
-    if not OUTCOMES:
-        pytest.skip("run with the mutation tests")
+    if not OUTCOMES or request.config.getoption("capture") != "no":
+        pytest.skip("a tally of the mutation tests, shown with pytest -s")
     with capsys.disabled():
         for kind in sorted({k for k, _, _ in OUTCOMES}):
             loaded = sum(n for (k, _, r), n in OUTCOMES.items() if k == kind and r == "loaded")
             raised = sum(n for (k, _, r), n in OUTCOMES.items() if k == kind and r == "raised")
-            print(f"\n{kind}: {loaded} loaded, {raised} raised", end="")
+            ops = sorted({o for k, o, _ in OUTCOMES if k == kind})
+            each = ", ".join(f"{o} {OUTCOMES[(kind, o, 'loaded')]}/{OUTCOMES[(kind, o, 'raised')]}" for o in ops)
+            print(f"\n{kind}: {loaded} loaded, {raised} raised (loaded/raised: {each})", end="")

@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from capture_helpers import forward_facing_cameras, room, write_transforms
 from fit_helpers import small_config
 from morphgs.fit import FitConfig
@@ -92,7 +94,8 @@ def test_numpy_and_library_warnings_in_the_command_and_its_workers_are_one_line(
     assert r.returncode == 0 and "warn.py:" in r.stderr, r.stderr
 
 
-def test_the_cli_leaves_the_warning_format_as_it_found_it(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+def test_the_cli_leaves_the_warning_format_as_it_found_it(tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
     import warnings
 
     from morphgs.cli import main
