@@ -187,13 +187,11 @@ def read_transforms_frames(
         t = check_c2w(str(dpp), dp["transform"], what="transform")
         s = _num(dp, "scale", dpp, "")
         if not 0 < s <= 1e8:
-            raise CaptureError(f"{dpp}: field 'scale' must be positive, got {s}")
+            raise CaptureError(f"{dpp}: field 'scale' must be positive (at most 1e8), got {s}")
         world = np.diag([s, s, s, 1.0]) @ t
     elif frame == "colmap" and "applied_transform" in meta:
-        a = check_c2w(str(p), meta["applied_transform"], what="applied_transform")
-        world = np.eye(4)
-        world[:3, :3] = a[:3, :3].T
-        world[:3, 3] = -a[:3, :3].T @ a[:3, 3]
+        # checked to be rigid, so invertible (inverted as before: the same bytes)
+        world = np.linalg.inv(check_c2w(str(p), meta["applied_transform"], what="applied_transform"))
     wheres: list[str] = []
     c2ws = []
     for i in order:
