@@ -7,6 +7,7 @@ scene along the same camera path.
 
 from __future__ import annotations
 
+from morphgs._cli_warnings import install_from_environment as _install_cli_warnings
 from morphgs._core import (
     GaussianScene,
     MorphgsError,
@@ -63,3 +64,7 @@ __all__ = [
     "synthetic",
     "trajectory",
 ]
+
+# a process started by a `morphgs` command (a spawned or Ray worker) shows its warnings as the
+# command does: one line each
+_install_cli_warnings()

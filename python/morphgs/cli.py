@@ -7,12 +7,10 @@ import argparse
 import importlib
 import os
 import sys
-import warnings
 from collections.abc import Sequence
-from typing import Any
 
 from morphgs import __version__
-from morphgs._core import MorphgsWarning
+from morphgs._cli_warnings import install as _install_warnings
 
 # Order is the order shown in --help.
 _COMMAND_MODULES = (
@@ -57,30 +55,18 @@ _RESUME = {
 }
 
 
-def _warning_format(command: str) -> Any:
-    """MorphgsWarnings as one `morphgs CMD: warning: ...` line; other warnings as Python shows them."""
-    plain = warnings.formatwarning
-
-    def fmt(message: Any, category: type[Warning], filename: str, lineno: int, line: str | None = None) -> str:
-        if issubclass(category, MorphgsWarning):
-            return f"morphgs {command}: warning: {message}\n"
-        return plain(message, category, filename, lineno, line)
-
-    return fmt
-
-
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run one command. Every failure ends in one `morphgs CMD: error: ...` line on stderr and a
-    non-zero status (MORPHGS_TRACEBACK=1 shows the traceback instead, for bug reports); Ctrl-C
-    and SIGTERM end with a line saying how to resume (exit 130 and 143)."""
+    """Run one command. Every warning is one `morphgs CMD: warning: ...` line (`_cli_warnings`);
+    every failure ends in one `morphgs CMD: error: ...` line on stderr and a non-zero status
+    (MORPHGS_TRACEBACK=1 shows the traceback instead, for bug reports); Ctrl-C and SIGTERM end
+    with a line saying how to resume (exit 130 and 143)."""
     from morphgs.reliability import Preempted, one_line, sigterm_raises
 
     parser = build_parser()
     args = parser.parse_args(argv)
     cmd = args.command
     hint = _RESUME.get(cmd, "rerun the command")
-    old_format = warnings.formatwarning
-    warnings.formatwarning = _warning_format(cmd)
+    restore_warnings = _install_warnings(cmd)  # every warning one line, in worker processes too
     try:
         with sigterm_raises():
             return int(args.func(args) or 0)
@@ -96,7 +82,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"morphgs {cmd}: error: {one_line(e)}", file=sys.stderr)
         return 1
     finally:
-        warnings.formatwarning = old_format
+        restore_warnings()
 
 
 if __name__ == "__main__":

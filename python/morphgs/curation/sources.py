@@ -77,30 +77,52 @@ def read_inria_cameras(path: str | os.PathLike[str], *, resolution: tuple[int, i
     """INRIA 3DGS `cameras.json`: a list of {img_name, width, height, position, rotation, fx, fy}
     where [rotation | position] is the camera-to-world (OpenCV axes). Sorted by img_name. With a
     resolution, cameras of several sizes (a `morphgs fit` run of a real capture) are brought to
-    it by `trajectory.resize_camera`."""
-    from morphgs.trajectory import resize_camera, warn_stretch
+    it by `trajectory.resize_camera`.
+
+    Raises:
+        CaptureError (a MorphgsError): a malformed file or an invalid camera
+        (`trajectory.checks`), naming the file and the camera (index in the file, img_name).
+    """
+    from morphgs.trajectory import CaptureError, camera_from_c2w, resize_camera, warn_stretch
 
     p = Path(path)
     try:
         data = json.loads(p.read_text(encoding="utf-8"))
     except json.JSONDecodeError as e:
-        raise MorphgsError(f"{p}: not valid JSON ({e})") from None
+        raise CaptureError(f"{p}: not valid JSON ({e})") from None
+    except UnicodeDecodeError as e:
+        raise CaptureError(f"{p}: not UTF-8 text ({e.reason} at byte {e.start})") from None
     if not isinstance(data, list) or not data:
-        raise MorphgsError(f"{p}: expected a non-empty list of cameras")
+        raise CaptureError(f"{p}: expected a non-empty list of cameras")
+    order = sorted(range(len(data)),
+                   key=lambda i: str(data[i].get("img_name", "")) if isinstance(data[i], dict) else "")
     cams: list[Camera] = []
-    for i, c in enumerate(sorted(data, key=lambda c: str(c.get("img_name", "")) if isinstance(c, dict) else "")):
+    for i in order:
+        c = data[i]
+        name = c.get("img_name") if isinstance(c, dict) else None
+        where = f"{p}: camera {i}" + (f" ({name})" if isinstance(name, str) and name else "")
+        if not isinstance(c, dict):
+            raise CaptureError(f"{where}: expected an object with img_name, width, height, position, rotation, fx, fy")
+        missing = [k for k in ("width", "height", "position", "rotation", "fx", "fy") if k not in c]
+        if missing:
+            raise CaptureError(f"{where}: field(s) {', '.join(missing)} missing")
         try:
-            c2w = np.eye(4)
-            c2w[:3, :3] = np.asarray(c["rotation"], dtype=np.float64)
-            c2w[:3, 3] = np.asarray(c["position"], dtype=np.float64)
-            cam = Camera.from_c2w(c2w, fx=float(c["fx"]), fy=float(c["fy"]),
-                                  width=int(c["width"]), height=int(c["height"]))
-        except (KeyError, TypeError, ValueError) as e:
-            raise MorphgsError(f"{p}: camera {i}: {e!r}") from None
-        cams.append(cam)
+            rotation = np.asarray(c["rotation"], dtype=np.float64)
+            position = np.asarray(c["position"], dtype=np.float64)
+            if rotation.shape != (3, 3) or position.shape != (3,):
+                raise ValueError
+        except (TypeError, ValueError, OverflowError):
+            raise CaptureError(f"{where}: 'rotation' must be 3x3 numbers and 'position' 3 numbers") from None
+        c2w = np.eye(4)
+        c2w[:3, :3], c2w[:3, 3] = rotation, position
+        cams.append(camera_from_c2w(where, c2w, fx=c["fx"], fy=c["fy"], width=c["width"], height=c["height"]))
     if resolution:
         warn_stretch(cams, *resolution, str(p))
         cams = [resize_camera(c, *resolution) for c in cams]
+    sizes = sorted({(c.width, c.height) for c in cams})
+    if len(sizes) > 1:
+        shown = ", ".join(f"{w}x{h}" for w, h in sizes[:6])
+        raise CaptureError(f"{p}: cameras have {len(sizes)} different image sizes ({shown}); pass a resolution")
     return Cameras.from_list(cams)
 
 

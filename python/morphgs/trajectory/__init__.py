@@ -1,6 +1,7 @@
 """Camera trajectories in the morphgs convention (OpenCV axes, SPEC §3).
 
 Readers bring recorded cameras in (`from_transforms_json`, `from_colmap`, `from_camera_path`);
+`trajectory.checks` is the one validation of cameras read from a file (every reader uses it);
 generators make paths (`smooth_path` through keyframes, `orbit`/`ellipse`, `spiral`, and
 `for_scene` for scenes with no cameras, `around_cameras` for an orbit where recorded cameras look); `clips` splits a path into fixed-length clips.
 """
@@ -8,6 +9,7 @@ generators make paths (`smooth_path` through keyframes, `orbit`/`ellipse`, `spir
 from __future__ import annotations
 
 from morphgs.trajectory._common import CaptureError, resize_camera, warn_stretch
+from morphgs.trajectory.checks import camera_from_c2w, check_intrinsics, check_quaternion, check_rotation
 from morphgs.trajectory.colmap import ColmapView, find_colmap_model, from_colmap, read_colmap_views
 from morphgs.trajectory.generators import (
     FILE_UP,
@@ -36,6 +38,10 @@ __all__ = [
     "TransformsFrame",
     "around_cameras",
     "camera_focus",
+    "camera_from_c2w",
+    "check_intrinsics",
+    "check_quaternion",
+    "check_rotation",
     "clips",
     "ellipse",
     "find_colmap_model",

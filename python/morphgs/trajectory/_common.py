@@ -106,18 +106,3 @@ def similarity_apply(m: np.ndarray, c2w: np.ndarray) -> np.ndarray:
     out[:, :3, :3] = r @ c2w[:, :3, :3]
     out[:, :3, 3] = c2w[:, :3, 3] @ a.T + m[:3, 3]
     return out
-
-
-def as_4x4(m: object, name: str) -> np.ndarray:
-    """A (3,4) or (4,4) nested list -> (4,4) float64, with a clear error naming `name`."""
-    try:
-        a = np.asarray(m, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a 3x4 or 4x4 matrix of numbers") from None
-    if a.shape == (3, 4):
-        a = np.vstack([a, [0.0, 0.0, 0.0, 1.0]])
-    if a.shape != (4, 4):
-        raise ValueError(f"{name} must be a 3x4 or 4x4 matrix, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} holds NaN or Inf values")
-    return a

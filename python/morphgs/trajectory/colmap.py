@@ -13,7 +13,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -21,6 +21,7 @@ from morphgs._core import MorphgsWarning
 from morphgs.camera import Camera, Cameras
 from morphgs.trajectory._common import CaptureError, check_resolution, stack_resized
 from morphgs.trajectory._rotations import quat_to_matrix
+from morphgs.trajectory.checks import check_distortion, check_intrinsics, check_position, check_quaternion
 
 __all__ = ["ColmapView", "from_colmap", "find_colmap_model", "read_colmap_views"]
 
@@ -45,7 +46,26 @@ _SINGLE_F = {"SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE
 _FISHEYE = {"OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE",
             "RAD_TAN_THIN_PRISM_FISHEYE", "FOV"}
 
-_Intr = tuple[str, int, int, tuple[float, ...]]
+@dataclass(frozen=True)
+class _Intr:
+    """One camera record: model, size, parameters, and where it is (file:line or record)."""
+
+    model: str
+    width: int
+    height: int
+    params: tuple[float, ...]
+    where: str
+
+
+@dataclass(frozen=True)
+class _Image:
+    """One image record: name, camera id, quaternion (w, x, y, z), translation, and where."""
+
+    name: str
+    camera_id: int
+    q: np.ndarray
+    t: np.ndarray
+    where: str
 
 
 @dataclass(frozen=True)
@@ -67,96 +87,174 @@ def _pinhole(model: str, params: Sequence[float]) -> tuple[float, float, float, 
     return params[0], params[1], params[2], params[3]
 
 
+def _camera(cams: dict[int, _Intr], cid: int, model: str, w: int, h: int, params: tuple[float, ...],
+            where: str) -> None:
+    """Check one camera record (its pinhole part: `checks.check_intrinsics`) and add it."""
+    if cid in cams:
+        raise CaptureError(f"{where}: camera id {cid} is defined twice (first at {cams[cid].where})")
+    fx, fy, cx, cy = _pinhole(model, params)
+    check_intrinsics(where, fx, fy, cx, cy, w, h)
+    first = 3 if model in _SINGLE_F else 4
+    check_distortion(where, {f"{model} parameter {j + 1}": v for j, v in enumerate(params) if j >= first})
+    cams[cid] = _Intr(model, w, h, params, where)
+
+
+def _image(images: list[_Image], ids: dict[int, str], names: dict[str, str], iid: int, name: str, cid: int,
+           q: Sequence[float], t: Sequence[float], where: str) -> None:
+    """Check one image record (unique id and name, `checks.check_quaternion`,
+    `checks.check_position`) and add it."""
+    if not name:
+        raise CaptureError(f"{where}: the image has no name")
+    if iid in ids:
+        raise CaptureError(f"{where}: image id {iid} is used twice (first at {ids[iid]})")
+    if name in names:
+        raise CaptureError(f"{where}: image name {name!r} is used twice (first at {names[name]})")
+    ids[iid], names[name] = where, where
+    qa = check_quaternion(where, q)
+    ta = check_position(where, t, what="translation")
+    images.append(_Image(name, cid, qa, ta, where))
+
+
 def _read_cameras_txt(path: Path) -> dict[int, _Intr]:
     cams: dict[int, _Intr] = {}
-    for ln, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+    for ln, line in enumerate(_text_lines(path), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
         parts = line.split()
+        where = f"{path}:{ln}"
         try:
             cid, model, w, h = int(parts[0]), parts[1], int(parts[2]), int(parts[3])
-            params = [float(v) for v in parts[4:]]
+            params = tuple(float(v) for v in parts[4:])
         except (IndexError, ValueError):
-            raise CaptureError(f"{path}:{ln}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...'") from None
+            raise CaptureError(f"{where}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...'") from None
         if model not in _BY_NAME:
-            raise CaptureError(f"{path}:{ln}: unknown camera model {model!r}")
+            raise CaptureError(f"{where}: unknown camera model {model!r}")
         if len(params) != _BY_NAME[model][1]:
-            raise CaptureError(f"{path}:{ln}: model {model} takes {_BY_NAME[model][1]} params, got {len(params)}")
-        cams[cid] = (model, w, h, tuple(params))
+            raise CaptureError(f"{where}: model {model} takes {_BY_NAME[model][1]} params, got {len(params)}")
+        _camera(cams, cid, model, w, h, params, f"{where}: camera {cid}")
     return cams
 
 
-def _read_images_txt(path: Path) -> list[tuple[str, int, np.ndarray, np.ndarray]]:
-    out = []
-    lines = [ln for ln in path.read_text(encoding="utf-8").splitlines() if not ln.lstrip().startswith("#")]
-    # Each image takes two lines (pose, then its 2D points, which may be empty).
+def _text_lines(path: Path) -> list[str]:
+    try:
+        return path.read_text(encoding="utf-8").splitlines()
+    except UnicodeDecodeError as e:
+        raise CaptureError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+
+
+def _points_line(line: str) -> bool:
+    """Whether `line` is an images.txt POINTS2D line: (X, Y, POINT3D_ID) triples, the id an
+    integer (-1 for none). A pose line never is one (its third value is a quaternion entry)."""
+    parts = line.split()
+    return len(parts) % 3 == 0 and all(p.lstrip("-").isdigit() for p in parts[2::3])
+
+
+def _read_images_txt(path: Path) -> list[_Image]:
+    # Each image takes two lines: its pose, then its 2D points (which may be empty). As COLMAP's
+    # reader, blank lines are skipped where a pose is expected, and the line after a pose is its
+    # points. A file that ends right after a pose line is accepted (only 2D points would be lost).
+    rows = [(ln, text.strip()) for ln, text in enumerate(_text_lines(path), 1)
+            if not text.lstrip().startswith("#")]
+    out: list[_Image] = []
+    ids: dict[int, str] = {}
+    names: dict[str, str] = {}
     i = 0
-    while i < len(lines):
-        line = lines[i].strip()
+    while i < len(rows):
+        ln, line = rows[i]
         if not line:
             i += 1
             continue
         parts = line.split()
         try:
-            q = np.array([float(v) for v in parts[1:5]])
-            t = np.array([float(v) for v in parts[5:8]])
+            if len(parts) < 10:
+                raise ValueError
+            iid = int(parts[0])
+            q = [float(v) for v in parts[1:5]]
+            t = [float(v) for v in parts[5:8]]
             cid = int(parts[8])
             name = " ".join(parts[9:])
-        except (IndexError, ValueError):
-            raise CaptureError(f"{path}: bad image line {line[:80]!r} (expected "
-                               "'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME')") from None
-        if len(q) != 4 or len(t) != 3 or not name:
-            raise CaptureError(f"{path}: bad image line {line[:80]!r}")
-        out.append((name, cid, q, t))
+        except ValueError:
+            raise CaptureError(f"{path}:{ln}: bad image line {line[:80]!r} (expected "
+                               "'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', then a line of 2D points)") from None
+        if i + 1 < len(rows) and not _points_line(rows[i + 1][1]):
+            ln2, nxt = rows[i + 1]
+            raise CaptureError(f"{path}:{ln2}: expected the 2D points of image {iid} (X Y POINT3D_ID triples, "
+                               f"or an empty line), got {nxt[:80]!r}: each image takes two lines")
+        _image(out, ids, names, iid, name, cid, q, t, f"{path}:{ln}: image {iid} {name!r}")
         i += 2
     return out
 
 
-def _read(f: BinaryIO, fmt: str, path: Path) -> tuple[object, ...]:
+def _read(f: BinaryIO, fmt: str, path: Path, what: str) -> tuple[Any, ...]:
     size = struct.calcsize(fmt)
     b = f.read(size)
     if len(b) != size:
-        raise CaptureError(f"{path}: file ends early")
+        raise CaptureError(f"{path}: file ends early, inside {what}")
     return struct.unpack(fmt, b)
+
+
+def _count(f: BinaryIO, path: Path, what: str, smallest: int) -> int:
+    """The record count of a binary model file, checked against the bytes that follow (each
+    record takes at least `smallest`), so a count that lies allocates nothing."""
+    (n,) = _read(f, "<Q", path, "the header")
+    left = os.fstat(f.fileno()).st_size - f.tell()
+    if n > left // smallest:
+        raise CaptureError(f"{path}: the header says {n} {what}, but the {left} bytes that follow hold at most "
+                           f"{left // smallest} (truncated or not a COLMAP file)")
+    return int(n)
+
+
+def _end(f: BinaryIO, path: Path, n: int, what: str) -> None:
+    rest = len(f.read(1 << 16))
+    if rest:
+        raise CaptureError(f"{path}: bytes left after the {n} {what} its header announces (a damaged file, "
+                           "or records the count leaves out)")
 
 
 def _read_cameras_bin(path: Path) -> dict[int, _Intr]:
     cams: dict[int, _Intr] = {}
     with open(path, "rb") as f:
-        (n,) = _read(f, "<Q", path)
-        for _ in range(int(n)):  # type: ignore[call-overload]
-            cid, mid, w, h = _read(f, "<iiQQ", path)
+        n = _count(f, path, "cameras", 24 + 3 * 8)
+        for k in range(n):
+            rec = f"camera record {k + 1} of {n}"
+            cid, mid, w, h = _read(f, "<iiQQ", path, rec)
             if mid not in _MODELS:
-                raise CaptureError(f"{path}: unknown camera model id {mid}")
-            model, npar = _MODELS[mid]  # type: ignore[index]
-            params = _read(f, f"<{npar}d", path)
-            cams[int(cid)] = (model, int(w), int(h), tuple(float(v) for v in params))  # type: ignore[arg-type, call-overload]
+                raise CaptureError(f"{path}: {rec} (id {cid}): unknown camera model id {mid}")
+            model, npar = _MODELS[mid]
+            params = tuple(float(v) for v in _read(f, f"<{npar}d", path, rec))
+            _camera(cams, int(cid), model, int(w), int(h), params, f"{path}: camera {cid} ({rec})")
+        _end(f, path, n, "cameras")
     return cams
 
 
-def _read_images_bin(path: Path) -> list[tuple[str, int, np.ndarray, np.ndarray]]:
-    out = []
+def _read_images_bin(path: Path) -> list[_Image]:
+    out: list[_Image] = []
+    ids: dict[int, str] = {}
+    names: dict[str, str] = {}
     with open(path, "rb") as f:
-        (n,) = _read(f, "<Q", path)
-        for _ in range(int(n)):  # type: ignore[call-overload]
-            vals = _read(f, "<i7di", path)
-            q = np.array(vals[1:5], dtype=np.float64)
-            t = np.array(vals[5:8], dtype=np.float64)
-            cid = int(vals[8])  # type: ignore[call-overload]
+        size = os.fstat(f.fileno()).st_size
+        n = _count(f, path, "images", 4 + 7 * 8 + 4 + 1 + 8)
+        for k in range(n):
+            rec = f"image record {k + 1} of {n}"
+            vals = _read(f, "<i7di", path, rec)
             name = bytearray()
             while True:
                 c = f.read(1)
                 if not c:
-                    raise CaptureError(f"{path}: file ends inside an image name")
+                    raise CaptureError(f"{path}: file ends inside the name of {rec}")
                 if c == b"\x00":
                     break
                 name += c
-            (npts,) = _read(f, "<Q", path)
-            skip = 24 * int(npts)  # type: ignore[call-overload]
-            if len(f.read(skip)) != skip:
-                raise CaptureError(f"{path}: file ends inside the 2D points of {name.decode(errors='replace')}")
-            out.append((name.decode("utf-8", errors="replace"), cid, q, t))
+            text = name.decode("utf-8", errors="replace")
+            (npts,) = _read(f, "<Q", path, f"{rec} ({text!r})")
+            if npts > (size - f.tell()) // 24:
+                raise CaptureError(f"{path}: {rec} ({text!r}) says {npts} 2D points, more than the file holds "
+                                   "(truncated?)")
+            f.seek(24 * int(npts), os.SEEK_CUR)
+            _image(out, ids, names, int(vals[0]), text, int(vals[8]), vals[1:5], vals[5:8],
+                   f"{path}: image {vals[0]} {text!r} ({rec})")
+        _end(f, path, n, "images")
     return out
 
 
@@ -183,37 +281,40 @@ def read_colmap_views(folder: str | os.PathLike[str], *, sort: bool = True) -> l
         sort: order the images by name (a capture's video order); file order otherwise.
 
     Raises:
-        FileNotFoundError: no model found. CaptureError: a malformed file (names it and the image).
+        FileNotFoundError: no model found. CaptureError: a malformed file or an invalid camera
+        (`trajectory.checks`; names the file and the line, or the binary record, and the image
+        or camera).
     """
     model_dir = find_colmap_model(folder)
     if model_dir is None:
         raise FileNotFoundError(f"{folder}: no COLMAP model (cameras.bin/txt + images.bin/txt) found")
-    if (model_dir / "cameras.bin").is_file() and (model_dir / "images.bin").is_file():
+    binary = (model_dir / "cameras.bin").is_file() and (model_dir / "images.bin").is_file()
+    if binary:
         intr = _read_cameras_bin(model_dir / "cameras.bin")
         images = _read_images_bin(model_dir / "images.bin")
     else:
         intr = _read_cameras_txt(model_dir / "cameras.txt")
         images = _read_images_txt(model_dir / "images.txt")
     if sort:
-        images.sort(key=lambda im: im[0])
+        images.sort(key=lambda im: im.name)
     out = []
-    for name, cid, q, t in images:
-        if cid not in intr:
-            raise CaptureError(f"{model_dir}: image {name!r} refers to camera {cid}, which is not defined")
-        model, w, h, params = intr[cid]
-        fx, fy, cx, cy = _pinhole(model, params)
-        if np.linalg.norm(q) == 0 or not np.all(np.isfinite(q)) or not np.all(np.isfinite(t)):
-            raise CaptureError(f"{model_dir}: image {name!r} has an invalid pose")
+    for im in images:
+        cam_file = model_dir / ("cameras.bin" if binary else "cameras.txt")
+        if im.camera_id not in intr:
+            raise CaptureError(f"{im.where}: refers to camera {im.camera_id}, which is not defined in {cam_file}")
+        c = intr[im.camera_id]
+        fx, fy, cx, cy = _pinhole(c.model, c.params)
         w2c = np.eye(4)
-        w2c[:3, :3] = quat_to_matrix(q)
-        w2c[:3, 3] = t
+        w2c[:3, :3] = quat_to_matrix(im.q)
+        w2c[:3, 3] = im.t
         try:
-            cam = Camera(fx, fy, cx, cy, w, h, w2c)
+            cam = Camera(fx, fy, cx, cy, c.width, c.height, w2c)
         except ValueError as e:
-            raise CaptureError(f"{model_dir}: image {name!r} (camera {cid}): {e}") from None
-        out.append(ColmapView(name, cam, model, params, cid))
+            raise CaptureError(f"{im.where} (camera {im.camera_id}): {e}") from None
+        out.append(ColmapView(im.name, cam, c.model, c.params, im.camera_id))
     if not out:
-        raise CaptureError(f"{model_dir}: the model has no registered images")
+        images_file = model_dir / ("images.bin" if binary else "images.txt")
+        raise CaptureError(f"{images_file}: the model has no registered images")
     return out
 
 

@@ -18,13 +18,8 @@ from typing import Any, Literal
 import numpy as np
 
 from morphgs.camera import Camera, Cameras
-from morphgs.trajectory._common import (
-    CaptureError,
-    as_4x4,
-    check_resolution,
-    similarity_apply,
-    stack_resized,
-)
+from morphgs.trajectory._common import CaptureError, check_resolution, similarity_apply, stack_resized
+from morphgs.trajectory.checks import camera_from_c2w, check_c2w, check_distortion, check_intrinsics, check_size
 
 __all__ = ["TransformsFrame", "from_camera_path", "from_transforms_json", "read_transforms_frames"]
 
@@ -52,6 +47,10 @@ def _load_json(path: str | os.PathLike[str]) -> dict[str, Any]:
             data = json.load(f)
     except json.JSONDecodeError as e:
         raise CaptureError(f"{p}: not valid JSON ({e})") from None
+    except UnicodeDecodeError as e:
+        raise CaptureError(f"{p}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    except RecursionError:
+        raise CaptureError(f"{p}: JSON nested too deeply") from None
     if not isinstance(data, dict):
         raise CaptureError(f"{p}: expected a JSON object at the top level")
     return data
@@ -59,36 +58,46 @@ def _load_json(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 def _num(d: dict[str, Any], key: str, path: Path, where: str) -> float:
     v = d[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise CaptureError(f"{path}: {where}field {key!r} must be a finite number, got {v!r}")
-    return float(v)
+    try:
+        f = math.inf if isinstance(v, bool) or not isinstance(v, (int, float)) else float(v)
+    except OverflowError:  # a JSON integer beyond float's range
+        f = math.inf
+    if not math.isfinite(f):
+        raise CaptureError(f"{path}: {where}field {key!r} must be a finite number, got {str(v)[:40]}")
+    return f
 
 
-def _intrinsics(frame: dict[str, Any], meta: dict[str, Any], path: Path, i: int) -> tuple[float, ...]:
-    """(fx, fy, cx, cy, w, h) with per-frame values overriding the shared ones."""
+def _intrinsics(frame: dict[str, Any], meta: dict[str, Any], path: Path, i: int,
+                where: str) -> tuple[float, float, float, float, int, int]:
+    """(fx, fy, cx, cy, w, h) with per-frame values overriding the shared ones, checked
+    (`checks.check_intrinsics`)."""
 
     def get(key: str) -> float | None:
-        for src, where in ((frame, f"frames[{i}]."), (meta, "")):
+        for src, prefix in ((frame, f"frames[{i}]."), (meta, "")):
             if key in src:
-                return _num(src, key, path, where)
+                return _num(src, key, path, prefix)
         return None
 
     w, h = get("w"), get("h")
     if w is None or h is None:
-        raise CaptureError(f"{path}: frames[{i}] has no image size (fields 'w' and 'h', shared or per frame)")
+        raise CaptureError(f"{where}: no image size (fields 'w' and 'h', shared or per frame)")
+    w, h = check_size(where, w, h)
     fx, fy = get("fl_x"), get("fl_y")
     if fx is None and fy is None:
-        ax, ay = get("camera_angle_x"), get("camera_angle_y")
-        if ax is not None:
-            fx = 0.5 * w / math.tan(0.5 * ax)
-        if ay is not None:
-            fy = 0.5 * h / math.tan(0.5 * ay)
+        for key, side in (("camera_angle_x", w), ("camera_angle_y", h)):
+            angle = get(key)
+            if angle is None:
+                continue
+            if not 0 < angle < math.pi:
+                raise CaptureError(f"{where}: {key} must be in (0, pi) radians, got {angle}")
+            f = 0.5 * side / math.tan(0.5 * angle)
+            fx, fy = (f, fy) if key == "camera_angle_x" else (fx, f)
     fx = fx if fx is not None else fy
     fy = fy if fy is not None else fx
     if fx is None or fy is None:
-        raise CaptureError(f"{path}: frames[{i}] has no focal length ('fl_x'/'fl_y' or 'camera_angle_x')")
+        raise CaptureError(f"{where}: no focal length ('fl_x'/'fl_y' or 'camera_angle_x')")
     cx, cy = get("cx"), get("cy")
-    return fx, fy, (w / 2 if cx is None else cx), (h / 2 if cy is None else cy), w, h
+    return check_intrinsics(where, fx, fy, cx, cy, w, h)
 
 
 def from_transforms_json(
@@ -165,54 +174,55 @@ def read_transforms_frames(
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
         raise CaptureError(f"{p}: field 'frames' must be a non-empty list")
+    # messages name a frame by its index in the file, whatever the order
+    order = list(range(len(frames)))
     if sort:
-        frames = sorted(frames, key=lambda f: str(f.get("file_path", "")) if isinstance(f, dict) else "")
+        order.sort(key=lambda i: str(frames[i].get("file_path", "")) if isinstance(frames[i], dict) else "")
     world = np.eye(4)
     if dataparser_transforms is not None:
-        dp = _load_json(dataparser_transforms)
+        dpp = Path(dataparser_transforms)
+        dp = _load_json(dpp)
         if "transform" not in dp or "scale" not in dp:
-            raise CaptureError(f"{dataparser_transforms}: needs fields 'transform' (3x4) and 'scale'")
-        try:
-            t = as_4x4(dp["transform"], "transform")
-        except ValueError as e:
-            raise CaptureError(f"{dataparser_transforms}: {e}") from None
-        s = _num(dp, "scale", Path(dataparser_transforms), "")
+            raise CaptureError(f"{dpp}: needs fields 'transform' (3x4) and 'scale'")
+        t = check_c2w(str(dpp), dp["transform"], what="transform")
+        s = _num(dp, "scale", dpp, "")
+        if not 0 < s <= 1e8:
+            raise CaptureError(f"{dpp}: field 'scale' must be positive (at most 1e8), got {s}")
         world = np.diag([s, s, s, 1.0]) @ t
     elif frame == "colmap" and "applied_transform" in meta:
-        try:
-            a = as_4x4(meta["applied_transform"], "applied_transform")
-        except ValueError as e:
-            raise CaptureError(f"{p}: {e}") from None
-        world = np.linalg.inv(a)
-    out: list[TransformsFrame] = []
+        # checked to be rigid, so invertible (inverted as before: the same bytes)
+        world = np.linalg.inv(check_c2w(str(p), meta["applied_transform"], what="applied_transform"))
+    wheres: list[str] = []
     c2ws = []
-    for i, fr in enumerate(frames):
+    for i in order:
+        fr = frames[i]
+        fp = fr.get("file_path") if isinstance(fr, dict) else None
+        where = f"{p}: frames[{i}]" + (f" ({fp})" if isinstance(fp, str) and fp else "")
         if not isinstance(fr, dict) or "transform_matrix" not in fr:
-            raise CaptureError(f"{p}: frames[{i}] has no 'transform_matrix'")
-        try:
-            c2ws.append(as_4x4(fr["transform_matrix"], f"frames[{i}].transform_matrix"))
-        except ValueError as e:
-            raise CaptureError(f"{p}: {e}") from None
+            raise CaptureError(f"{where} has no 'transform_matrix'")
+        c2ws.append(check_c2w(where, fr["transform_matrix"], what="transform_matrix"))
+        wheres.append(where)
     c2w = np.stack(c2ws) @ _GL_TO_CV
     try:
         c2w = similarity_apply(world, c2w)
     except ValueError as e:
         raise CaptureError(f"{p}: {e}") from None
-    for i, fr in enumerate(frames):
-        fx, fy, cx, cy, w, h = _intrinsics(fr, meta, p, i)
-        if w != int(w) or h != int(h) or w <= 0 or h <= 0:
-            raise CaptureError(f"{p}: frames[{i}] image size must be positive integers, got {w}x{h}")
+    out: list[TransformsFrame] = []
+    for k, i in enumerate(order):
+        fr, where = frames[i], wheres[k]
+        fx, fy, cx, cy, w, h = _intrinsics(fr, meta, p, i, where)
         try:
-            cam = Camera.from_c2w(c2w[i], fx=fx, fy=fy, cx=cx, cy=cy, width=int(w), height=int(h))
+            cam = Camera.from_c2w(c2w[k], fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h)
         except ValueError as e:
-            raise CaptureError(f"{p}: frames[{i}]: {e}") from None
+            raise CaptureError(f"{where}: {e}") from None
         model = fr.get("camera_model", meta.get("camera_model", "OPENCV"))
         if not isinstance(model, str):
-            raise CaptureError(f"{p}: frames[{i}].camera_model must be a string, got {model!r}")
+            raise CaptureError(f"{where}: camera_model must be a string, got {model!r}")
         dist = {}
         for key in _DISTORTION_KEYS:
             src = fr if key in fr else meta
             dist[key] = _num(src, key, p, f"frames[{i}]." if src is fr else "") if key in src else 0.0
+        dist = check_distortion(where, dist)
         out.append(TransformsFrame(fr, cam, model.upper(), dist))
     return out
 
@@ -255,22 +265,23 @@ def from_camera_path(
         aspect = _num(path_list[0], "aspect", p, "camera_path[0].") if isinstance(path_list[0], dict) and "aspect" in path_list[0] else None
         if aspect is None:
             raise CaptureError(f"{p}: neither 'render_width' nor an 'aspect' is given")
-        w = round(aspect * h)
-    if w != int(w) or h != int(h) or w <= 0 or h <= 0:
-        raise CaptureError(f"{p}: render size must be positive integers, got {w}x{h}")
+        w = aspect * h
+        w = round(w) if math.isfinite(w) else w
+    w, h = check_size(f"{p}: render size", w, h)
     cams = []
     for i, kf in enumerate(path_list):
+        where = f"{p}: camera_path[{i}]"
         if not isinstance(kf, dict) or "camera_to_world" not in kf or "fov" not in kf:
-            raise CaptureError(f"{p}: camera_path[{i}] needs 'camera_to_world' and 'fov'")
-        flat = np.asarray(kf["camera_to_world"], dtype=np.float64).reshape(-1)
+            raise CaptureError(f"{where} needs 'camera_to_world' and 'fov'")
+        try:
+            flat = np.asarray(kf["camera_to_world"], dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError, OverflowError):
+            raise CaptureError(f"{where}.camera_to_world must hold 16 numbers") from None
         if flat.size != 16:
-            raise CaptureError(f"{p}: camera_path[{i}].camera_to_world must hold 16 numbers, got {flat.size}")
+            raise CaptureError(f"{where}.camera_to_world must hold 16 numbers, got {flat.size}")
         fov = _num(kf, "fov", p, f"camera_path[{i}].")
         if not 0 < fov < 180:
-            raise CaptureError(f"{p}: camera_path[{i}].fov must be in (0, 180) degrees, got {fov}")
-        try:
-            cams.append(Camera.from_fov(flat.reshape(4, 4), fov_y_degrees=fov, width=int(w), height=int(h),
-                                        convention="opengl"))
-        except ValueError as e:
-            raise CaptureError(f"{p}: camera_path[{i}]: {e}") from None
+            raise CaptureError(f"{where}.fov must be in (0, 180) degrees, got {fov}")
+        f = 0.5 * h / math.tan(math.radians(fov) / 2)
+        cams.append(camera_from_c2w(where, flat.reshape(4, 4), fx=f, fy=f, width=w, height=h, convention="opengl"))
     return stack_resized(cams, res, str(p))
