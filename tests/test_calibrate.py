@@ -201,9 +201,10 @@ def test_cli_end_to_end_config_used_by_curate(hidden_strength: Path, tmp_path: P
 def test_family_all_and_the_ranking_order() -> None:
     from morphgs.calibration.pipeline import expand_families, rank_families
 
-    assert expand_families(["all"]) == ["spatial", "radiometric", "morphological", "naive", "blur2d"]
-    assert expand_families(["mine.json", "all", "spatial"]) == ["mine.json", "spatial", "radiometric",
-                                                                "morphological", "naive", "blur2d", "spatial"]
+    every = ["spatial", "radiometric", "morphological", "naive", "depth", "view_color", "needles", "holes", "dilate",
+             "floaters", "sparse-like", "blur2d"]
+    assert expand_families(["all"]) == every
+    assert expand_families(["mine.json", "all", "spatial"]) == ["mine.json", *every, "spatial"]
 
     def result(family: str, auc: float, excess: float, matched: bool = False) -> dict:
         return {"family": family, "regime": "sparse:20", "goodness": {
@@ -256,7 +257,8 @@ def _err(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
 
 def test_bad_input(hidden_strength: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = str(tmp_path / "c")
-    assert "--family blurry: unknown family; valid families: spatial, radiometric, morphological, naive, blur2d" in _err(
+    assert ("--family blurry: unknown family; valid families: spatial, radiometric, morphological, naive, depth, "
+            "view_color, needles, holes, dilate, floaters, sparse-like, blur2d") in _err(
         capsys, ["calibrate", "--real", str(hidden_strength), "--family", "blurry", "--out", out])
     bad_family = tmp_path / "fam.json"
     bad_family.write_text(json.dumps({"family": "morphological", "ops": {"prune": 0.5}}))

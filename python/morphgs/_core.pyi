@@ -191,7 +191,26 @@ def _perturb(
     return_mask: bool = False,
     log_scale_noise: float | None = None,
     rotation_angle: float | None = None,
+    keep: npt.NDArray[np.bool_] | None = None,
 ) -> GaussianScene | tuple[GaussianScene, npt.NDArray[np.bool_]]: ...
+def _artifacts(
+    scene: GaussianScene,
+    *,
+    depth: float | None,
+    view_color: float | None,
+    needles: float | None,
+    holes: float | None,
+    hole_size: float,
+    dilate: float | None,
+    floaters: float | None,
+    world_to_camera: npt.NDArray[np.float64],
+    K: npt.NDArray[np.float64],
+    width: int,
+    height: int,
+    images: npt.NDArray[np.float32] | None,
+    depth_maps: npt.NDArray[np.float32] | None,
+    seed: int,
+) -> tuple[GaussianScene, npt.NDArray[np.bool_]]: ...
 
 # ---- fit (morphgs.fit) ----
 _FitCallback = Any  # (kind: str, payload: Any) -> Any

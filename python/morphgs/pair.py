@@ -100,12 +100,13 @@ class Corruption:
             return Corruption("blur2d", self.config, None, float(self.strength(seed) or 0.0))
         return self
 
-    def corrupt_scene(self, scene: Any, seed: int) -> Any:
-        """The perturbed copy of `scene` (None for blur2d and sparse)."""
+    def corrupt_scene(self, scene: Any, seed: int, cameras: Any = None) -> Any:
+        """The perturbed copy of `scene` (None for blur2d and sparse); `cameras` are the pair's,
+        whose every K-th the sparse-view ops of a strength config take as training views."""
         if self.kind == "strength":
             from morphgs.strength import from_config
 
-            return from_config(self.config, seed).apply(scene, seed=seed)
+            return from_config(self.config, seed).apply(scene, seed=seed, cameras=cameras)
         if self.kind != "perturb":
             return None
         import morphgs
@@ -216,7 +217,7 @@ def render_pair(
     timings["load"] = time.perf_counter() - t0
     corruption = Corruption.make(config, blur_sigma=blur_sigma).for_seed(seed)
     t0 = time.perf_counter()
-    corrupted_scene = corruption.corrupt_scene(scene, seed)
+    corrupted_scene = corruption.corrupt_scene(scene, seed, cams)
     timings["perturb"] = time.perf_counter() - t0
     opts = dict(background=background, max_alpha=max_alpha, sh_degree=sh_degree, antialiased=antialiased)
     t0 = time.perf_counter()

@@ -15,11 +15,25 @@ family's base values b (the values at s = 1, `BASE`, or the user's own):
 | color | the kernel's DC-colour noise with sigma = s * b |
 | opacity | the kernel's opacity noise with sigma = s * b (activated opacity, clamped) |
 
+The sparse-view ops (issue 36; docs/artifacts.md) mimic how a fit from a few training views fails,
+from "virtual training cameras": every `train_every`-th camera of the pair's path (the regime's K).
+They keep those views close to clean and break the views between them:
+
+| op | at strength s |
+|---|---|
+| depth | each Gaussian slides along the ray of its nearest training camera by a factor exp(s * b * z), scales with it (the same footprint there) |
+| view_color | SH noise of sigma s * b on bands 1-3 that vanishes at the directions of the nearest training cameras |
+| needles | a fraction 1 - (1 - b) ** s of Gaussians become needles along their training ray |
+| holes | a fraction 1 - (1 - b) ** s of the cells of a grid (edge 0.05 E_avg) lose their Gaussians |
+| dilate | every log scale + s * b |
+| floaters | min(10, s * b) new Gaussians per thousand training pixels, near the training cameras, coloured from the pixel they cover |
+
 Every op is the identity at s = 0, every op's noise grows continuously with s, and the same seed
 gives the same z at every s (common random numbers), so severity is a smooth function of s.
 Every op runs in the Rust perturb kernel (op ids 4, 1, 2, 3 for keep, position, colour and
-opacity; 7 and 8 for log_scale and rotation), keyed by the Gaussian's index in the input scene,
-with exactly rounded float operations only: the same bytes for any thread count and on any CPU.
+opacity; 7 and 8 for log_scale and rotation; 10-14 for the sparse-view ops), keyed by the
+Gaussian's index in the input scene, with exactly rounded float operations only: the same bytes
+for any thread count and on any CPU.
 """
 
 from __future__ import annotations
@@ -34,24 +48,41 @@ import numpy as np
 from morphgs import noise
 from morphgs._core import GaussianScene
 
-__all__ = ["BASE", "BLUR_MAX_SIGMA", "FAMILIES", "OPS", "Blur2d", "Strength"]
+__all__ = ["BASE", "BLUR_MAX_SIGMA", "CLASSIC_OPS", "FAMILIES", "OPS", "SPARSE_OPS", "TRAIN_EVERY", "Blur2d",
+           "Strength"]
 
-#: The ops of the strength parameterisation, in application order.
-OPS: tuple[str, ...] = ("position", "color", "opacity", "keep", "log_scale", "rotation")
+#: The ops of the paper's families, in application order.
+CLASSIC_OPS: tuple[str, ...] = ("position", "color", "opacity", "keep", "log_scale", "rotation")
+#: The sparse-view ops (applied first, from the virtual training cameras).
+SPARSE_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "holes", "dilate", "floaters")
+#: Every op of the strength parameterisation.
+OPS: tuple[str, ...] = CLASSIC_OPS + SPARSE_OPS
+#: The sparse-view ops that need training cameras (all but holes and dilate).
+CAMERA_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "floaters")
+#: Default spacing of the virtual training cameras along a pair's path (every 8th camera).
+TRAIN_EVERY = 8
 
 #: Base values (strength 1) of every op. keep = 0.5 is the paper's p_prune; 0.5 in log scale is a
 #: factor e^0.5 = 1.65 at one sigma; rotation 0.5 rad (29 degrees) RMS; position, colour and
-#: opacity are the paper's sigmas.
+#: opacity are the paper's sigmas. Sparse-view ops: depth 0.3 (a factor e^0.3 = 1.35 along the
+#: ray at one sigma), view_color 0.3 (SH units), needles 0.2 and holes 0.1 (fractions), dilate 0.3
+#: (a factor 1.35 on every scale), floaters 0.2 per thousand training pixels.
 BASE: dict[str, float] = {"position": 0.002, "color": 0.05, "opacity": 0.05, "keep": 0.5,
-                          "log_scale": 0.5, "rotation": 0.5}
+                          "log_scale": 0.5, "rotation": 0.5, "depth": 0.3, "view_color": 0.3, "needles": 0.2,
+                          "holes": 0.1, "dilate": 0.3, "floaters": 0.2}
 
-#: The families (the paper's categories) and their ops.
+#: The families and their ops: the paper's four (unchanged), one per sparse-view op, and
+#: `sparse-like`, the sparse-view ops together.
 FAMILIES: dict[str, tuple[str, ...]] = {
     "spatial": ("position",),
     "radiometric": ("color", "opacity"),
     "morphological": ("keep", "log_scale", "rotation"),
-    "naive": OPS,
+    "naive": CLASSIC_OPS,
+    **{op: (op,) for op in SPARSE_OPS},
+    "sparse-like": ("depth", "view_color", "needles", "holes", "floaters"),
 }
+#: Bounds of the effective values the kernel takes (larger strengths saturate there).
+_LIMITS = {"depth": 4.0, "dilate": 8.0, "floaters": 10.0}
 
 
 def _number(value: Any, what: str) -> float:
@@ -73,6 +104,8 @@ class Strength:
         strength: s, a finite number >= 0.
         ops: the base value (at s = 1) of each enabled op; ops not listed are disabled. Default:
             the family's ops at `BASE`, so the preset's proportions are kept.
+        train_every: the virtual training cameras of the sparse-view ops: every `train_every`-th
+            camera of the pair's path, from the first (the regime's K).
 
     Raises:
         ValueError: an unknown family or op, a negative or non-finite value, keep outside (0, 1].
@@ -82,6 +115,7 @@ class Strength:
     family: str
     strength: float = 1.0
     ops: Mapping[str, float] | None = None
+    train_every: int = TRAIN_EVERY
 
     def __post_init__(self) -> None:
         if self.family not in FAMILIES:
@@ -94,6 +128,13 @@ class Strength:
         clean = {k: _number(ops[k], f"ops.{k}") for k in OPS if k in ops and ops[k] is not None}
         if "keep" in clean and not 0.0 < clean["keep"] <= 1.0:
             raise ValueError(f"ops.keep must be a keep fraction in (0, 1], got {clean['keep']!r}")
+        for k in ("needles", "holes"):
+            if k in clean and clean[k] >= 1.0:
+                raise ValueError(f"ops.{k} must be a fraction in [0, 1), got {clean[k]!r}")
+        every = self.train_every
+        if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
+            raise ValueError(f"train_every must be an integer >= 1, got {every!r}")
+        object.__setattr__(self, "train_every", int(every))
         object.__setattr__(self, "ops", clean)
 
     @property
@@ -104,22 +145,40 @@ class Strength:
 
     def at(self, strength: float) -> Strength:
         """The same family and ops at another strength."""
-        return Strength(self.family, strength, self.ops)
+        return Strength(self.family, strength, self.ops, self.train_every)
 
     def only(self, op: str) -> Strength:
         """This config with every op but `op` disabled (for each op's share of the error)."""
         if op not in self.base:
             raise ValueError(f"op {op!r} is not enabled in this config ({', '.join(self.base)})")
-        return Strength(self.family, self.strength, {op: self.base[op]})
+        return Strength(self.family, self.strength, {op: self.base[op]}, self.train_every)
+
+    @property
+    def needs_cameras(self) -> bool:
+        """Whether an enabled op needs the pair's cameras (depth, view_color, needles, floaters)."""
+        return any(op in self.base for op in CAMERA_OPS)
 
     def values(self) -> dict[str, float]:
-        """The effective parameters at this strength: keep fraction, sigmas, RMS angle."""
+        """The effective parameters at this strength: keep fraction, sigmas, RMS angle, the
+        sparse-view ops' sigmas and fractions."""
         s = self.strength
-        return {k: (b ** s if k == "keep" else s * b) for k, b in self.base.items()}
+        out = {}
+        for k, b in self.base.items():
+            if k == "keep":
+                out[k] = b ** s
+            elif k in ("needles", "holes"):
+                out[k] = 1.0 - (1.0 - b) ** s
+            else:
+                out[k] = min(s * b, _LIMITS.get(k, math.inf))
+        return out
 
     def to_dict(self) -> dict[str, Any]:
-        """{"kind": "strength", "family", "strength", "ops"} (what configs and manifests record)."""
-        return {"kind": "strength", "family": self.family, "strength": self.strength, "ops": self.base}
+        """{"kind": "strength", "family", "strength", "ops"} (what configs and manifests record),
+        and "train_every" when a sparse-view op uses the training cameras."""
+        d = {"kind": "strength", "family": self.family, "strength": self.strength, "ops": self.base}
+        if self.needs_cameras:
+            d["train_every"] = self.train_every
+        return d
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Strength:
@@ -128,24 +187,41 @@ class Strength:
         Raises:
             ValueError: a missing family, an unknown key or an invalid value (named).
         """
-        unknown = sorted(set(data) - {"kind", "name", "family", "strength", "ops"})
+        unknown = sorted(set(data) - {"kind", "name", "family", "strength", "ops", "train_every"})
         if unknown:
             raise ValueError(f"unknown strength config key(s) {', '.join(map(repr, unknown))}; "
-                             "valid keys: family, strength, ops")
+                             "valid keys: family, strength, ops, train_every")
         if "family" not in data:
             raise ValueError("a strength config needs a 'family'")
         ops = data.get("ops")
         if ops is not None and not isinstance(ops, Mapping):
             raise ValueError("'ops' must be an object of op base values")
-        return cls(str(data["family"]), data.get("strength", 1.0), ops)
+        return cls(str(data["family"]), data.get("strength", 1.0), ops, data.get("train_every", TRAIN_EVERY))
 
-    def apply(self, scene: GaussianScene, *, seed: int, return_mask: bool = False) -> Any:
+    def train_cameras(self, cameras: Any) -> Any:
+        """The virtual training cameras of a pair's path: every `train_every`-th, from the first."""
+        from morphgs.camera import Cameras
+
+        cams = cameras if isinstance(cameras, Cameras) else Cameras.from_list(list(cameras))
+        return cams[:: self.train_every]
+
+    def apply(self, scene: GaussianScene, *, seed: int, return_mask: bool = False, cameras: Any = None) -> Any:
         """The perturbed copy of `scene` (seeded; the same bytes for any thread count and CPU).
 
-        Every op runs in the Rust kernel in one pass (ops 1 to 4, 7 and 8 of the counter
-        generator), so the noise of Gaussian i is a pure function of (seed, op, i).
+        The sparse-view ops run first (`_artifacts`, ops 10-14; their training cameras are every
+        `train_every`-th of `cameras`, the floaters coloured from clean renders of them), then
+        the paper's ops in one pass (ops 1 to 4, 7 and 8), the holes removed with the pruning. The
+        noise of input Gaussian i is a pure function of (seed, op, i) in both.
 
-        Returns the scene, or (scene, keep-mask) with return_mask=True.
+        Args:
+            cameras: the pair's cameras (a `Cameras` or a list): needed by depth, view_color,
+                needles and floaters.
+
+        Returns the scene, or (scene, keep-mask) with return_mask=True (the mask has a row per
+        input Gaussian and, after them, per floater).
+
+        Raises:
+            ValueError: a sparse-view op that needs cameras without them (names the ops).
         """
         from morphgs._core import _perturb
         from morphgs.perturb import check_seed
@@ -153,12 +229,40 @@ class Strength:
         if not isinstance(scene, GaussianScene):
             raise TypeError(f"scene must be a GaussianScene, got {type(scene).__name__}")
         v = self.values()
+        seed = check_seed(seed)
+        keep = None
+        if any(k in v for k in SPARSE_OPS):
+            if self.needs_cameras and cameras is None:
+                raise ValueError(f"the sparse-view op(s) {', '.join(k for k in CAMERA_OPS if k in v)} need the "
+                                 "pair's cameras (cameras=...)")
+            scene, keep = self._sparse_ops(scene, v, seed, cameras)
         result: Any = _perturb(
             scene, position_jitter=v.get("position"), color_noise=v.get("color"),
             opacity_noise=v.get("opacity"), prune=1.0 - v["keep"] if "keep" in v else None,
             scale_noise=None, rotation_noise=None, log_scale_noise=v.get("log_scale"),
-            rotation_angle=v.get("rotation"), seed=check_seed(seed), return_mask=return_mask)
+            rotation_angle=v.get("rotation"), seed=seed, return_mask=return_mask, keep=keep)
         return result
+
+    def _sparse_ops(self, scene: GaussianScene, v: Mapping[str, float], seed: int, cameras: Any) -> Any:
+        from morphgs._core import _artifacts
+
+        if cameras is not None:
+            train = self.train_cameras(cameras)
+            w2c, K = train.world_to_camera, train.K
+            width, height = train.width, train.height
+        else:  # holes and dilate only
+            w2c, K, width, height = np.zeros((0, 4, 4)), np.zeros((0, 3, 3)), 1, 1
+        images = depth = None
+        if cameras is not None:  # what each training view sees, and the floaters' colours
+            from morphgs.rendering import render
+
+            clean = render(scene, train)
+            images = np.ascontiguousarray(np.asarray(clean.rgb, np.float32).reshape(len(train), height, width, 3))
+            depth = np.ascontiguousarray(np.asarray(clean.depth, np.float32).reshape(len(train), height, width))
+        return _artifacts(scene, depth=v.get("depth"), view_color=v.get("view_color"), needles=v.get("needles"),
+                          holes=v.get("holes"), hole_size=0.05, dilate=v.get("dilate"), floaters=v.get("floaters"),
+                          world_to_camera=np.ascontiguousarray(w2c, np.float64), K=np.ascontiguousarray(K, np.float64),
+                          width=int(width), height=int(height), images=images, depth_maps=depth, seed=seed)
 
 
 #: The largest blur sigma (pixels) of `Blur2d` (as curate's blur2d).

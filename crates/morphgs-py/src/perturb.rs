@@ -1,11 +1,27 @@
-//! `_perturb`: the native half of `morphgs.perturb` (the Python side resolves configs).
-use numpy::IntoPyArray;
+//! `_perturb` and `_artifacts`: the native halves of `morphgs.perturb` and of the strength
+//! families' sparse-view ops (the Python side resolves configs).
+use numpy::{
+    IntoPyArray, PyReadonlyArray1, PyReadonlyArray3, PyReadonlyArray4, PyUntypedArrayMethods,
+};
+use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
+use splat_core::perturb::artifacts::{self, ArtifactParams, TrainImages};
 use splat_core::perturb::PerturbParams;
 
 use crate::errors::detach;
+use crate::render::{cameras_from, slice_of};
 use crate::scene::PyGaussianScene;
+
+fn extras_refs<'a>(
+    extras: &'a [(String, PyReadonlyArray1<'_, f32>)],
+) -> PyResult<Vec<(&'a str, &'a [f32])>> {
+    extras
+        .iter()
+        .map(|(n, a)| Ok((n.as_str(), a.as_slice()?)))
+        .collect::<Result<_, numpy::AsSliceError>>()
+        .map_err(|e| PyValueError::new_err(e.to_string()))
+}
 
 /// Perturb a scene with explicit per-operation parameters (None disables an operation).
 ///
@@ -19,6 +35,8 @@ use crate::scene::PyGaussianScene;
 ///         (op 7, sigma in log space) and isotropic rotation (op 8, RMS angle in radians).
 ///     seed: the seed of the counter-based generator (0 <= seed < 2**64).
 ///     return_mask: also return the (N,) boolean keep-mask of the pruning.
+///     keep: an (N,) boolean mask of rows to remove besides pruning (false: removed), as
+///         `_artifacts` returns for its holes; every other row's noise is unchanged by it.
 ///
 /// Returns:
 ///     The perturbed GaussianScene, or (scene, mask) with return_mask. Without pruning, the
@@ -29,7 +47,7 @@ use crate::scene::PyGaussianScene;
 #[pyfunction]
 #[pyo3(signature = (scene, *, position_jitter, color_noise, opacity_noise, prune, scale_noise,
                     rotation_noise, seed, return_mask = false, log_scale_noise = None,
-                    rotation_angle = None))]
+                    rotation_angle = None, keep = None))]
 fn _perturb<'py>(
     py: Python<'py>,
     scene: &PyGaussianScene,
@@ -43,6 +61,7 @@ fn _perturb<'py>(
     return_mask: bool,
     log_scale_noise: Option<f32>,
     rotation_angle: Option<f32>,
+    keep: Option<PyReadonlyArray1<'py, bool>>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let params = PerturbParams {
         position_jitter,
@@ -57,11 +76,27 @@ fn _perturb<'py>(
     let borrow = scene.borrow(py)?;
     let view = borrow.view()?;
     let n = view.len();
+    let mask = match &keep {
+        Some(k) => Some(slice_of(k, "keep")?),
+        None => None,
+    };
+    if let Some(m) = mask {
+        if m.len() != n {
+            return Err(PyValueError::new_err(format!(
+                "keep must hold one value per Gaussian ({n}), got {}",
+                m.len()
+            )));
+        }
+    }
     // Without pruning, only the arrays an enabled op writes are new; the output shares the
     // others (sh_rest, extras, ...) with the input, which is safe as scene arrays are read-only.
-    let changed = detach(py, || {
-        crate::pool::install(|| splat_core::perturb::perturb_changed(&view, &params, seed))
-    })?;
+    let changed = if mask.is_some_and(|m| m.iter().any(|&k| !k)) {
+        None
+    } else {
+        detach(py, || {
+            crate::pool::install(|| splat_core::perturb::perturb_changed(&view, &params, seed))
+        })?
+    };
     let (out, keep) = match changed {
         Some(c) => (
             scene.with_arrays(py, c.means, c.quats, c.log_scales, c.opacity_logits, c.sh0)?,
@@ -69,14 +104,13 @@ fn _perturb<'py>(
         ),
         None => {
             let extras = scene.extras_readonly(py)?;
-            let extras_ref: Vec<(&str, &[f32])> = extras
-                .iter()
-                .map(|(n, a)| Ok((n.as_str(), a.as_slice()?)))
-                .collect::<Result<_, numpy::AsSliceError>>()
-                .map_err(|e| pyo3::exceptions::PyValueError::new_err(e.to_string()))?;
+            let extras_ref = extras_refs(&extras)?;
             let (out, keep) = detach(py, || {
-                crate::pool::install(|| {
-                    splat_core::perturb::perturb(&view, &extras_ref, &params, seed)
+                crate::pool::install(|| match mask {
+                    Some(m) => {
+                        splat_core::perturb::perturb_masked(&view, &extras_ref, &params, seed, m)
+                    }
+                    None => splat_core::perturb::perturb(&view, &extras_ref, &params, seed),
                 })
             })?;
             (PyGaussianScene::from_core(py, out)?, keep)
@@ -90,7 +124,101 @@ fn _perturb<'py>(
     }
 }
 
+/// Apply the sparse-view ops (depth slide, view-dependent colour, needles, holes, dilation,
+/// floaters; `splat_core::perturb::artifacts`) from a set of virtual training cameras.
+///
+/// Prefer `morphgs.strength.Strength.apply`, which resolves strengths and renders the images.
+///
+/// Args:
+///     scene: the input scene (never modified).
+///     depth, view_color, needles, holes, dilate, floaters: the ops' parameters (None or 0
+///         disables one); hole_size: the hole grid's cell edge in units of the scene extent.
+///     world_to_camera, K, width, height: the training cameras, (T,4,4) and (T,3,3).
+///     images, depth: None, or their clean renders, (T,H,W,3) and (T,H,W) float32 (the
+///         floaters' colours; which Gaussians each view sees, not behind its surface).
+///     seed: the seed of the counter-based generator.
+///
+/// Returns:
+///     (scene, keep): the scene (the input rows, then the floaters) and its (M,) keep mask
+///     (false: in a hole), for `_perturb(..., keep=)`.
+///
+/// Raises:
+///     ValueError: a parameter is invalid, cameras are needed but none are given, the images
+///         do not match the cameras (the message names it).
+#[pyfunction]
+#[pyo3(signature = (scene, *, depth, view_color, needles, holes, hole_size, dilate, floaters,
+                    world_to_camera, K, width, height, images, depth_maps, seed))]
+#[allow(non_snake_case)]
+fn _artifacts<'py>(
+    py: Python<'py>,
+    scene: &PyGaussianScene,
+    depth: Option<f32>,
+    view_color: Option<f32>,
+    needles: Option<f32>,
+    holes: Option<f32>,
+    hole_size: f32,
+    dilate: Option<f32>,
+    floaters: Option<f32>,
+    world_to_camera: PyReadonlyArray3<'py, f64>,
+    K: PyReadonlyArray3<'py, f64>,
+    width: u32,
+    height: u32,
+    images: Option<PyReadonlyArray4<'py, f32>>,
+    depth_maps: Option<PyReadonlyArray3<'py, f32>>,
+    seed: u64,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let params = ArtifactParams {
+        depth,
+        view_color,
+        needles,
+        holes,
+        hole_size,
+        dilate,
+        floaters,
+    };
+    let cams = cameras_from(&world_to_camera, &K, width, height, 0.01, 1e10)?;
+    let maps = match (&images, &depth_maps) {
+        (Some(a), Some(d)) => {
+            let (sh, dh) = (a.shape(), d.shape());
+            let t = cams.len();
+            if sh != [t, height as usize, width as usize, 3]
+                || dh != [t, height as usize, width as usize]
+            {
+                return Err(PyValueError::new_err(format!(
+                    "images must be ({t}, {height}, {width}, 3) and depth_maps ({t}, {height}, {width}), one \
+                     render per training camera, got {sh:?} and {dh:?}"
+                )));
+            }
+            Some((slice_of(a, "images")?, slice_of(d, "depth_maps")?))
+        }
+        (None, None) => None,
+        _ => {
+            return Err(PyValueError::new_err(
+                "give both images and depth_maps, or neither",
+            ))
+        }
+    };
+    let borrow = scene.borrow(py)?;
+    let view = borrow.view()?;
+    let extras = scene.extras_readonly(py)?;
+    let extras_ref = extras_refs(&extras)?;
+    let (out, keep) = detach(py, || {
+        crate::pool::install(|| {
+            let im = maps.map(|(rgb, depth)| TrainImages {
+                rgb,
+                depth,
+                width,
+                height,
+            });
+            artifacts::apply(&view, &extras_ref, &params, &cams, im, seed)
+        })
+    })?;
+    let out = Bound::new(py, PyGaussianScene::from_core(py, out)?)?.into_any();
+    PyTuple::new(py, [out, keep.into_pyarray(py).into_any()])
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_perturb, m)?)?;
+    m.add_function(wrap_pyfunction!(_artifacts, m)?)?;
     Ok(())
 }

@@ -33,7 +33,7 @@ pub(crate) fn slice_of<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
         .map_err(|_| PyValueError::new_err(format!("{name} must be C-contiguous")))
 }
 
-fn cameras_from(
+pub(crate) fn cameras_from(
     w2c: &PyReadonlyArray3<'_, f64>,
     k: &PyReadonlyArray3<'_, f64>,
     width: u32,

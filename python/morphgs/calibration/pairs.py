@@ -132,7 +132,7 @@ class Bench:
         if isinstance(config, Blur2d):
             return _quantise(config.blur(self._rgb[index]))
         p = self.pairs[index]
-        scene = config.apply(self.scenes[p.scene], seed=p.seed)
+        scene = config.apply(self.scenes[p.scene], seed=p.seed, cameras=p.cameras)
         if len(scene) == 0:
             return np.zeros_like(self.clean[index])
         return _quantise(render_many([scene], p.cameras)[0].rgb)

@@ -149,8 +149,15 @@ def run(args: argparse.Namespace) -> int:
         from morphgs.strength import from_config
 
         st = from_config(strength, args.seed)
-        out, mask = st.apply(scene, seed=args.seed, return_mask=True)
+        cams = None
+        if st.needs_cameras:  # the sparse-view ops' training views: every K-th of an orbit of 8 K views
+            from morphgs import trajectory
+
+            cams = trajectory.for_scene(scene, 8 * st.train_every, resolution=(256, 192))
+        out, mask = st.apply(scene, seed=args.seed, return_mask=True, cameras=cams)
         extra: dict[str, Any] = {"strength": st.strength, "config": st.to_dict()}
+        if cams is not None:
+            extra["training_cameras"] = f"every {st.train_every}th of an orbit of {len(cams)} views at 256x192"
         drawn = " (drawn from its quantile table)" if "quantiles" in strength else ""
         label = f" (family {st.family}, strength {st.strength:.6g}{drawn})"
         ops = ", ".join(f"{k} {v:.6g}" for k, v in st.values().items())
@@ -165,13 +172,15 @@ def run(args: argparse.Namespace) -> int:
     morphgs.save_ply(out, args.output)
     if args.mask:
         np.save(args.mask, mask)
+    kept = int(np.count_nonzero(mask[:len(scene)]))  # the mask's rows past the input's are floaters
     summary = {"input": str(args.input), "output": str(args.output), "seed": args.seed, "gaussians_in": len(scene),
-               "kept": len(out), "pruned": len(scene) - len(out), **extra}
+               "kept": kept, "pruned": len(scene) - kept, "spawned": len(mask) - len(scene), **extra}
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
     print(f"perturbed {args.input} -> {args.output}{label}, seed {args.seed}")
-    print(f"  gaussians : {len(scene):,} in, {len(out):,} kept, {len(scene) - len(out):,} pruned")
+    spawned = f", {summary['spawned']:,} floaters spawned" if summary["spawned"] else ""
+    print(f"  gaussians : {len(scene):,} in, {kept:,} kept, {len(scene) - kept:,} pruned{spawned}")
     print(f"  operations: {ops or 'none'}")
     print(f"  config    : {config_text}")
     return 0

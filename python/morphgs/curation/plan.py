@@ -182,6 +182,8 @@ def _strength_params(d: dict[str, Any], spec: str) -> dict[str, Any]:
     try:
         cfg = Strength.from_dict(body)
         params: dict[str, Any] = {"family": cfg.family, "ops": cfg.base}
+        if cfg.needs_cameras:
+            params["train_every"] = cfg.train_every
         if "quantiles" in d:
             if "strength" in d:
                 raise ValueError("give either 'strength' or 'quantiles', not both")

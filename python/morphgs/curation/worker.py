@@ -119,7 +119,7 @@ def make_pair(
 
         corrupted_scene, fit_info = sparse_scene(job, scene, recorded, out_dir, up=opts.trajectory.up)
     else:
-        corrupted_scene = corruption.corrupt_scene(scene, job.seed)
+        corrupted_scene = corruption.corrupt_scene(scene, job.seed, cams)
     t_perturb = time.perf_counter() - t0
 
     tmp = tmp_root(out_dir) / f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:12]}"

@@ -12,6 +12,7 @@
 //! probability of zero (or `None`) keeps every Gaussian: `scaled(0)` configs are the identity.
 use rayon::prelude::*;
 
+pub mod artifacts;
 mod kernel;
 
 use crate::error::{Error, Result};
@@ -179,7 +180,20 @@ pub fn perturb(
     params: &PerturbParams,
     seed: u64,
 ) -> Result<(Scene, Vec<bool>)> {
-    run(view, extras, params, seed, false)
+    run(view, extras, params, seed, None, false)
+}
+
+/// [`perturb`] that also removes the rows where `keep` is false (the holes of
+/// [`artifacts::apply`]), besides those pruning removes; every other row's noise is the same as
+/// without the mask. Errors as [`perturb`], and for a mask of the wrong length.
+pub fn perturb_masked(
+    view: &SceneView<'_>,
+    extras: &[(&str, &[f32])],
+    params: &PerturbParams,
+    seed: u64,
+    keep: &[bool],
+) -> Result<(Scene, Vec<bool>)> {
+    run(view, extras, params, seed, Some(keep), false)
 }
 
 /// The arrays a perturbation without pruning writes; `None` means the op that writes it is
@@ -204,7 +218,7 @@ pub fn perturb_changed(
         params.validate()?;
         return Ok(None);
     }
-    let (s, _) = run(view, &[], params, seed, true)?;
+    let (s, _) = run(view, &[], params, seed, None, true)?;
     let some = |v: Vec<f32>, on: Option<f32>| on.filter(|&x| x > 0.0).map(|_| v);
     let either = |a: Option<f32>, b: Option<f32>| a.filter(|&x| x > 0.0).or(b);
     Ok(Some(Changed {
@@ -229,11 +243,20 @@ fn run(
     extras: &[(&str, &[f32])],
     params: &PerturbParams,
     seed: u64,
+    mask: Option<&[bool]>,
     only_changed: bool,
 ) -> Result<(Scene, Vec<bool>)> {
     view.validate()?;
     params.validate()?;
     let n = view.len();
+    if let Some(m) = mask {
+        if m.len() != n {
+            return Err(Error::InvalidArgument(format!(
+                "keep mask holds {} values, expected {n}",
+                m.len()
+            )));
+        }
+    }
     for (name, v) in extras {
         if v.len() != n {
             return Err(Error::InvalidArgument(format!(
@@ -242,7 +265,10 @@ fn run(
             )));
         }
     }
-    let keep = prune_mask(n, params.prune, seed);
+    let mut keep = prune_mask(n, params.prune, seed);
+    if let Some(m) = mask {
+        keep.iter_mut().zip(m).for_each(|(k, &m)| *k &= m);
+    }
     let counts: Vec<usize> = keep
         .par_chunks(CHUNK)
         .map(|c| c.iter().filter(|&&k| k).count())
