@@ -804,6 +804,7 @@ impl FrozenFrame {
             &proj,
             super::share::FrameColours::Off,
             &mut parts,
+            None,
         );
         let (mut keys, mut tmp, mut sorted) = (Vec::new(), Vec::new(), Vec::new());
         let mut fp = super::sort::Footprints::default();

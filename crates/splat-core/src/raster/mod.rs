@@ -253,7 +253,7 @@ fn render_into_sharing(
     let s = &mut scratch;
     let t0 = Instant::now();
     let proj = project::Projector::new(cam, opts, degree);
-    let chunks = project::project_visible_into(scene, &proj, colours, &mut s.parts);
+    let chunks = project::project_visible_into(scene, &proj, colours, &mut s.parts, None);
     let visible = &s.parts[..chunks];
     stats.visible = visible.iter().map(|p| p.len() as u64).sum();
     let t1 = Instant::now();

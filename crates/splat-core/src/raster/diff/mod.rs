@@ -28,6 +28,7 @@ use rayon::prelude::*;
 
 use super::blend::{self, BlendParams, DepthOut, TileOut, LANES};
 use super::project::{self, Projection, Projector, Splat};
+use super::share::FrameColours;
 use super::sort::{self, TileBins};
 use super::{RenderOptions, RenderStats};
 use crate::camera::Camera;
@@ -436,7 +437,16 @@ impl Workspace {
         };
         let t0 = Instant::now();
         let proj = Projector::new(cam, &opts.render, degree);
-        project::project_visible_with_ids(scene, &proj, &mut self.parts, &mut self.part_ids);
+        let chunks = project::project_visible_into(
+            scene,
+            &proj,
+            FrameColours::Off,
+            &mut self.parts,
+            Some(&mut self.part_ids),
+        );
+        // (the backward walks every part: none left from a larger scene)
+        self.parts.truncate(chunks);
+        self.part_ids.truncate(chunks);
         let t1 = Instant::now();
         sort::sort_by_depth_with_ids(
             &self.parts,
