@@ -284,18 +284,9 @@ impl<'a, I: Iterator<Item = &'a [u32]>> Stream<'a, I> {
 /// Hint the CPU to load splat `i` (both cache lines it may span) into L1.
 #[inline(always)]
 pub(super) fn prefetch(splats: &[Splat], i: usize) {
-    #[cfg(target_arch = "x86_64")]
     if let Some(s) = splats.get(i) {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let p = s as *const Splat as *const i8;
-        // SAFETY: prefetching never faults, and both addresses lie inside `*s`.
-        unsafe {
-            _mm_prefetch::<_MM_HINT_T0>(p);
-            _mm_prefetch::<_MM_HINT_T0>(p.add(std::mem::size_of::<Splat>() - 1));
-        }
+        crate::mem::prefetch_ends(s);
     }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (splats, i);
 }
 
 /// Blend one tile's list into `out` (which starts as `TileOut::default()`); returns the
@@ -602,28 +593,16 @@ impl FrameOut {
     /// each one (a 1080p frame's images, 41 MB, are not in cache when a frame starts; the stores'
     /// misses were about a seventh of the blend stage on grid-5).
     fn prefetch(&self, x0: usize, y0: usize) {
-        #[cfg(target_arch = "x86_64")]
-        {
-            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_ET0};
-            let cols = LANES.min(self.width - x0);
-            let lines = |p: *const f32, n: usize| {
-                let (a, b) = (p as usize, p as usize + 4 * n - 1);
-                for line in (a & !63..=b).step_by(64) {
-                    // SAFETY: prefetching never faults; the address lies inside the image row.
-                    unsafe { _mm_prefetch::<_MM_HINT_ET0>(line.max(a) as *const i8) };
-                }
-            };
-            for r in 0..LANES.min(self.height - y0) {
-                let i = (y0 + r) * self.width + x0;
-                lines(self.rgb.wrapping_add(i * 3), cols * 3);
-                lines(self.alpha.wrapping_add(i), cols);
-                if self.depth_out != DepthOut::Skip {
-                    lines(self.depth.wrapping_add(i), cols);
-                }
+        use crate::mem::prefetch_for_write;
+        let cols = LANES.min(self.width - x0);
+        for r in 0..LANES.min(self.height - y0) {
+            let i = (y0 + r) * self.width + x0;
+            prefetch_for_write(self.rgb.wrapping_add(i * 3), cols * 3);
+            prefetch_for_write(self.alpha.wrapping_add(i), cols);
+            if self.depth_out != DepthOut::Skip {
+                prefetch_for_write(self.depth.wrapping_add(i), cols);
             }
         }
-        #[cfg(not(target_arch = "x86_64"))]
-        let _ = (x0, y0);
     }
 
     /// Write the final colour, depth and alpha of the tile at (x0, y0): colour plus the

@@ -457,16 +457,16 @@ unsafe fn part_avx2(
 #[inline(always)]
 fn prefetch_inputs(ctx: &GaussCtx<'_>, i: usize) {
     let sc = ctx.scene;
-    super::prefetch_ptr(sc.means.as_ptr(), i * 3);
-    super::prefetch_ptr(sc.quats.as_ptr(), i * 4);
-    super::prefetch_ptr(ctx.scales.as_ptr(), i * 3);
-    super::prefetch_ptr(sc.opacity_logits.as_ptr(), i);
+    crate::mem::prefetch_ptr(sc.means.as_ptr(), i * 3);
+    crate::mem::prefetch_ptr(sc.quats.as_ptr(), i * 4);
+    crate::mem::prefetch_ptr(ctx.scales.as_ptr(), i * 3);
+    crate::mem::prefetch_ptr(sc.opacity_logits.as_ptr(), i);
     if ctx.colors.is_none() {
-        super::prefetch_ptr(sc.sh0.as_ptr(), i * 3);
+        crate::mem::prefetch_ptr(sc.sh0.as_ptr(), i * 3);
         let k3 = sc.sh_rest_k() * 3;
         let used = ((ctx.degree as usize + 1) * (ctx.degree as usize + 1) - 1) * 3;
         for o in (0..used).step_by(16).chain((used > 0).then_some(used - 1)) {
-            super::prefetch_ptr(sc.sh_rest.as_ptr(), i * k3 + o);
+            crate::mem::prefetch_ptr(sc.sh_rest.as_ptr(), i * k3 + o);
         }
     }
 }
@@ -491,7 +491,7 @@ unsafe fn part_impl<const V512: bool>(
         let n = BLOCK.min(n_all - j0);
         // the sums lie in depth order (a cache miss each otherwise): fetch the next block's
         for &ahead in pos.iter().skip(j0 + BLOCK).take(BLOCK) {
-            super::prefetch_acc(acc.acc, ahead as usize);
+            crate::mem::prefetch_at(acc.acc, ahead as usize);
         }
         // and the next block's splats (a cache line each, cold since the projection), its
         // stored parameters and the gradient rows it will update

@@ -959,7 +959,7 @@ impl Workspace {
                     if let (Some(&ahead), Some(&1)) =
                         (items.get(k + REDUCE_PREFETCH), wr.get(k + REDUCE_PREFETCH))
                     {
-                        prefetch_acc(accs, ahead as usize - base);
+                        crate::mem::prefetch_at(accs, ahead as usize - base);
                     }
                     if w == 0 {
                         continue;
@@ -974,33 +974,6 @@ impl Workspace {
 
 /// How many slots ahead the slot sums prefetch the running sums they add to.
 const REDUCE_PREFETCH: usize = 16;
-
-/// Hint the CPU to load the sums `acc[i]` (one cache line).
-#[inline(always)]
-fn prefetch_acc(acc: &[AccRow], i: usize) {
-    #[cfg(target_arch = "x86_64")]
-    if let Some(a) = acc.get(i) {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        // SAFETY: prefetching never faults, and the address lies inside `*a`.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>(a.0.as_ptr() as *const i8) };
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (acc, i);
-}
-
-/// Hint the CPU to load the cache line of `base + i` (a prefetch never faults, so the address
-/// need not be valid; the callers' are).
-#[inline(always)]
-fn prefetch_ptr(base: *const f32, i: usize) {
-    #[cfg(target_arch = "x86_64")]
-    // SAFETY: a prefetch reads nothing architecturally and never faults.
-    unsafe {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(i).cast());
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (base, i);
-}
 
 fn check_colors(c: &[f32], n: usize) -> Result<()> {
     if c.len() != n * 3 {
@@ -1210,21 +1183,21 @@ impl<'a> Scatter<'a> {
             (self.scales, 3),
             (self.opacities, 1),
         ] {
-            prefetch_ptr(b, i * k);
+            crate::mem::prefetch_ptr(b, i * k);
         }
         if self.given_colors {
-            prefetch_ptr(self.colors, i * 3);
+            crate::mem::prefetch_ptr(self.colors, i * 3);
         } else {
-            prefetch_ptr(self.sh0, i * 3);
+            crate::mem::prefetch_ptr(self.sh0, i * 3);
             let used = ((degree as usize + 1) * (degree as usize + 1) - 1) * 3;
             let at = i * self.sh_rest_k * 3;
             for o in (0..used).step_by(16).chain((used > 0).then_some(used - 1)) {
-                prefetch_ptr(self.sh_rest, at + o);
+                crate::mem::prefetch_ptr(self.sh_rest, at + o);
             }
         }
         if let Some(v) = self.view {
             for (b, k) in v.iter().zip([2, 2, 3, 3, 1, 1]) {
-                prefetch_ptr(*b, i * k);
+                crate::mem::prefetch_ptr(*b, i * k);
             }
         }
         if let Some(d) = &self.densify {
