@@ -10,7 +10,7 @@
 //! to the scalar function bit for bit.
 use super::gauss_bwd::{GaussCtx, POSE_LEN};
 use super::sh_bwd::basis_grad;
-use super::slot;
+use super::slots::slot;
 use crate::fastmath;
 use crate::raster::project::{cov2d, quat_rotation, Splat, EPS2D};
 use crate::raster::{sh, Simd};
@@ -389,15 +389,15 @@ fn colour_lanes<const D: usize>(ctx: &GaussCtx<'_>, g: &InLanes, o: &mut GradLan
 /// AVX-512, AVX2 or the baseline target's; all give the same bits.
 ///
 /// # Safety
-/// No other call may put the same Gaussian indices concurrently (see [`super::Scatter::put_lane`]).
+/// No other call may put the same Gaussian indices concurrently (see [`super::scatter::Scatter::put_lane`]).
 pub(super) unsafe fn part_backward(
     simd: Simd,
     ctx: &GaussCtx<'_>,
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: super::Sums<'_>,
-    scatter: &super::Scatter<'_>,
+    acc: super::slots::Sums<'_>,
+    scatter: &super::scatter::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     #[cfg(target_arch = "x86_64")]
     {
@@ -432,8 +432,8 @@ unsafe fn part_avx512(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: super::Sums<'_>,
-    scatter: &super::Scatter<'_>,
+    acc: super::slots::Sums<'_>,
+    scatter: &super::scatter::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     // SAFETY: the caller's contract; the CPU has AVX-512F (this function's features).
     unsafe { part_impl::<true>(ctx, ss, ids, pos, acc, scatter) }
@@ -446,8 +446,8 @@ unsafe fn part_avx2(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: super::Sums<'_>,
-    scatter: &super::Scatter<'_>,
+    acc: super::slots::Sums<'_>,
+    scatter: &super::scatter::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     // SAFETY: the caller's contract.
     unsafe { part_impl::<false>(ctx, ss, ids, pos, acc, scatter) }
@@ -479,8 +479,8 @@ unsafe fn part_impl<const V512: bool>(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: super::Sums<'_>,
-    scatter: &super::Scatter<'_>,
+    acc: super::slots::Sums<'_>,
+    scatter: &super::scatter::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     let mut part = [0.0f64; POSE_LEN];
     let mut g = InLanes::default();

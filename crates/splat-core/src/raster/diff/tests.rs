@@ -2,8 +2,9 @@
 //! SIMD backward kernels against the generic one bit for bit, and gradients that do not depend
 //! on the thread count or the banding. (The gradients' values are checked against torch
 //! autograd and finite differences in tests/test_backward_*.py.)
+use super::gauss_bwd::viewmat_grad;
 use super::*;
-use crate::raster::{render_into, Simd};
+use crate::raster::{render_into, RenderOptions, Simd};
 use crate::Scene;
 
 fn rng(seed: u64) -> impl FnMut() -> f32 {
