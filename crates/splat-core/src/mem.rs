@@ -1,4 +1,5 @@
-//! Large output buffers backed by transparent huge pages, and a prefetch hint.
+//! Large output buffers backed by transparent huge pages, and the crate's prefetch hints (the
+//! only `_mm_prefetch` calls: the kernels ask through these).
 //!
 //! Filling a fresh multi-hundred-MB array costs more in 4 KiB page faults than in the copy itself
 //! (one fault and one page clear per 4 KiB). NumPy asks the kernel for huge pages on large
@@ -126,15 +127,66 @@ fn advise_huge(_ptr: *mut u8, _bytes: usize) {}
 /// Ask the CPU for the cache line holding `v` ahead of its use (a hint: it changes no value).
 #[inline(always)]
 pub fn prefetch<T>(v: &T) {
+    prefetch_ptr(v as *const T, 0);
+}
+
+/// [`prefetch`] of `v[i]`; nothing when `i` is out of bounds.
+#[inline(always)]
+pub fn prefetch_at<T>(v: &[T], i: usize) {
+    if let Some(x) = v.get(i) {
+        prefetch(x);
+    }
+}
+
+/// Ask for both ends of `*v`: the two cache lines a value of up to 64 bytes may span.
+#[inline(always)]
+pub fn prefetch_ends<T>(v: &T) {
+    let p = (v as *const T).cast::<u8>();
+    prefetch_ptr(p, 0);
+    prefetch_ptr(p, std::mem::size_of::<T>().saturating_sub(1));
+}
+
+/// Ask the CPU for the cache line holding `base + i` (`i` counted in values of `T`). A prefetch
+/// reads nothing architecturally and never faults, so the address need not be valid.
+#[inline(always)]
+pub fn prefetch_ptr<T>(base: *const T, i: usize) {
     #[cfg(target_arch = "x86_64")]
-    // SAFETY: a prefetch reads nothing architecturally and never faults; `v` is a valid
-    // reference anyway.
+    // SAFETY: a prefetch reads nothing architecturally and never faults.
     unsafe {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        _mm_prefetch::<_MM_HINT_T0>((v as *const T).cast());
+        _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(i).cast());
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = v;
+    let _ = (base, i);
+}
+
+/// Ask for `bytes` bytes from `p`: one hint per 64 bytes from `p` (the address need not be
+/// valid, as for [`prefetch_ptr`]).
+#[inline(always)]
+pub fn prefetch_bytes<T>(p: *const T, bytes: usize) {
+    let p = p.cast::<u8>();
+    let mut off = 0;
+    while off < bytes {
+        prefetch_ptr(p, off);
+        off += 64;
+    }
+}
+
+/// Ask for every cache line of the `n >= 1` values from `p`, for writing (the CPU fetches the
+/// lines ready to be modified). A hint: the address need not be valid.
+#[inline(always)]
+pub fn prefetch_for_write<T>(p: *const T, n: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_ET0};
+        let (a, b) = (p as usize, p as usize + std::mem::size_of::<T>() * n - 1);
+        for line in (a & !63..=b).step_by(64) {
+            // SAFETY: prefetching never faults.
+            unsafe { _mm_prefetch::<_MM_HINT_ET0>(line.max(a) as *const i8) };
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (p, n);
 }
 
 #[cfg(test)]

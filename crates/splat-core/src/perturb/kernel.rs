@@ -375,30 +375,12 @@ fn gather_rows<const W: usize>(dst: &mut [f32], src: &[f32], idx: &[u64]) {
     for (r, (d, &i)) in dst.chunks_exact_mut(W).zip(idx).enumerate() {
         if W >= 16 {
             if let Some(&next) = idx.get(r + AHEAD) {
-                prefetch_row(src.as_ptr().wrapping_add(next as usize * W), W * 4);
+                crate::mem::prefetch_bytes(src.as_ptr().wrapping_add(next as usize * W), W * 4);
             }
         }
         let i = i as usize;
         d.copy_from_slice(&src[i * W..(i + 1) * W]);
     }
-}
-
-/// Hint the CPU to load `bytes` bytes at `p` into cache (a no-op off x86-64).
-#[inline(always)]
-fn prefetch_row(p: *const f32, bytes: usize) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use core::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let p = p as *const i8;
-        let mut off = 0;
-        while off < bytes {
-            // SAFETY: a prefetch is only a hint; it never faults, whatever the address.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(off)) };
-            off += 64;
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (p, bytes);
 }
 
 /// flat[3r + d] = z[d][r].

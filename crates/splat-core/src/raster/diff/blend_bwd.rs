@@ -18,7 +18,7 @@
 //! same order: the generic one pixel by pixel in row-major order, AVX-512 one 4x4 block (16
 //! lanes) at a time in block order, AVX2 the two 4x2 halves of each block (issue 21, fifth pass:
 //! until then a lane was a tile column and the sums ran row by row).
-use super::slot;
+use super::slots::slot;
 use crate::raster::blend::{
     opacity_exp, prefetch, row_span, BlendParams, TileOut, LANES, PREFETCH_AHEAD, T_MIN,
 };

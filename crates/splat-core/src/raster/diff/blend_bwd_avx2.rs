@@ -3,7 +3,7 @@
 //! masks held in vectors. Same operations in the same order per lane as the generic kernel, so
 //! the same slot bits.
 use super::blend_bwd::{block_lane, PixIn, SlotSink};
-use super::slot;
+use super::slots::slot;
 use crate::raster::blend::{
     prefetch, row_mask, BlendParams, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16, EXP_MAGIC, LANES,
     PREFETCH_AHEAD, SIGMA_CLAMP, T_MIN,

@@ -6,7 +6,7 @@
 //! slot values are done together by a transposing halving tree, the canonical order of
 //! `blend_bwd::hsum16`.
 use super::blend_bwd::{block_lane, PixIn, SlotSink};
-use super::slot;
+use super::slots::slot;
 use crate::raster::blend::{
     prefetch, row_mask, BlendParams, Stream, EXP2_16THS, EXP_C_HI, EXP_C_LO, EXP_K16, EXP_MAGIC,
     LANES, SIGMA_CLAMP, T_MIN,

@@ -93,7 +93,7 @@ impl Raw {
     #[inline(always)]
     pub(super) fn prefetch(&self, i: usize) {
         for b in [self.grad2d, self.grad2d_abs, self.count, self.max_radius] {
-            super::prefetch_ptr(b, i);
+            crate::mem::prefetch_ptr(b, i);
         }
     }
 

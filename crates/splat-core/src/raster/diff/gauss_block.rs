@@ -10,7 +10,7 @@
 //! to the scalar function bit for bit.
 use super::gauss_bwd::{GaussCtx, POSE_LEN};
 use super::sh_bwd::basis_grad;
-use super::slot;
+use super::slots::slot;
 use crate::fastmath;
 use crate::raster::project::{cov2d, quat_rotation, Splat, EPS2D};
 use crate::raster::{sh, Simd};
@@ -389,15 +389,15 @@ fn colour_lanes<const D: usize>(ctx: &GaussCtx<'_>, g: &InLanes, o: &mut GradLan
 /// AVX-512, AVX2 or the baseline target's; all give the same bits.
 ///
 /// # Safety
-/// No other call may put the same Gaussian indices concurrently (see [`super::Scatter::put_lane`]).
+/// No other call may put the same Gaussian indices concurrently (see [`super::scatter::Scatter::put_lane`]).
 pub(super) unsafe fn part_backward(
     simd: Simd,
     ctx: &GaussCtx<'_>,
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: super::Sums<'_>,
-    scatter: &super::Scatter<'_>,
+    acc: super::slots::Sums<'_>,
+    scatter: &super::scatter::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     #[cfg(target_arch = "x86_64")]
     {
@@ -432,8 +432,8 @@ unsafe fn part_avx512(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: super::Sums<'_>,
-    scatter: &super::Scatter<'_>,
+    acc: super::slots::Sums<'_>,
+    scatter: &super::scatter::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     // SAFETY: the caller's contract; the CPU has AVX-512F (this function's features).
     unsafe { part_impl::<true>(ctx, ss, ids, pos, acc, scatter) }
@@ -446,8 +446,8 @@ unsafe fn part_avx2(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: super::Sums<'_>,
-    scatter: &super::Scatter<'_>,
+    acc: super::slots::Sums<'_>,
+    scatter: &super::scatter::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     // SAFETY: the caller's contract.
     unsafe { part_impl::<false>(ctx, ss, ids, pos, acc, scatter) }
@@ -457,16 +457,16 @@ unsafe fn part_avx2(
 #[inline(always)]
 fn prefetch_inputs(ctx: &GaussCtx<'_>, i: usize) {
     let sc = ctx.scene;
-    super::prefetch_ptr(sc.means.as_ptr(), i * 3);
-    super::prefetch_ptr(sc.quats.as_ptr(), i * 4);
-    super::prefetch_ptr(ctx.scales.as_ptr(), i * 3);
-    super::prefetch_ptr(sc.opacity_logits.as_ptr(), i);
+    crate::mem::prefetch_ptr(sc.means.as_ptr(), i * 3);
+    crate::mem::prefetch_ptr(sc.quats.as_ptr(), i * 4);
+    crate::mem::prefetch_ptr(ctx.scales.as_ptr(), i * 3);
+    crate::mem::prefetch_ptr(sc.opacity_logits.as_ptr(), i);
     if ctx.colors.is_none() {
-        super::prefetch_ptr(sc.sh0.as_ptr(), i * 3);
+        crate::mem::prefetch_ptr(sc.sh0.as_ptr(), i * 3);
         let k3 = sc.sh_rest_k() * 3;
         let used = ((ctx.degree as usize + 1) * (ctx.degree as usize + 1) - 1) * 3;
         for o in (0..used).step_by(16).chain((used > 0).then_some(used - 1)) {
-            super::prefetch_ptr(sc.sh_rest.as_ptr(), i * k3 + o);
+            crate::mem::prefetch_ptr(sc.sh_rest.as_ptr(), i * k3 + o);
         }
     }
 }
@@ -479,8 +479,8 @@ unsafe fn part_impl<const V512: bool>(
     ss: &[Splat],
     ids: &[u32],
     pos: &[u32],
-    acc: super::Sums<'_>,
-    scatter: &super::Scatter<'_>,
+    acc: super::slots::Sums<'_>,
+    scatter: &super::scatter::Scatter<'_>,
 ) -> [f64; POSE_LEN] {
     let mut part = [0.0f64; POSE_LEN];
     let mut g = InLanes::default();
@@ -491,7 +491,7 @@ unsafe fn part_impl<const V512: bool>(
         let n = BLOCK.min(n_all - j0);
         // the sums lie in depth order (a cache miss each otherwise): fetch the next block's
         for &ahead in pos.iter().skip(j0 + BLOCK).take(BLOCK) {
-            super::prefetch_acc(acc.acc, ahead as usize);
+            crate::mem::prefetch_at(acc.acc, ahead as usize);
         }
         // and the next block's splats (a cache line each, cold since the projection), its
         // stored parameters and the gradient rows it will update

@@ -17,8 +17,8 @@ use std::arch::x86_64::*;
 use super::gauss_block::{InLanes, Lane, BLOCK};
 use super::gauss_bwd::GaussCtx;
 use super::project::Splat;
-use super::slot;
-use super::Sums;
+use super::slots::slot;
+use super::slots::Sums;
 
 /// A 16x16 float matrix held as 16 rows.
 type Rows = [__m512; BLOCK];

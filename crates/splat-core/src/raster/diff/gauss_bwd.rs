@@ -7,10 +7,13 @@
 //!
 //! Forward quantities are recomputed from the stored parameters as the forward computes them
 //! (float32, camera-space mean in float64), as gsplat's kernel does.
+//!
+//! The camera (pose) gradient: each Gaussian's pose terms ([`POSE_LEN`] values), summed over
+//! the Gaussians by the caller, become dL/d(world-to-camera matrix) in [`viewmat_grad`].
 #[cfg(test)]
 use super::sh_bwd::sh_vjp;
 #[cfg(test)]
-use super::slot;
+use super::slots::slot;
 use crate::fastmath;
 use crate::raster::project::Projector;
 #[cfg(test)]
@@ -48,6 +51,34 @@ pub(crate) struct GaussGrad {
 
 /// Length of [`GaussGrad::pose`]: dL/dW (9), dL/dt (3), the SH direction's dL/d(mean) (3).
 pub(crate) const POSE_LEN: usize = 15;
+
+/// The 4x4 dL/d(world-to-camera) from the summed per-Gaussian terms (dL/dW, dL/dt through the
+/// camera-space means and covariances; dL/dc = -sum of the SH directions' dL/d(mean), c the
+/// camera centre). c is the translation column of the matrix inverse (as gsplat and torch take
+/// it): with V = [[W, t], [0, 1]], dc = -W^-1 (dW c + dt) - c (dV[3, :3] c + dV[3, 3]).
+pub(super) fn viewmat_grad(sum: &[f64; POSE_LEN], w: &[[f64; 3]; 3], c: &[f64; 3]) -> [f64; 16] {
+    let v_c = [-sum[12], -sum[13], -sum[14]];
+    // u = W^-T v_c (the cofactor form of the inverse; W is a rotation for rigid cameras)
+    let cof = |r: usize, k: usize| {
+        let (r1, r2, k1, k2) = ((r + 1) % 3, (r + 2) % 3, (k + 1) % 3, (k + 2) % 3);
+        w[r1][k1] * w[r2][k2] - w[r1][k2] * w[r2][k1]
+    };
+    let det = w[0][0] * cof(0, 0) + w[0][1] * cof(0, 1) + w[0][2] * cof(0, 2);
+    // (W^-1)[k][r] = cof(r, k) / det, so (W^-T v_c)[r] = sum_k cof(r, k) v_c[k] / det
+    let u: [f64; 3] =
+        std::array::from_fn(|r| (0..3).map(|k| cof(r, k) * v_c[k]).sum::<f64>() / det);
+    let vc_dot_c = v_c[0] * c[0] + v_c[1] * c[1] + v_c[2] * c[2];
+    let mut m = [0.0f64; 16];
+    for r in 0..3 {
+        for k in 0..3 {
+            m[r * 4 + k] = sum[r * 3 + k] - u[r] * c[k];
+        }
+        m[r * 4 + 3] = sum[9 + r] - u[r];
+        m[12 + r] = -vc_dot_c * c[r];
+    }
+    m[15] = -vc_dot_c;
+    m
+}
 
 /// The per-camera constants the per-Gaussian backward needs.
 pub(crate) struct GaussCtx<'a> {
