@@ -6,16 +6,12 @@ generator, the formulas or their rounding (or a CPU whose SIMD build rounds diff
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 
 import numpy as np
 
 import morphgs
 from morphgs.strength import Strength
 
-TESTS = os.path.dirname(__file__)
 
 #: sha256 (first 32 hex digits) of the strength configs' outputs on `closed_form_scene()`.
 PINNED = "6c74890c5a17e0881c6a73dbfbe3fadc"
@@ -49,24 +45,10 @@ def digest() -> str:
     return h.hexdigest()[:32]
 
 
-_CHILD = f"""
-import sys
-sys.path.insert(0, {TESTS!r})
-import morphgs
-from test_strength_determinism import digest
-print(morphgs.num_threads(), digest())
-"""
-
-
 def test_strength_bytes_are_pinned_for_1_2_and_8_threads() -> None:
-    digests = {}
-    for threads in (1, 2, 8):
-        env = {**os.environ, "RAYON_NUM_THREADS": str(threads)}
-        env.pop("MORPHGS_NUM_THREADS", None)
-        res = subprocess.run([sys.executable, "-c", _CHILD], env=env, capture_output=True, text=True, check=True)
-        used, d = res.stdout.split()
-        assert int(used) == threads
-        digests[threads] = d
+    from thread_digests import digests_by_threads
+
+    digests = digests_by_threads("test_strength_determinism")
     assert set(digests.values()) == {PINNED}, digests
 
 

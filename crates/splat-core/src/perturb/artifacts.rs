@@ -42,7 +42,7 @@ pub const OP_HOLES: u32 = 13;
 pub const OP_FLOATERS: u32 = 14;
 
 /// A needle's long axis over its mean radius, as a natural log (ln 10).
-pub const NEEDLE_LOG_LENGTH: f32 = 2.302_585;
+pub const NEEDLE_LOG_LENGTH: f32 = std::f32::consts::LN_10;
 /// Nearest and farthest floater depth along the training ray, in units of E_avg.
 pub const FLOATER_NEAR: f32 = 0.02;
 /// See [`FLOATER_NEAR`].
@@ -197,7 +197,7 @@ impl Train {
     fn sees(&self, p: [f32; 3], margin: f32) -> Option<[f32; 3]> {
         let d = sub(p, self.centre);
         let z = dot(self.rot[2], d);
-        if !(z > 1e-6) {
+        if z.is_nan() || z <= 1e-6 {
             return None;
         }
         let u = self.fx * dot(self.rot[0], d) / z + self.cx;
@@ -315,14 +315,7 @@ pub fn apply(
     view.validate()?;
     params.validate()?;
     let n = view.len();
-    for (name, v) in extras {
-        if v.len() != n {
-            return Err(Error::InvalidArgument(format!(
-                "extra property '{name}' holds {} values, expected {n}",
-                v.len()
-            )));
-        }
-    }
+    super::check_extras(extras, n)?;
     if params.needs_cameras() && cameras.is_empty() {
         return Err(Error::InvalidArgument(
             "depth, view_color, needles and floaters need training cameras (none given)".into(),
@@ -713,7 +706,7 @@ impl Plan<'_> {
             for (j, dj) in delta.iter_mut().enumerate().take(nb) {
                 let w = (ch * 15 + j) as u64;
                 let (a, b) = normal_pair(s.word(w / 2));
-                *dj = f64::from(sigma * if w % 2 == 0 { a } else { b });
+                *dj = f64::from(sigma * if w.is_multiple_of(2) { a } else { b });
             }
             for r in rows.iter().take(kept) {
                 let p: f64 = (0..nb).map(|j| delta[j] * r[j]).sum();

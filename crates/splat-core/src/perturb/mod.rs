@@ -257,14 +257,7 @@ fn run(
             )));
         }
     }
-    for (name, v) in extras {
-        if v.len() != n {
-            return Err(Error::InvalidArgument(format!(
-                "extra property '{name}' holds {} values, expected {n}",
-                v.len()
-            )));
-        }
-    }
+    check_extras(extras, n)?;
     let mut keep = prune_mask(n, params.prune, seed);
     if let Some(m) = mask {
         keep.iter_mut().zip(m).for_each(|(k, &m)| *k &= m);
@@ -346,6 +339,19 @@ fn run(
         },
     );
     Ok((out, keep))
+}
+
+/// Every extra property must hold one value per Gaussian (`n`); names the one that does not.
+pub(crate) fn check_extras(extras: &[(&str, &[f32])], n: usize) -> Result<()> {
+    for (name, v) in extras {
+        if v.len() != n {
+            return Err(Error::InvalidArgument(format!(
+                "extra property '{name}' holds {} values, expected {n}",
+                v.len()
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// Enabled ops with their stream key and sigma (position: sigma already times E_avg).
