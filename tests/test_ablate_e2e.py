@@ -74,7 +74,7 @@ def test_smoke_runs_every_stage_and_writes_the_report(smoke: Path) -> None:
     assert "each condition − target-S8" in table
     csv_lines = (smoke / "results.csv").read_text().splitlines()
     assert len(csv_lines) == 1 + len(res["records"]) and csv_lines[0].startswith("regime,condition,seed,scene,clip")
-    for png in ("bars.png", "cka.png", "qualitative.png"):
+    for png in ("deltas.png", "cka.png", "qualitative.png"):
         assert (smoke / "plots" / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

@@ -12,6 +12,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from morphgs.ablation import StudyError, load_study
@@ -300,3 +301,24 @@ def test_the_capture_orbit_of_a_scene_file_is_upright_and_up_is_checked(tmp_path
     with pytest.raises(StudyError, match=r"capture\.up.*sideways"):
         load_study(f)
     assert load_study(f, up="-y")["capture"]["up"] == "-y"  # --up overrides the file
+
+
+def test_paired_differences_pair_each_seed_with_the_inputs_scene_and_plot(tmp_path: Path) -> None:
+    from morphgs.ablation.plots import deltas, paired_differences
+
+    recs = []
+    for scene, base in (("a", 10.0), ("b", 14.0)):
+        recs.append({"regime": "S8", "condition": "input", "seed": None, "scene": scene, "clip": "00", "psnr2d": base})
+        for seed, gain in ((0, 1.0), (1, 2.0)):
+            recs.append({"regime": "S8", "condition": "morphological", "seed": seed, "scene": scene, "clip": "00",
+                         "psnr2d": base + gain})
+            recs.append({"regime": "S8", "condition": "target-S8", "seed": seed, "scene": scene, "clip": "00",
+                         "psnr2d": base + 2 * gain})
+    d = paired_differences(recs, "S8", ["morphological", "target-S8", "input"], "psnr2d", "input")
+    assert set(d) == {"morphological", "target-S8"}
+    m, ci, n = d["morphological"]
+    assert (m, n) == (1.5, 4) and ci == pytest.approx(3.182446 * np.std([1, 2, 1, 2], ddof=1) / 2, rel=1e-5)
+    m, _, n = paired_differences(recs, "S8", ["morphological"], "psnr2d", "target-S8")["morphological"]
+    assert (m, n) == (-1.5, 4)  # against a trained reference: the same (scene, seed) units
+    deltas(tmp_path, recs, ["S8"], ["morphological", "target-S8"])
+    assert (tmp_path / "deltas.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -1,4 +1,5 @@
-"""The report's plots (matplotlib, Agg): per-metric bars with 95 % CIs per regime, CKA against
+"""The report's plots (matplotlib, Agg): each condition's paired difference from the unrefined
+input with its 95 % CI per regime (deltas.png), CKA against
 training step (the paper's Fig. 5), and a qualitative sheet (conditions as rows, the frames of one
 test clip as columns; the paper's Fig. 4)."""
 
@@ -15,7 +16,7 @@ from morphgs.ablation.conditions import Condition
 from morphgs.ablation.stats import mean_ci
 from morphgs.ablation.table import COLUMNS, units
 
-__all__ = ["write_all"]
+__all__ = ["DELTA_METRICS", "deltas", "paired_differences", "write_all"]
 
 
 def _plt() -> Any:
@@ -27,29 +28,61 @@ def _plt() -> Any:
     return plt
 
 
-def bars(out: Path, records: Sequence[dict[str, Any]], regimes: Sequence[str], conditions: Sequence[str]) -> None:
+#: The metrics whose paired differences `deltas` draws (key in the records, title).
+DELTA_METRICS = (("psnr2d", "PSNR2D"), ("ssim2d", "SSIM2D"), ("psnr3d", "PSNR3D"))
+
+
+def paired_differences(records: Sequence[dict[str, Any]], regime: str, conditions: Sequence[str], key: str,
+                       reference: str) -> dict[str, tuple[float, float, int]]:
+    """{condition: (mean, 95 % CI half-width, n)} of `key`'s paired difference condition -
+    reference over (test scene, seed) units of `regime` (the clips of a unit averaged first). A
+    control reference (input, ...) has one unit per scene, paired with every seed of the scene."""
+    ref = units([r for r in records if r["regime"] == regime and r["condition"] == reference], key)
+    by_scene = {scene: v for (scene, seed), v in ref.items() if seed is None}
+    out = {}
+    for c in conditions:
+        if c == reference:
+            continue
+        mine = units([r for r in records if r["regime"] == regime and r["condition"] == c], key)
+        d = [v - (ref[k] if k in ref else by_scene[k[0]]) for k, v in mine.items() if k in ref or k[0] in by_scene]
+        out[c] = mean_ci(d)
+    return out
+
+
+def deltas(out: Path, records: Sequence[dict[str, Any]], regimes: Sequence[str], conditions: Sequence[str]) -> None:
+    """deltas.png: per regime (a row of panels), each condition's paired difference from the
+    unrefined input in PSNR2D, SSIM2D and PSNR3D (and the identity row; not the oracle), with its
+    95 % CI and a zero line; the regime's target as a dashed line. Higher is better in all three."""
     plt = _plt()
-    fig, axes = plt.subplots(len(regimes), len(COLUMNS), figsize=(2.6 * len(COLUMNS), 2.6 * len(regimes)),
+    cols = len(DELTA_METRICS)
+    fig, axes = plt.subplots(len(regimes), cols, figsize=(3.3 * cols, 0.35 * len(conditions) + 1.4 * len(regimes)),
                              squeeze=False)
     for i, rg in enumerate(regimes):
-        rows = [c for c in conditions if Condition.parse(c).in_regime(rg)] + ["input"]
-        for j, (key, name, _, _) in enumerate(COLUMNS):
+        # not the oracle: the ceiling, whose gap would squeeze every other row to the zero line
+        rows = [c for c in conditions if Condition.parse(c).in_regime(rg)] + ["identity"]
+        target = f"target-{rg}"
+        for j, (key, name) in enumerate(DELTA_METRICS):
             ax = axes[i][j]
-            ms, cis = [], []
-            for c in rows:
-                m, ci, _ = mean_ci(list(units([r for r in records if r["regime"] == rg and r["condition"] == c],
-                                               key).values()))
-                ms.append(m if math.isfinite(m) else 0.0)
-                cis.append(ci if math.isfinite(ci) else 0.0)
-            kinds = [Condition.parse(c).kind for c in rows]
-            colors = [{"control": "0.6", "target": "C3", "calibrated": "C2"}.get(k, "C0") for k in kinds]
-            ax.bar(range(len(rows)), ms, yerr=cis, color=colors, capsize=2)
-            ax.set_xticks(range(len(rows)))
-            ax.set_xticklabels([Condition.parse(c).label for c in rows], rotation=70, fontsize=6)
-            ax.set_title(f"{rg} {name}", fontsize=8)
-            ax.tick_params(axis="y", labelsize=6)
+            diff = paired_differences(records, rg, rows, key, "input")
+            ys = np.arange(len(rows))[::-1]
+            for y, c in zip(ys, rows):
+                m, ci, _ = diff.get(c, (math.nan, math.nan, 0))
+                if not math.isfinite(m):
+                    continue
+                kind = Condition.parse(c).kind
+                colour = {"control": "0.55", "target": "C3", "calibrated": "C2"}.get(kind, "C0")
+                ax.errorbar(m, y, xerr=ci if math.isfinite(ci) else None, fmt="o", color=colour, ms=3.5, capsize=2,
+                            lw=1)
+            if target in diff and math.isfinite(diff[target][0]):
+                ax.axvline(diff[target][0], color="C3", ls="--", lw=0.8)
+            ax.axvline(0.0, color="k", lw=0.8)
+            ax.set_yticks(ys)
+            ax.set_yticklabels([Condition.parse(c).label if j == 0 else "" for c in rows], fontsize=7)
+            ax.set_title(f"{rg}: {name} − input", fontsize=8)
+            ax.tick_params(axis="x", labelsize=7)
+            ax.grid(axis="x", lw=0.3, alpha=0.5)
     fig.tight_layout()
-    fig.savefig(out / "bars.png", dpi=90, metadata={"Software": None})
+    fig.savefig(out / "deltas.png", dpi=100, metadata={"Software": None})
     plt.close(fig)
 
 
@@ -101,6 +134,6 @@ def sheet(out: Path, parts: Sequence[tuple[str, str, dict[str, Any]]], condition
 def write_all(out: Path, g: dict[str, Any], *, regimes: Sequence[str], conditions: Sequence[str],
               parts: Sequence[tuple[str, str, dict[str, Any]]]) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    bars(out, g["records"], regimes, conditions)
+    deltas(out, g["records"], regimes, conditions)
     cka(out, g["cka"])
     sheet(out, parts, conditions)

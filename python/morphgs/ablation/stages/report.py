@@ -19,7 +19,7 @@ from morphgs.ablation.table import format_table
 
 __all__ = ["IGNORE", "RESUMABLE", "VERSION", "calibration_note", "gather", "make"]
 
-VERSION = 1
+VERSION = 2  # 2: deltas.png (paired differences) replaced bars.png
 IGNORE: tuple[str, ...] = ()
 RESUMABLE = False
 
