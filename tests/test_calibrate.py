@@ -75,7 +75,7 @@ def test_search_reports_non_monotone_and_unreachable() -> None:
 
 
 def test_recovers_a_reachable_hidden_strength(hidden_strength: Path, tmp_path: Path) -> None:
-    doc = calibrate(out=tmp_path / "calib", real=hidden_strength, builtin_gaussians=GAUSSIANS, grid=GRID,
+    doc = calibrate(realism_steps=0, out=tmp_path / "calib", real=hidden_strength, builtin_gaussians=GAUSSIANS, grid=GRID,
                     plots=False, log=lambda m: None)
     (r,) = doc["results"]
     s = r["search"]
@@ -91,7 +91,7 @@ def test_recovers_a_reachable_hidden_strength(hidden_strength: Path, tmp_path: P
     same, keep = tmp_path / "same.json", tmp_path / "keep-only.json"
     same.write_text(json.dumps({"family": "morphological", "ops": {"keep": 0.5, "log_scale": 0.5, "rotation": 0.5}}))
     keep.write_text(json.dumps({"family": "morphological", "ops": {"keep": 0.5}}))
-    doc = calibrate(out=tmp_path / "calib2", real=hidden_strength, families=[str(same), str(keep)],
+    doc = calibrate(realism_steps=0, out=tmp_path / "calib2", real=hidden_strength, families=[str(same), str(keep)],
                     builtin_gaussians=GAUSSIANS, grid=GRID, plots=False, log=lambda m: None)
     r_same, r_keep = doc["results"]
     assert r_same["family"] == "same" and r_same["search"]["median_strength"] == pytest.approx(0.8, rel=0.02)
@@ -101,7 +101,7 @@ def test_recovers_a_reachable_hidden_strength(hidden_strength: Path, tmp_path: P
 
 def test_calibrate_pairs_gives_the_commands_results_and_writes_nothing(hidden_strength: Path, tmp_path: Path,
                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
-    doc = calibrate(out=tmp_path / "calib", real=hidden_strength, families=["morphological", "blur2d"],
+    doc = calibrate(realism_steps=0, out=tmp_path / "calib", real=hidden_strength, families=["morphological", "blur2d"],
                     builtin_gaussians=GAUSSIANS, grid=GRID, plots=False, log=lambda m: None)
     groups = by_regime(read_real_pairs(hidden_strength))
     scenes = load_scenes(find_scenes([], builtin_gaussians=GAUSSIANS), groups)
@@ -110,6 +110,7 @@ def test_calibrate_pairs_gives_the_commands_results_and_writes_nothing(hidden_st
     monkeypatch.chdir(empty)
     said: list[str] = []
     cal = calibrate_pairs(groups, scenes, [parse_family("morphological"), parse_family("blur2d")], grid=GRID,
+                          realism_steps=0,
                           say=said.append)
     assert not list(empty.iterdir()) and len(said) == 2
     assert [(r["family"], r["regime"]) for r in cal.results] == [("morphological", "hidden"), ("blur2d", "hidden")]
@@ -151,7 +152,7 @@ def test_matches_a_hidden_paper_config(hidden_paper: Path, tmp_path: Path) -> No
     """A hidden PerturbConfig (its own prune, absolute scale and rotation sigmas) is not in the
     strength family; the calibrated pairs on the held-out scene match its PSNR within 1 dB and
     its SSIM within 0.03 (medians over pairs), and the report names the statistic furthest off."""
-    doc = calibrate(out=tmp_path / "calib", real=hidden_paper, builtin_gaussians=GAUSSIANS, grid=GRID,
+    doc = calibrate(realism_steps=0, out=tmp_path / "calib", real=hidden_paper, builtin_gaussians=GAUSSIANS, grid=GRID,
                     log=lambda m: None)
     (r,) = doc["results"]
     g = r["goodness"]
@@ -188,6 +189,13 @@ def test_cli_end_to_end_config_used_by_curate(hidden_strength: Path, tmp_path: P
     assert "closest to the real hidden pairs: morphological (AUC" in out and out.rstrip().endswith("then radiometric")
     report = (calib / "report.md").read_text()
     assert "| 1 | morphological |" in report and "| 2 | radiometric |" in report
+    # the CNN two-sample test ran for both (held-out scene sample-1): it tells the wrong family's
+    # pairs from the real ones better than the right one's, and the ranking uses its AUC
+    realism = {r["family"]: r["realism"] for r in doc["results"]}
+    assert all(v["classifier"]["held_out"] and v["floor"] is not None for v in realism.values())
+    assert realism["morphological"]["classifier"]["auc"] < realism["radiometric"]["classifier"]["auc"]
+    assert doc["ranking"]["hidden"][0]["auc_kind"] == "cnn"
+    assert "## Realism: can a classifier tell them apart?" in report
     cfg = calib / "configs" / "morphological-hidden.json"
     table = json.loads(cfg.read_text())["quantiles"]
     data = tmp_path / "data"
@@ -229,7 +237,7 @@ def test_a_results_files_are_named_by_the_one_slug_rule() -> None:
 def test_sparse_regime_cached_and_deterministic(tmp_path: Path) -> None:
     """The built-in default: four scenes (two calibrate, two held out), the fit length of
     --sample-fit-steps for a regime without @STEPS; resumable and the same bytes for 1 and 2 workers."""
-    args = ["calibrate", "--regime", "sparse:24", "--sample-fit-steps", "30", "--sample-gaussians", "3000", "--size",
+    args = ["calibrate", "--realism-steps", "0", "--regime", "sparse:24", "--sample-fit-steps", "30", "--sample-gaussians", "3000", "--size",
             "48x32", "--frames", "4", "-k", "1", "--no-plots", "--grid", "0.125,16"]
     assert main([*args, "--out", str(tmp_path / "a")]) == 0
     fits = sorted((tmp_path / "a" / "real" / "fits").rglob("fit.json"))
@@ -283,4 +291,4 @@ def test_bad_input(hidden_strength: Path, tmp_path: Path, capsys: pytest.Capture
     other = tmp_path / "other.ply"
     morphgs.save_ply(synthetic.scene(n_gaussians=500, seed=3), other)
     with pytest.raises(CalibrationError, match=r"scene\(s\) sample-0, sample-1 are not among the scenes \(other\)"):
-        calibrate([str(other)], out, real=hidden_strength, log=lambda m: None)
+        calibrate([str(other)], out, real=hidden_strength, log=lambda m: None, realism_steps=0)

@@ -69,7 +69,7 @@ def test_search_mix_recovers_a_hidden_mix(tmp_path: Path) -> None:
     hidden_ops = mixed(Strength("morphological"), HIDDEN).base
     real = _stand_in(tmp_path, "mix", {"kind": "strength", "family": "morphological", "strength": 0.6,
                                        "ops": hidden_ops})
-    doc = calibrate(out=tmp_path / "calib", real=real, builtin_gaussians=GAUSSIANS, grid=GRID, plots=False,
+    doc = calibrate(realism_steps=0, out=tmp_path / "calib", real=real, builtin_gaussians=GAUSSIANS, grid=GRID, plots=False,
                     search_mix=True, log=lambda m: None)
     (r,) = doc["results"]
     m = r["mix_search"]
@@ -83,7 +83,7 @@ def test_search_mix_recovers_a_hidden_mix(tmp_path: Path) -> None:
     report = (tmp_path / "calib" / "report.md").read_text()
     assert "## Op mix search" in report and "(**chosen**)" in report and "(**preset**)" in report
     # without --search-mix the preset's proportions are kept (the default)
-    doc = calibrate(out=tmp_path / "plain", real=real, builtin_gaussians=GAUSSIANS, grid=GRID, plots=False,
+    doc = calibrate(realism_steps=0, out=tmp_path / "plain", real=real, builtin_gaussians=GAUSSIANS, grid=GRID, plots=False,
                     log=lambda m: None)
     assert doc["results"][0]["mix_search"] is None
     assert doc["results"][0]["config"]["ops"] == Strength("morphological").base
@@ -92,7 +92,7 @@ def test_search_mix_recovers_a_hidden_mix(tmp_path: Path) -> None:
 def test_blur2d_family_recovers_sigma_and_curate_draws_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     real = _stand_in(tmp_path, "blur", "blur2d@1.5")
     calib = tmp_path / "calib"
-    assert main(["calibrate", "--real", str(real), "--out", str(calib), "--family", "blur2d", "--sample-gaussians",
+    assert main(["calibrate", "--realism-steps", "0", "--real", str(real), "--out", str(calib), "--family", "blur2d", "--sample-gaussians",
                  str(GAUSSIANS), "--no-plots", "--grid", "0.125,16"]) == 0
     capsys.readouterr()
     doc = json.loads((calib / "calibration.json").read_text())

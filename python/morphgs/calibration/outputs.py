@@ -38,7 +38,8 @@ def document(calibration: Calibration, *, scenes: Sequence[str], real: str | Non
                for r in calibration.results]
     return {"schema": 1, "morphgs_version": __version__, "scenes": list(scenes), "regimes": list(calibration.regimes),
             "families": list(calibration.families), "real": real, "pairs_per_scene": pairs_per_scene, "seed": seed,
-            "fit_steps": dict(fit_steps), "search_mix": calibration.search_mix, "frames": list(calibration.frames),
+            "fit_steps": dict(fit_steps), "search_mix": calibration.search_mix,
+            "objective": calibration.objective, "frames": list(calibration.frames),
             "resolution": list(calibration.resolution), "results": results, "ranking": rank_families(results)}
 
 

@@ -23,7 +23,9 @@ import numpy as np
 
 from morphgs.calibration import goodness, stats
 from morphgs.calibration.mix import mix_distances, mixed, simplex_grid
+from morphgs.calibration.objective import OBJECTIVES, TRIALS, realism_search
 from morphgs.calibration.pairs import Bench, CalibrationError, RealPair
+from morphgs.calibration.realism import STEPS, Clip, classifier_test, floor_test
 from morphgs.calibration.search import DEFAULT_GRID, search
 from morphgs.strength import FAMILIES, Blur2d, Strength, draw_strength
 
@@ -89,13 +91,15 @@ def rank_families(results: Sequence[Mapping[str, Any]]) -> dict[str, list[dict[s
     held-out scenes: matched ones first, then by the classifier's AUC (0.5 = indistinguishable),
     then by how far the furthest statistic lies beyond its real-vs-real floor, then by name (so
     the order is the same on every run). Each entry: family, auc, furthest, furthest_excess,
-    matched."""
+    matched. The AUC is the CNN two-sample test's (`realism`) where it ran, else the logistic
+    regression's on the statistics (`goodness`); `auc_kind` says which."""
     by_regime: dict[str, list[dict[str, Any]]] = {}
     for r in results:
         g = r["goodness"]
-        auc = g["classifier"]["auc"]
+        cnn = (r.get("realism") or {}).get("classifier")
+        auc = cnn["auc"] if cnn else g["classifier"]["auc"]
         by_regime.setdefault(r["regime"], []).append({
-            "family": r["family"], "auc": auc, "furthest": g["furthest"],
+            "family": r["family"], "auc": auc, "auc_kind": "cnn" if cnn else "statistics", "furthest": g["furthest"],
             "furthest_excess": g["furthest_excess"], "matched": bool(g["matched"])})
 
     def finite(v: Any) -> tuple[bool, float]:  # missing or NaN values sort last
@@ -126,6 +130,7 @@ class Calibration:
     frames: list[int]
     resolution: list[int]
     search_mix: bool
+    objective: str
     results: list[dict[str, Any]]
     plots: list[dict[str, Any]]
 
@@ -138,12 +143,34 @@ class _Side:
     stats: list[dict[str, Any]]
     bench: Bench
 
+    def clips(self) -> list[Clip]:
+        """The real pairs as the realism classifier's clips (label 0)."""
+        return [Clip(p.corrupted, p.clean, p.scene, 0) for p in self.pairs]
+
+
+@dataclass(frozen=True)
+class Options:
+    """How `calibrate_pairs` searches and judges (see its Args)."""
+
+    grid: Sequence[float] = DEFAULT_GRID
+    lpips: bool = False
+    search_mix: bool = False
+    mix_steps: int = 3
+    objective: str = "psnr"
+    trials: int = TRIALS
+    realism_steps: int = STEPS
+    search_steps: int = STEPS // 2
+    seed: int = 0
+    state_dir: Path | None = None
+
 
 def calibrate_pairs(groups: Mapping[str, Sequence[RealPair]], scenes: Mapping[str, Any],
                     families: Sequence[tuple[str, Strength | Blur2d]], *, grid: Sequence[float] = DEFAULT_GRID,
-                    lpips: bool = False, search_mix: bool = False, mix_steps: int = 3,
-                    say: Callable[[str], None] | None = None) -> Calibration:
-    """Calibrate each family's strength distribution to each regime's real pairs; writes nothing.
+                    lpips: bool = False, search_mix: bool = False, mix_steps: int = 3, objective: str = "psnr",
+                    trials: int = TRIALS, realism_steps: int = STEPS, search_steps: int = STEPS // 2, seed: int = 0,
+                    state_dir: str | Path | None = None, say: Callable[[str], None] | None = None) -> Calibration:
+    """Calibrate each family's strength distribution to each regime's real pairs; writes nothing
+    but the realism search's state files (under `state_dir`, when given).
 
     Args:
         groups: regime -> its real pairs (`pairs.read_real_pairs`, `pairs.by_regime`), one size.
@@ -152,12 +179,25 @@ def calibrate_pairs(groups: Mapping[str, Sequence[RealPair]], scenes: Mapping[st
         grid: the strength scan's log grid. lpips: also compute LPIPS (where installed).
         search_mix, mix_steps: also search each family's op mix (families of two or more ops) on a
             simplex grid of weights in multiples of 1/mix_steps (`morphgs.calibration.mix`).
+        objective: "psnr" (match the PSNR; with `search_mix`, the mix closest on the statistics)
+            or "realism" (the op mix of families of two or more ops searched to minimise the CNN
+            classifier's AUC, `morphgs.calibration.objective`, `trials` candidates, its classifier
+            trained `search_steps` steps per fold, its state files under `state_dir`).
+        realism_steps: training steps of the CNN two-sample test reported for every family on the
+            held-out scenes, with its real-vs-real floor per regime (0: not run).
+        seed: the classifiers' and the search's seed.
         say: progress messages (none when None).
 
     Raises:
-        CalibrationError: no real pairs, pairs of mismatched sizes, a pair's scene not in `scenes`.
+        CalibrationError: no real pairs, pairs of mismatched sizes, a pair's scene not in `scenes`,
+            an unknown objective.
     """
     say = say or (lambda m: None)
+    if objective not in OBJECTIVES:
+        raise CalibrationError(f"--objective {objective}: unknown; valid objectives: {', '.join(OBJECTIVES)}")
+    opts = Options(grid=grid, lpips=lpips, search_mix=search_mix, mix_steps=mix_steps, objective=objective,
+                   trials=trials, realism_steps=realism_steps, search_steps=search_steps, seed=seed,
+                   state_dir=Path(state_dir) if state_dir is not None else None)
     sizes = {p.clean.shape[1:3] for ps in groups.values() for p in ps}
     if not sizes:
         raise CalibrationError("no real pairs to calibrate against")
@@ -171,15 +211,21 @@ def calibrate_pairs(groups: Mapping[str, Sequence[RealPair]], scenes: Mapping[st
     for regime, pairs in groups.items():
         calib, held = split_scenes(pairs)
         calib_side, held_side = side(calib), (side(held) if held else None)
+        floor = None
+        if realism_steps > 0:
+            t0 = time.perf_counter()
+            floor = floor_test(calib_side.clips(), held_side.clips() if held_side else None, seed=seed,
+                               steps=realism_steps)
+            say(f"calibrate: {regime}: real-vs-real classifier floor AUC {floor['auc']:.3f} "
+                f"[{time.perf_counter() - t0:.1f} s]")
         for label, base in families:
-            result, plot = _calibrate_one(label, base, regime, calib_side, held_side, grid=grid, lpips=lpips, say=say,
-                                          search_mix=search_mix, mix_steps=mix_steps)
+            result, plot = _calibrate_one(label, base, regime, calib_side, held_side, opts, floor, say=say)
             results.append(result)
             plots.append(plot)
     return Calibration(regimes=list(groups), families=[label for label, _ in families],
                        frames=sorted({len(p.clean) for ps in groups.values() for p in ps}),
                        resolution=[int(v) for v in next(iter(sizes))[::-1]], search_mix=search_mix,
-                       results=results, plots=plots)
+                       objective=objective, results=results, plots=plots)
 
 
 def _search_mix(label: str, base: Strength, calib: _Side, real_psnr: np.ndarray, pair_of_frame: np.ndarray, *,
@@ -218,18 +264,26 @@ def _search_mix(label: str, base: Strength, calib: _Side, real_psnr: np.ndarray,
     return mixed(base, chosen), info
 
 
-def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, calib: _Side, held: _Side | None, *,
-                   grid: Sequence[float], lpips: bool, say: Callable[[str], None], search_mix: bool,
-                   mix_steps: int) -> tuple[dict[str, Any], dict[str, Any]]:
+def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, calib: _Side, held: _Side | None, opts: Options,
+                   floor: dict[str, Any] | None, *, say: Callable[[str], None]) -> tuple[dict[str, Any], dict[str, Any]]:
     """One family against one regime: (calibration.json's result, its plot data)."""
     family = base.family
+    grid, lpips = opts.grid, opts.lpips
     pairs, bench = calib.pairs, calib.bench
     real_psnr = np.concatenate([np.asarray(st["frame_psnr"], dtype=np.float64) for st in calib.stats])
     pair_of_frame = np.concatenate([np.full(len(p.clean), k) for k, p in enumerate(pairs)])
     mix_info = None
-    if search_mix and isinstance(base, Strength) and len(base.base) >= 2:
-        base, mix_info = _search_mix(label, base, calib, real_psnr, pair_of_frame, steps=mix_steps, grid=grid,
-                                     lpips=lpips, say=say)
+    if isinstance(base, Strength) and len(base.base) >= 2:
+        if opts.objective == "realism":
+            from morphgs.curation.sources import slug
+
+            state = (opts.state_dir / f"{slug(regime)}--{slug(label)}.jsonl") if opts.state_dir is not None else None
+            base, mix_info = realism_search(label, base, bench, calib.clips(), real_psnr, pair_of_frame,
+                                            real_ids=[p.pair_id for p in pairs], grid=grid, trials=opts.trials,
+                                            seed=opts.seed, steps=opts.search_steps, state=state, say=say)
+        elif opts.search_mix:
+            base, mix_info = _search_mix(label, base, calib, real_psnr, pair_of_frame, steps=opts.mix_steps,
+                                         grid=grid, lpips=lpips, say=say)
     t0 = time.perf_counter()
     res = search(lambda s: bench.frame_psnr(base.at(s)), real_psnr, grid=grid, pairs=pair_of_frame)
     say(f"calibrate: {label} vs {regime}: real median {res.target_median_psnr:.2f} dB; "
@@ -245,10 +299,11 @@ def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, calib: _Sid
                               {"kind": "strength", "family": family, "ops": base.base, "quantiles": res.quantiles})
     # goodness of fit on held-out scenes (in-sample when there is only one scene); the floor on every real pair
     ev = held if held is not None else calib
-    synth_stats, sheet = [], []
+    synth_stats, sheet, synth_held = [], [], []
     for i, p in enumerate(ev.pairs):
         s = draw_strength(config, p.seed)
         synth = ev.bench.corrupted(base.at(s), i)
+        synth_held.append(synth)
         synth_stats.append(stats.pair_stats(synth, ev.bench.clean[i], lpips=lpips))
         if i < 3:
             mid = len(p.clean) // 2
@@ -260,8 +315,11 @@ def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, calib: _Sid
                            floor_groups=[p.scene for side in every for p in side.pairs])
     gof["held_out"] = held is not None
     gof["scenes"] = sorted(set(groups))
+    realism = None
+    if opts.realism_steps > 0:
+        realism = _realism(base, config, calib, held, synth_held, floor, opts, label=label, regime=regime, say=say)
     result = {"family": label, "base_family": family, "regime": regime, "search": res.to_dict(), "op_shares": shares,
-              "op_shares_strength": s_ref, "config": config, "goodness": gof, "mix_search": mix_info,
+              "op_shares_strength": s_ref, "config": config, "goodness": gof, "realism": realism, "mix_search": mix_info,
               "calibration_scenes": sorted({p.scene for p in pairs})}
     plot = {"real_psnr": real_psnr.tolist(),
             "synth_psnr": np.concatenate([st["frame_psnr"] for st in synth_stats]).tolist(),
@@ -270,3 +328,33 @@ def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, calib: _Sid
             "synth_spectrum": np.nanmean(goodness.stat_matrix(synth_stats, stats.SPECTRUM_NAMES), axis=0).tolist(),
             "sheet": sheet}
     return result, plot
+
+
+def _realism(base: Strength | Blur2d, config: Mapping[str, Any], calib: _Side, held: _Side | None,
+             synth_held: Sequence[np.ndarray], floor: dict[str, Any] | None, opts: Options, *, label: str,
+             regime: str, say: Callable[[str], None]) -> dict[str, Any]:
+    """The CNN two-sample test of one family (`morphgs.calibration.realism`): trained on the
+    calibration scenes' real pairs and their synthetic counterparts (strengths drawn from the
+    calibrated distribution with each pair's seed, as curate draws them), scored on the held-out
+    scenes' (cross-fitted when there are none). "indistinguishable": its interval's lower end at or
+    below the floor interval's upper end."""
+    t0 = time.perf_counter()
+
+    def synth_clips(side: _Side, frames: Sequence[np.ndarray] | None = None) -> list[Clip]:
+        out = []
+        for i, p in enumerate(side.pairs):
+            rgb = frames[i] if frames is not None else side.bench.corrupted(base.at(draw_strength(config, p.seed)), i)
+            out.append(Clip(rgb, side.bench.clean[i], p.scene, 1))
+        return out
+
+    if held is not None:
+        test = classifier_test(calib.clips() + synth_clips(calib), held.clips() + synth_clips(held, synth_held),
+                               seed=opts.seed, steps=opts.realism_steps)
+    else:
+        test = classifier_test(calib.clips() + synth_clips(calib, synth_held), seed=opts.seed,
+                               steps=opts.realism_steps)
+    lo, hi = test["ci"][0], (floor or {}).get("ci", [float("nan")] * 2)[1]
+    same = bool(math.isfinite(lo) and math.isfinite(hi) and lo <= hi)
+    say(f"calibrate: {label} vs {regime}: classifier AUC {test['auc']:.3f} [{test['ci'][0]:.3f}, {test['ci'][1]:.3f}]"
+        + (f", floor {floor['auc']:.3f}" if floor else "") + f" [{time.perf_counter() - t0:.1f} s]")
+    return {"classifier": test, "floor": floor, "indistinguishable": same}

@@ -16,6 +16,8 @@ from typing import Any
 from morphgs.calibration.outputs import document, write_outputs
 from morphgs.calibration.pairs import CalibrationError, RealPair, by_regime, read_real_pairs
 from morphgs.calibration.pipeline import ALL_FAMILIES, calibrate_pairs, expand_families, parse_family
+from morphgs.calibration.objective import OBJECTIVES, TRIALS
+from morphgs.calibration.realism import STEPS
 from morphgs.calibration.search import DEFAULT_GRID
 
 __all__ = ["BUILTIN_FIT_STEPS", "BUILTIN_SCENES", "MIN_TRAIN_VIEWS", "calibrate", "find_scenes", "load_scenes"]
@@ -119,6 +121,9 @@ def calibrate(
     builtin_fit_steps: int | None = BUILTIN_FIT_STEPS,
     search_mix: bool = False,
     mix_steps: int = 3,
+    objective: str = "psnr",
+    trials: int = TRIALS,
+    realism_steps: int = STEPS,
 ) -> dict[str, Any]:
     """Calibrate each family's strength distribution to each regime's real pairs (docs/calibration.md).
 
@@ -143,6 +148,11 @@ def calibrate(
         search_mix: also search each family's op mix (morphgs.calibration.mix; families of two or
             more ops) and calibrate the mix whose pairs resemble the real ones most.
         mix_steps: the mix grid's resolution (weights in multiples of 1/mix_steps).
+        objective: "psnr" or "realism" (the op mix searched for the pairs the CNN classifier can
+            least tell from the real ones; `morphgs.calibration.objective`; its state files in
+            out/realism/, so a rerun resumes). trials: the realism search's candidates.
+        realism_steps: the CNN two-sample test's training steps (0: not run; the search trains
+            half as many per candidate).
 
     Returns:
         The calibration.json content.
@@ -174,6 +184,14 @@ def calibrate(
             raise CalibrationError(f"--sample-fit-steps must be >= 1, got {builtin_fit_steps}")
         if mix_steps < 1:
             raise CalibrationError(f"--mix-steps must be >= 1, got {mix_steps}")
+        if objective not in OBJECTIVES:
+            raise CalibrationError(f"--objective {objective}: unknown; valid objectives: {', '.join(OBJECTIVES)}")
+        if trials < 1:
+            raise CalibrationError(f"--trials must be >= 1, got {trials}")
+        if realism_steps < 0:
+            raise CalibrationError(f"--realism-steps must be >= 0, got {realism_steps}")
+        if objective == "realism" and realism_steps == 0:
+            raise CalibrationError("--objective realism needs the classifier: --realism-steps must be >= 1")
         scene_list = [str(s) for s in scenes]
         sources = find_scenes(scene_list, builtin_scenes=builtin_scenes, builtin_gaussians=builtin_gaussians)
         out_dir = Path(out)
@@ -197,7 +215,10 @@ def calibrate(
             raise CalibrationError(f"real pairs of mismatched sizes {sorted(sizes)}: the regimes' pairs (--size) and "
                                    "--real's must have one size")
         calibration = calibrate_pairs(groups, load_scenes(sources, groups), bases, grid=grid, lpips=lpips,
-                                      search_mix=search_mix, mix_steps=mix_steps, say=say)
+                                      search_mix=search_mix, mix_steps=mix_steps, objective=objective,
+                                      trials=trials, realism_steps=realism_steps,
+                                      search_steps=max(realism_steps // 2, 1), seed=seed,
+                                      state_dir=out_dir / "realism", say=say)
         doc = document(calibration, scenes=[s.describe() for s in sources], real=None if real is None else str(real),
                        pairs_per_scene=pairs_per_scene, seed=seed, fit_steps=fit_steps)
         write_outputs(out_dir, doc, calibration.plots, plots=plots)

@@ -44,6 +44,15 @@ def register(sub: Any) -> None:
                    help="also search each family's op mix (a simplex grid of the ops' weights, each mix matched to "
                         "the real PSNR) and keep the mix whose SSIM, coverage, spectrum, colour shift and temporal "
                         "error are closest to the real pairs' on the calibration scenes")
+    p.add_argument("--objective", choices=("psnr", "realism"), default="psnr",
+                   help="psnr: match the real pairs' PSNR (the op mix fixed, or --search-mix's); realism: also "
+                        "search the op mix of families of two or more ops (Optuna TPE, seeded, resumable from "
+                        "OUT/realism/) for the pairs a CNN classifier can least tell from the real ones (psnr)")
+    p.add_argument("--trials", type=int, default=16,
+                   help="candidates of --objective realism's search, per family and regime (16)")
+    p.add_argument("--realism-steps", type=int, default=240,
+                   help="training steps of the CNN two-sample test reported for every family on the held-out "
+                        "scenes (0 skips it); the realism search trains half as many per candidate (240)")
     p.add_argument("--mix-steps", type=int, default=3,
                    help="resolution of --search-mix's grid: weights in multiples of 1/N (3)")
     p.add_argument("--real", default=None, metavar="DIR",
@@ -79,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
                         lpips=args.lpips, **({"grid": args.grid} if args.grid else {}), workers=args.workers,
                         plots=not args.no_plots, wait=args.wait, builtin_scenes=args.sample_scenes,
                         builtin_fit_steps=args.sample_fit_steps, search_mix=args.search_mix,
-                        mix_steps=args.mix_steps)
+                        mix_steps=args.mix_steps, objective=args.objective, trials=args.trials,
+                        realism_steps=args.realism_steps)
     except (CalibrationError, ValueError) as e:
         print(f"morphgs calibrate: error: {e}", file=sys.stderr)
         return 2

@@ -18,7 +18,7 @@ from typing import Any
 
 __all__ = ["CONFIG", "IGNORE", "RESUMABLE", "SUMMARY", "VERSION", "make", "summary"]
 
-VERSION = 1
+VERSION = 2  # 2: the CNN two-sample test (realism) in calibration.json and summary.json
 IGNORE: tuple[str, ...] = ()
 RESUMABLE = False
 CONFIG = "config.json"
@@ -30,7 +30,10 @@ def summary(result: dict[str, Any]) -> dict[str, Any]:
     s = result["search"]
     q = dict(zip(s["quantiles"]["p"], s["quantiles"]["strength"]))
     g = result.get("goodness", {})
-    return {"family": result["family"], "real_median_psnr": s["target_median_psnr"],
+    realism = result.get("realism") or {}
+    clf, floor = realism.get("classifier") or {}, realism.get("floor") or {}
+    return {"auc": clf.get("auc"), "auc_ci": clf.get("ci"), "floor_auc": floor.get("auc"),
+            "indistinguishable": realism.get("indistinguishable"),"family": result["family"], "real_median_psnr": s["target_median_psnr"],
             "reachable": s["reachable"], "monotone": s["monotone"], "median_strength": s["median_strength"],
             "median_psnr_reached": s["median_psnr_reached"], "most_severe_psnr": s["most_severe_psnr"],
             "unreachable_pairs": s["unreachable_frames"], "strength_p05": q.get(0.05), "strength_p50": q.get(0.5),
