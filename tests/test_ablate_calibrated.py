@@ -129,7 +129,7 @@ def test_an_unknown_calibrated_family_is_one_line_naming_conditions_train(tmp_pa
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 1 and len(lines) == 1, r.stderr
     assert lines[0].startswith(f"morphgs ablate: error: {f}: conditions.train: unknown condition "
-                               "'calibrated:morphologic' (calibrated:FAMILY takes one of the families "), lines[0]
+                               "'calibrated:morphologic' (calibrated:FAMILY and realistic:FAMILY take one of the families "), lines[0]
 
 
 def test_the_calibration_key_is_the_target_sets_key_the_family_and_the_grid(tmp_path: Path) -> None:
@@ -157,3 +157,28 @@ def test_the_calibration_key_is_the_target_sets_key_the_family_and_the_grid(tmp_
     lean = plan('[conditions]\ntrain = ["calibrated:morphological"]\ntargets = false\n')
     assert "trainsets/target-S8" in lean and not any(k.startswith("training/target") for k in lean)
     assert lean["calibration/calibrated_morphological-S8"].ref.key == morph.ref.key
+
+
+def test_a_realistic_condition_searches_the_mix_and_hyphenated_families_parse(tmp_path: Path) -> None:
+    """`realistic:FAMILY` is a calibrated condition whose calibration runs `--objective realism`
+    (its own key), and a family with '-' (sparse-like) keeps its name and regime."""
+    from morphgs.ablation import load_study
+    from morphgs.ablation.conditions import Condition
+    from morphgs.ablation.recipe import build_plan
+
+    c = Condition.parse("realistic:sparse-like-S20")
+    assert (c.kind, c.family, c.regime, c.objective) == ("calibrated", "sparse-like", "S20", "realism")
+    c = Condition.parse("calibrated:sparse-like")
+    assert (c.family, c.regime, c.objective) == ("sparse-like", None, "psnr")
+    f = tmp_path / "p.toml"
+    f.write_text('preset = "smoke"\n[conditions]\ntrain = ["calibrated:sparse-like", "realistic:sparse-like"]\n',
+                 encoding="utf-8")
+    study = load_study(f)
+    assert [c.name for c in study.conditions][:2] == ["calibrated:sparse-like-S8", "realistic:sparse-like-S8"]
+    jobs = {f"{j.ref.stage}/{j.ref.name}": j for j in build_plan(study, tmp_path / "s")}
+    psnr, real = jobs["calibration/calibrated_sparse-like-S8"], jobs["calibration/realistic_sparse-like-S8"]
+    assert (psnr.inputs["objective"], real.inputs["objective"]) == ("psnr", "realism")
+    assert psnr.inputs["family"] == real.inputs["family"] == "sparse-like" and psnr.ref.key != real.ref.key
+    f.write_text('preset = "smoke"\n[conditions]\ntrain = ["realistic:sparse-liked"]\n', encoding="utf-8")
+    r = _run("--study", str(f), "--out", str(tmp_path / "s"))
+    assert r.returncode == 1 and "unknown condition 'realistic:sparse-liked'" in r.stderr

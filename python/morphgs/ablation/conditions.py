@@ -4,6 +4,8 @@ config, a regime's target, a calibrated family) or of a control row, with its re
     morphological, naive, blur2d, x/strong.json     kind "config" (curate's --config strings)
     target-S20                                      kind "target", regime S20
     calibrated:morphological-S20                    kind "calibrated", family morphological, regime S20
+    realistic:sparse-like-S20                       kind "calibrated", objective "realism" (its op mix
+                                                    searched for realism, `calibrate --objective realism`)
     input, identity, oracle                         kind "control" (not trained; do not compete)
 
 Names are what results.json, results.csv and table.md carry; everything else (the folder slug,
@@ -16,12 +18,17 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["CALIBRATED", "CONTROLS", "TARGET", "Condition"]
+__all__ = ["CALIBRATED", "CONTROLS", "REALISTIC", "TARGET", "Condition"]
 
 #: The prefix of a calibrated condition in `conditions.train`: `calibrated:FAMILY` is, per regime
 #: S_K, FAMILY's strength distribution calibrated against that regime's target training set
 #: (`morphgs calibrate --real`), curated on the training scenes (condition `calibrated:FAMILY-S_K`).
 CALIBRATED = "calibrated:"
+#: The prefix of a realism-calibrated condition: as `calibrated:`, with the family's op mix searched
+#: for the pairs a classifier can least tell from the target's (`morphgs calibrate --objective realism`).
+REALISTIC = "realistic:"
+#: A regime's label at the end of a calibrated condition's name (`-S20`, `-N6`).
+_REGIME = re.compile(r"^(?P<family>.+)-(?P<regime>[SN][0-9]+)$")
 #: The prefix of a regime's target: its real sparse-view pairs (`target-S20`).
 TARGET = "target-"
 #: The rows every regime shows besides the trained ones: the corrupted input as it is, the
@@ -37,6 +44,7 @@ class Condition:
     kind: str
     regime: str | None = None
     family: str | None = None
+    objective: str = "psnr"
 
     @classmethod
     def parse(cls, name: str) -> Condition:
@@ -46,10 +54,12 @@ class Condition:
             return cls(name, "control")
         if name.startswith(TARGET):
             return cls(name, "target", regime=name[len(TARGET):])
-        if name.startswith(CALIBRATED):
-            body = name[len(CALIBRATED):]
-            family, _, regime = body.partition("-")
-            return cls(name, "calibrated", regime=regime or None, family=family)
+        for prefix, objective in ((CALIBRATED, "psnr"), (REALISTIC, "realism")):
+            if name.startswith(prefix):
+                body = name[len(prefix):]
+                m = _REGIME.match(body)  # family names may hold '-' (sparse-like); regime labels do not
+                family, regime = (m["family"], m["regime"]) if m else (body, None)
+                return cls(name, "calibrated", regime=regime, family=family, objective=objective)
         return cls(name, "config")
 
     @classmethod
@@ -57,8 +67,9 @@ class Condition:
         return cls(f"{TARGET}{regime}", "target", regime=regime)
 
     @classmethod
-    def calibrated(cls, family: str, regime: str) -> Condition:
-        return cls(f"{CALIBRATED}{family}-{regime}", "calibrated", regime=regime, family=family)
+    def calibrated(cls, family: str, regime: str, objective: str = "psnr") -> Condition:
+        prefix = REALISTIC if objective == "realism" else CALIBRATED
+        return cls(f"{prefix}{family}-{regime}", "calibrated", regime=regime, family=family, objective=objective)
 
     @property
     def trained(self) -> bool:

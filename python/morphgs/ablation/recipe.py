@@ -89,7 +89,8 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
     for cond in calibrated:
         target = tsets[Condition.target(str(cond.regime)).name]
         calib = add("calibration", cond.slug, scene_dirs=scene_dirs, real_dir=Out(target, "data"),
-                    family=cond.family, grid=list(CALIBRATION_GRID), meta={"condition": cond.name})
+                    family=cond.family, grid=list(CALIBRATION_GRID), objective=cond.objective,
+                    meta={"condition": cond.name})
         tsets[cond.name] = add("trainsets", cond.slug, spec=cond.slug, calibration_dir=Out(calib),
                                meta={"condition": cond.name}, **common)
 

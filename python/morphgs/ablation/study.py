@@ -67,7 +67,7 @@ class Study:
         for c in self.settings["conditions"]["train"]:
             cond = Condition.parse(c)
             if cond.kind == "calibrated":
-                out += [Condition.calibrated(str(cond.family), r.label) for r in self.regimes]
+                out += [Condition.calibrated(str(cond.family), r.label, cond.objective) for r in self.regimes]
             else:
                 out.append(cond)
         if self.settings["conditions"]["targets"]:
@@ -144,10 +144,10 @@ def _validate(s: dict[str, Any], source: str) -> None:
         if cond.kind == "calibrated":
             from morphgs.strength import FAMILIES
 
-            fam = c[len(CALIBRATED):]
-            if fam not in FAMILIES:
+            if cond.family not in FAMILIES or cond.regime is not None:
                 raise StudyError(f"{_where(source, 'conditions.train')}: unknown condition {c!r} "
-                                 f"(calibrated:FAMILY takes one of the families {', '.join(FAMILIES)})")
+                                 f"(calibrated:FAMILY and realistic:FAMILY take one of the families "
+                                 f"{', '.join(FAMILIES)})")
             continue
         try:
             parse_config(c, blur_sigma=float(s["conditions"]["blur_sigma"]))

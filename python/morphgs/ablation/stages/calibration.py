@@ -18,7 +18,7 @@ from typing import Any
 
 __all__ = ["CONFIG", "IGNORE", "RESUMABLE", "SUMMARY", "VERSION", "make", "summary"]
 
-VERSION = 2  # 2: the CNN two-sample test (realism) in calibration.json and summary.json
+VERSION = 2  # 2: the CNN two-sample test (realism) in calibration.json and summary.json; objective
 IGNORE: tuple[str, ...] = ()
 RESUMABLE = False
 CONFIG = "config.json"
@@ -41,9 +41,12 @@ def summary(result: dict[str, Any]) -> dict[str, Any]:
             "calibration_scenes": result.get("calibration_scenes")}
 
 
-def make(work: Path, *, scene_dirs: list[str], real_dir: str, family: str, grid: Sequence[float]) -> None:
-    """Calibrate `family` against the curated real pairs in `real_dir` into `work/calib`; write
-    `work/config.json` (the strength distribution) and `work/summary.json`."""
+def make(work: Path, *, scene_dirs: list[str], real_dir: str, family: str, grid: Sequence[float],
+         objective: str) -> None:
+    """Calibrate `family` against the curated real pairs in `real_dir` into `work/calib` (with
+    `objective` "realism", its op mix searched first: `calibrate --objective realism`, its state in
+    `work/calib/realism/`); write `work/config.json` (the strength distribution) and
+    `work/summary.json`."""
     from morphgs.ablation.study import StudyError
     from morphgs.calibration.outputs import document, write_outputs
     from morphgs.calibration.pairs import CalibrationError, by_regime, read_real_pairs
@@ -53,7 +56,8 @@ def make(work: Path, *, scene_dirs: list[str], real_dir: str, family: str, grid:
     try:
         sources = find_scenes(scene_dirs)
         groups = by_regime(read_real_pairs(real_dir))
-        calibration = calibrate_pairs(groups, load_scenes(sources, groups), [parse_family(family)], grid=list(grid))
+        calibration = calibrate_pairs(groups, load_scenes(sources, groups), [parse_family(family)], grid=list(grid),
+                                      objective=objective, state_dir=work / "calib" / "realism")
     except CalibrationError as e:
         raise StudyError(f"calibration of {family} against {real_dir}: {e}") from None
     # pairs_per_scene and seed: `calibrate`'s defaults, which this stage's calibration.json has
