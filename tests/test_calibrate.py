@@ -102,7 +102,10 @@ def test_recovers_a_reachable_hidden_strength(hidden_strength: Path, tmp_path: P
 def test_calibrate_pairs_gives_the_commands_results_and_writes_nothing(hidden_strength: Path, tmp_path: Path,
                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     doc = calibrate(realism_steps=0, out=tmp_path / "calib", real=hidden_strength, families=["morphological", "blur2d"],
-                    builtin_gaussians=GAUSSIANS, grid=GRID, plots=False, log=lambda m: None)
+                    builtin_gaussians=GAUSSIANS, grid=GRID, log=lambda m: None)
+    # one contact sheet of the regime's families beside the real frames, in the report
+    assert (tmp_path / "calib" / "plots" / "hidden-families.png").is_file()
+    assert "![](plots/hidden-families.png)" in (tmp_path / "calib" / "report.md").read_text()
     groups = by_regime(read_real_pairs(hidden_strength))
     scenes = load_scenes(find_scenes([], builtin_gaussians=GAUSSIANS), groups)
     empty = tmp_path / "cwd"

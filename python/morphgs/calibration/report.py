@@ -60,6 +60,41 @@ def _plots(folder: Path, name: str, plot: dict[str, Any]) -> list[str]:
     return files
 
 
+def _family_sheet(folder: Path, regime: str, results: Sequence[dict[str, Any]],
+                  plots: Sequence[dict[str, Any]]) -> str | None:
+    """One contact sheet of a regime's families: per held-out pair (rows), its middle frame clean,
+    real corrupted, then each family's calibrated synthetic frame of the same camera and seed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from morphgs.curation.sources import slug
+
+    pairs = min(len(p["sheet"]) for p in plots)
+    if pairs == 0:
+        return None
+    cols = ["clean", f"real {regime}"] + [r["family"] for r in results]
+    h, w = plots[0]["sheet"][0][0].shape[:2]
+    scale = 1.6 / w * 100
+    fig, axes = plt.subplots(pairs, len(cols), figsize=(len(cols) * w * scale / 100 + 0.2, pairs * h * scale / 100 + 0.4),
+                             squeeze=False)
+    for i in range(pairs):
+        frames = [plots[0]["sheet"][i][0], plots[0]["sheet"][i][1]] + [p["sheet"][i][2] for p in plots]
+        for j, f in enumerate(frames):
+            ax = axes[i][j]
+            ax.imshow(np.clip(f, 0, 1), interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if i == 0:
+                ax.set_title(cols[j], fontsize=7)
+    fig.tight_layout(pad=0.2)
+    name = f"{slug(regime)}-families.png"
+    fig.savefig(folder / name, dpi=100, metadata={"Software": None})
+    plt.close(fig)
+    return name
+
+
 def _mix_lines(doc: dict[str, Any]) -> list[str]:
     """The op-mix search's tables (one per result that ran it)."""
     runs = [r for r in doc["results"] if r.get("mix_search") and r["mix_search"].get("objective") != "realism"]
@@ -221,6 +256,15 @@ def write_report(out: Path, doc: dict[str, Any], plot_data: Sequence[dict[str, A
         folder = out / "plots"
         folder.mkdir(parents=True, exist_ok=True)
         lines += ["## Plots", ""]
+        for regime in doc["regimes"]:
+            idx = [i for i, r in enumerate(doc["results"]) if r["regime"] == regime]
+            if len(idx) >= 2:
+                sheet = _family_sheet(folder, regime, [doc["results"][i] for i in idx], [plot_data[i] for i in idx])
+                if sheet:
+                    lines += [f"### Every family against the real {regime} pairs", "",
+                              "Middle frames of the held-out pairs: clean, real corrupted, then each family's "
+                              "calibrated synthetic frame from the same camera and seed:", "",
+                              f"![](plots/{sheet})", ""]
         for r, pd in zip(doc["results"], plot_data):
             name = Path(r["config_file"]).stem  # the plots are named as the result's config file
             files = _plots(folder, name, pd)
