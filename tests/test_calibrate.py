@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
@@ -257,6 +258,26 @@ def test_sparse_regime_cached_and_deterministic(tmp_path: Path) -> None:
     assert main([*args, "--out", str(tmp_path / "b"), "--workers", "2"]) == 0
     for name in ("calibration.json", "report.md", "configs/morphological-sparse-24.json"):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
+    # each real pair carries its fit's training cameras (every 24th of the 96-view capture orbit,
+    # at the pair's size): a camera op's virtual training views are then the real ones
+    from morphgs.calibration.pairs import Bench
+    from morphgs.curation.sparse import capture_cameras
+    from morphgs.curation.sources import builtin_sources
+    from morphgs.strength import Strength
+
+    pairs = read_real_pairs(tmp_path / "a" / "real")
+    src = builtin_sources(4, n_gaussians=3000)[0]
+    scene = src.load()
+    capture = capture_cameras(src, scene, None, (48, 32))
+    first = next(p for p in pairs if p.scene == src.id)
+    assert first.train_cameras is not None and len(first.train_cameras) == 4
+    assert np.allclose(first.train_cameras.world_to_camera, capture.world_to_camera[::24], atol=1e-5)
+    assert (first.train_cameras.width, first.train_cameras.height) == (48, 32)
+    bench = Bench({src.id: scene}, [first])
+    real_views = bench.corrupted(Strength("needles", 2.0), 0)
+    path_views = Bench({src.id: scene}, [dataclasses.replace(first, train_cameras=None)]).corrupted(
+        Strength("needles", 2.0), 0)
+    assert not np.array_equal(real_views, path_views)
 
 
 def _err(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:

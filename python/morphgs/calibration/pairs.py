@@ -33,6 +33,9 @@ class RealPair:
     cameras: Cameras
     corrupted: np.ndarray
     clean: np.ndarray
+    #: the real fit's training cameras at the pair's size, when the pair records its fit (a
+    #: `sparse:K` pair): the sparse-view ops' virtual training cameras are then those very views
+    train_cameras: Cameras | None = None
 
 
 def _read_frames(path: Path, what: str) -> np.ndarray:
@@ -41,6 +44,27 @@ def _read_frames(path: Path, what: str) -> np.ndarray:
     if not path.exists():
         raise CalibrationError(f"{path}: the pair's {what} frames are missing")
     return np.asarray(read_clip(path), dtype=np.float32) / np.float32(255.0)
+
+
+def _fit_train_cameras(root: Path, fit: Any, width: int, height: int) -> Cameras | None:
+    """The training cameras of a pair's real fit (the fit's data/transforms.json: its first
+    len(train_views) frames, as `curation.sparse` writes it), resized to the pair's size; None when
+    the pair records no fit or its data has gone."""
+    from morphgs.trajectory import read_transforms_frames, resize_camera
+
+    if not isinstance(fit, dict) or "dir" not in fit or not isinstance(fit.get("train_views"), list):
+        return None
+    path = root / str(fit["dir"]) / "data" / "transforms.json"
+    if not path.is_file():
+        return None
+    try:
+        frames = read_transforms_frames(path, sort=False)
+    except (OSError, ValueError, MorphgsError) as e:
+        raise CalibrationError(f"{path}: cannot read the real fit's training cameras ({e})") from None
+    n = len(fit["train_views"])
+    if len(frames) < n:
+        raise CalibrationError(f"{path}: {len(frames)} frames for the fit's {n} training views (field 'frames')")
+    return Cameras.from_list([resize_camera(f.camera, width, height) for f in frames[:n]])
 
 
 def read_real_pairs(folder: str | os.PathLike[str], *, regimes: Sequence[str] | None = None) -> list[RealPair]:
@@ -83,7 +107,7 @@ def read_real_pairs(folder: str | os.PathLike[str], *, regimes: Sequence[str] | 
             raise CalibrationError(f"{root / paths['cameras']}: {len(cams)} cameras of {cams[0].width}x"
                                    f"{cams[0].height} for {len(clean)} frames of {clean.shape[2]}x{clean.shape[1]}")
         out.append(RealPair(pid, str(r["scene"]), str(r.get("config_name", "real")), int(r["seed"]), cams,
-                            corrupted, clean))
+                            corrupted, clean, _fit_train_cameras(root, r.get("fit"), cams[0].width, cams[0].height)))
     sizes = {p.clean.shape[1:3] for p in out}
     if len(sizes) > 1:
         raise CalibrationError(f"--real {root}: pairs of mismatched sizes {sorted(sizes)} (field 'resolution'); "
@@ -132,7 +156,7 @@ class Bench:
         if isinstance(config, Blur2d):
             return _quantise(config.blur(self._rgb[index]))
         p = self.pairs[index]
-        scene = config.apply(self.scenes[p.scene], seed=p.seed, cameras=p.cameras)
+        scene = config.apply(self.scenes[p.scene], seed=p.seed, cameras=p.cameras, train_cameras=p.train_cameras)
         if len(scene) == 0:
             return np.zeros_like(self.clean[index])
         return _quantise(render_many([scene], p.cameras)[0].rgb)
