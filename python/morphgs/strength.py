@@ -27,6 +27,7 @@ They keep those views close to clean and break the views between them:
 | holes | a fraction 1 - (1 - b) ** s of the cells of a grid (edge 0.05 E_avg) lose their Gaussians |
 | dilate | every log scale + s * b |
 | floaters | min(10, s * b) new Gaussians per thousand training pixels, near the training cameras, coloured from the pixel they cover |
+| shatter | v = min(8, s * b): each Gaussian removed with probability 1 - exp(-v), the training views' pixels re-made as small fragments on their rays at depth d exp(0.5 v z) (`morphgs.shatter`) |
 
 Every op is the identity at s = 0, every op's noise grows continuously with s, and the same seed
 gives the same z at every s (common random numbers), so severity is a smooth function of s.
@@ -54,11 +55,11 @@ __all__ = ["BASE", "BLUR_MAX_SIGMA", "CLASSIC_OPS", "FAMILIES", "OPS", "SPARSE_O
 #: The ops of the paper's families, in application order.
 CLASSIC_OPS: tuple[str, ...] = ("position", "color", "opacity", "keep", "log_scale", "rotation")
 #: The sparse-view ops (applied first, from the virtual training cameras).
-SPARSE_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "holes", "dilate", "floaters")
+SPARSE_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "holes", "dilate", "floaters", "shatter")
 #: Every op of the strength parameterisation.
 OPS: tuple[str, ...] = CLASSIC_OPS + SPARSE_OPS
 #: The sparse-view ops that need training cameras (all but holes and dilate).
-CAMERA_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "floaters")
+CAMERA_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "floaters", "shatter")
 #: Default spacing of the virtual training cameras along a pair's path (every 8th camera).
 TRAIN_EVERY = 8
 
@@ -66,10 +67,11 @@ TRAIN_EVERY = 8
 #: factor e^0.5 = 1.65 at one sigma; rotation 0.5 rad (29 degrees) RMS; position, colour and
 #: opacity are the paper's sigmas. Sparse-view ops: depth 0.3 (a factor e^0.3 = 1.35 along the
 #: ray at one sigma), view_color 0.3 (SH units), needles 0.2 and holes 0.1 (fractions), dilate 0.3
-#: (a factor 1.35 on every scale), floaters 0.2 per thousand training pixels.
+#: (a factor 1.35 on every scale), floaters 0.2 per thousand training pixels, shatter 1.0 (63 % of
+#: the Gaussians replaced by fragments at a log-depth spread of 0.5).
 BASE: dict[str, float] = {"position": 0.002, "color": 0.05, "opacity": 0.05, "keep": 0.5,
                           "log_scale": 0.5, "rotation": 0.5, "depth": 0.3, "view_color": 0.3, "needles": 0.2,
-                          "holes": 0.1, "dilate": 0.3, "floaters": 0.2}
+                          "holes": 0.1, "dilate": 0.3, "floaters": 0.2, "shatter": 1.0}
 
 #: The families and their ops: the paper's four (unchanged), one per sparse-view op, and
 #: `sparse-like`, the sparse-view ops together.
@@ -82,7 +84,7 @@ FAMILIES: dict[str, tuple[str, ...]] = {
     "sparse-like": ("depth", "view_color", "needles", "holes", "floaters"),
 }
 #: Bounds of the effective values the kernel takes (larger strengths saturate there).
-_LIMITS = {"depth": 4.0, "dilate": 8.0, "floaters": 10.0}
+_LIMITS = {"depth": 4.0, "dilate": 8.0, "floaters": 10.0, "shatter": 8.0}
 
 
 def _number(value: Any, what: str) -> float:
@@ -205,7 +207,8 @@ class Strength:
         cams = cameras if isinstance(cameras, Cameras) else Cameras.from_list(list(cameras))
         return cams[:: self.train_every]
 
-    def apply(self, scene: GaussianScene, *, seed: int, return_mask: bool = False, cameras: Any = None) -> Any:
+    def apply(self, scene: GaussianScene, *, seed: int, return_mask: bool = False, cameras: Any = None,
+              train_cameras: Any = None) -> Any:
         """The perturbed copy of `scene` (seeded; the same bytes for any thread count and CPU).
 
         The sparse-view ops run first (`_artifacts`, ops 10-14; their training cameras are every
@@ -215,7 +218,10 @@ class Strength:
 
         Args:
             cameras: the pair's cameras (a `Cameras` or a list): needed by depth, view_color,
-                needles and floaters.
+                needles, floaters and shatter.
+            train_cameras: the virtual training cameras themselves (e.g. the views a real sparse
+                fit of this scene was trained on, as calibrate passes them), of one size,
+                instead of every `train_every`-th of `cameras`.
 
         Returns the scene, or (scene, keep-mask) with return_mask=True (the mask has a row per
         input Gaussian and, after them, per floater).
@@ -232,10 +238,10 @@ class Strength:
         seed = check_seed(seed)
         keep = None
         if any(k in v for k in SPARSE_OPS):
-            if self.needs_cameras and cameras is None:
+            if self.needs_cameras and cameras is None and train_cameras is None:
                 raise ValueError(f"the sparse-view op(s) {', '.join(k for k in CAMERA_OPS if k in v)} need the "
                                  "pair's cameras (cameras=...)")
-            scene, keep = self._sparse_ops(scene, v, seed, cameras)
+            scene, keep = self._sparse_ops(scene, v, seed, cameras, train_cameras)
         result: Any = _perturb(
             scene, position_jitter=v.get("position"), color_noise=v.get("color"),
             opacity_noise=v.get("opacity"), prune=1.0 - v["keep"] if "keep" in v else None,
@@ -243,11 +249,15 @@ class Strength:
             rotation_angle=v.get("rotation"), seed=seed, return_mask=return_mask, keep=keep)
         return result
 
-    def _sparse_ops(self, scene: GaussianScene, v: Mapping[str, float], seed: int, cameras: Any) -> Any:
-        from morphgs._core import _artifacts
+    def _sparse_ops(self, scene: GaussianScene, v: Mapping[str, float], seed: int, cameras: Any,
+                    train_cameras: Any = None) -> Any:
+        if train_cameras is not None:
+            from morphgs.camera import Cameras
 
+            train = (train_cameras if isinstance(train_cameras, Cameras) else Cameras.from_list(list(train_cameras)))
+            cameras = train
         if cameras is not None:
-            train = self.train_cameras(cameras)
+            train = train if train_cameras is not None else self.train_cameras(cameras)
             w2c, K = train.world_to_camera, train.K
             width, height = train.width, train.height
         else:  # holes and dilate only
@@ -259,6 +269,44 @@ class Strength:
             clean = render(scene, train)
             images = np.ascontiguousarray(np.asarray(clean.rgb, np.float32).reshape(len(train), height, width, 3))
             depth = np.ascontiguousarray(np.asarray(clean.depth, np.float32).reshape(len(train), height, width))
+        if "shatter" in v:
+            return self._shatter(self._artifacts(scene, v, seed, w2c, K, width, height, images, depth), v["shatter"],
+                                 images, depth, np.asarray(clean.alpha, np.float32).reshape(len(train), height, width),
+                                 w2c, K, seed)
+        return self._artifacts(scene, v, seed, w2c, K, width, height, images, depth)
+
+    @staticmethod
+    def _shatter(done: Any, value: float, images: np.ndarray, depth: np.ndarray, alpha: np.ndarray, w2c: np.ndarray,
+                 K: np.ndarray, seed: int) -> Any:
+        """The shatter op (`morphgs.shatter`) on the other sparse-view ops' (scene, keep): the
+        removed Gaussians dropped from keep, the fragments appended (kept)."""
+        from morphgs import shatter
+
+        scene, keep = done
+        n = len(scene)
+        keep = np.ones(n, bool) if keep is None else np.asarray(keep, bool)
+        gone = shatter.removal(n, value, seed)
+        frag = shatter.fragments(value, images, depth, alpha, w2c, K, int(np.sum(gone & keep)), seed)
+        m = len(frag["means"])
+        sh_rest = np.asarray(scene.sh_rest, np.float32)
+        if sh_rest.shape[1] == 0:  # degree 0: the fragments' view-dependent colour needs band 1
+            sh_rest = np.zeros((n, 3, 3), np.float32)
+        rest = np.zeros((m, *sh_rest.shape[1:]), np.float32)
+        rest[:, :3, :] = frag["sh1"]
+        extras = {k: np.concatenate([a, np.zeros((m, *a.shape[1:]), a.dtype)]) for k, a in scene.extras.items()}
+        joined = GaussianScene.from_arrays(
+            means=np.concatenate([scene.means, frag["means"]]), quats=np.concatenate([scene.quats, frag["quats"]]),
+            log_scales=np.concatenate([scene.log_scales, frag["log_scales"]]),
+            opacity_logits=np.concatenate([scene.opacity_logits, frag["opacity_logits"]]),
+            sh0=np.concatenate([scene.sh0, frag["sh0"]]), sh_rest=np.concatenate([sh_rest, rest]),
+            extras=extras or None)
+        return joined, np.ascontiguousarray(np.concatenate([keep & ~gone, np.ones(m, bool)]))
+
+    @staticmethod
+    def _artifacts(scene: GaussianScene, v: Mapping[str, float], seed: int, w2c: Any, K: Any, width: int, height: int,
+                   images: Any, depth: Any) -> Any:
+        from morphgs._core import _artifacts
+
         return _artifacts(scene, depth=v.get("depth"), view_color=v.get("view_color"), needles=v.get("needles"),
                           holes=v.get("holes"), hole_size=0.05, dilate=v.get("dilate"), floaters=v.get("floaters"),
                           world_to_camera=np.ascontiguousarray(w2c, np.float64), K=np.ascontiguousarray(K, np.float64),
