@@ -270,6 +270,7 @@ class Strength:
             images = np.ascontiguousarray(np.asarray(clean.rgb, np.float32).reshape(len(train), height, width, 3))
             depth = np.ascontiguousarray(np.asarray(clean.depth, np.float32).reshape(len(train), height, width))
         if "shatter" in v:
+            assert images is not None and depth is not None  # shatter is a camera op
             return self._shatter(self._artifacts(scene, v, seed, w2c, K, width, height, images, depth), v["shatter"],
                                  images, depth, np.asarray(clean.alpha, np.float32).reshape(len(train), height, width),
                                  w2c, K, seed)
