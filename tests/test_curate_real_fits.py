@@ -146,7 +146,8 @@ def test_cross_on_recorded_cameras_trains_on_the_first_photos(tmp_path: Path) ->
     assert s.ok, s.failed
     recs = {r["config_name"]: r for r in load_manifest(out).values()}
     fit = recs["cross-0.5-20steps"]["fit"]
-    assert fit["images"] == "images" and fit["train_views"] == list(range(8)) and fit["path_views"] == list(range(8, 16))
+    assert fit["images"] == "images" and fit["train_views"] == list(range(8))
+    assert fit["path_views"] == list(range(8, 16))
     np.testing.assert_array_equal(np.asarray(Image.open(out / fit["dir"] / "data" / "images" / "view_00000.png")),
                                   np.asarray(Image.open(root / "images" / "frame_00000.png")))
     pair = morphgs.Cameras.from_dict(json.loads((out / recs["cross-0.5-20steps"]["paths"]["cameras"]).read_text()))

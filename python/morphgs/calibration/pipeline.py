@@ -15,7 +15,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -119,6 +119,10 @@ class Calibration:
         results: per (regime, family), regime-major, calibration.json's result (plain JSON data;
             `outputs.document` adds its config file's name).
         plots: per result, what report.md's plots draw (PSNR and spectra, a sheet of frames).
+        costs: per result, the family's cost per pair at its calibrated strength, measured on
+            the goodness-of-fit pairs: {"family", "regime", "pairs", "perturb", "render",
+            "seconds_per_pair"} (wall seconds per pair, this machine; kept out of `results`,
+            so that calibration.json is the same bytes on every run).
     """
 
     regimes: list[str]
@@ -128,6 +132,7 @@ class Calibration:
     search_mix: bool
     results: list[dict[str, Any]]
     plots: list[dict[str, Any]]
+    costs: list[dict[str, Any]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -167,19 +172,20 @@ def calibrate_pairs(groups: Mapping[str, Sequence[RealPair]], scenes: Mapping[st
     def side(ps: list[RealPair]) -> _Side:
         return _Side(ps, [stats.pair_stats(p.corrupted, p.clean, lpips=lpips) for p in ps], Bench(scenes, ps))
 
-    results, plots = [], []
+    results, plots, costs = [], [], []
     for regime, pairs in groups.items():
         calib, held = split_scenes(pairs)
         calib_side, held_side = side(calib), (side(held) if held else None)
         for label, base in families:
-            result, plot = _calibrate_one(label, base, regime, calib_side, held_side, grid=grid, lpips=lpips, say=say,
-                                          search_mix=search_mix, mix_steps=mix_steps)
+            result, plot, cost = _calibrate_one(label, base, regime, calib_side, held_side, grid=grid, lpips=lpips,
+                                                say=say, search_mix=search_mix, mix_steps=mix_steps)
             results.append(result)
             plots.append(plot)
+            costs.append(cost)
     return Calibration(regimes=list(groups), families=[label for label, _ in families],
                        frames=sorted({len(p.clean) for ps in groups.values() for p in ps}),
                        resolution=[int(v) for v in next(iter(sizes))[::-1]], search_mix=search_mix,
-                       results=results, plots=plots)
+                       results=results, plots=plots, costs=costs)
 
 
 def _search_mix(label: str, base: Strength, calib: _Side, real_psnr: np.ndarray, pair_of_frame: np.ndarray, *,
@@ -220,8 +226,8 @@ def _search_mix(label: str, base: Strength, calib: _Side, real_psnr: np.ndarray,
 
 def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, calib: _Side, held: _Side | None, *,
                    grid: Sequence[float], lpips: bool, say: Callable[[str], None], search_mix: bool,
-                   mix_steps: int) -> tuple[dict[str, Any], dict[str, Any]]:
-    """One family against one regime: (calibration.json's result, its plot data)."""
+                   mix_steps: int) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+    """One family against one regime: (calibration.json's result, its plot data, its cost per pair)."""
     family = base.family
     pairs, bench = calib.pairs, calib.bench
     real_psnr = np.concatenate([np.asarray(st["frame_psnr"], dtype=np.float64) for st in calib.stats])
@@ -246,9 +252,10 @@ def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, calib: _Sid
     # goodness of fit on held-out scenes (in-sample when there is only one scene); the floor on every real pair
     ev = held if held is not None else calib
     synth_stats, sheet = [], []
+    secs: dict[str, float] = {"perturb": 0.0, "render": 0.0}
     for i, p in enumerate(ev.pairs):
         s = draw_strength(config, p.seed)
-        synth = ev.bench.corrupted(base.at(s), i)
+        synth = ev.bench.corrupted(base.at(s), i, seconds=secs)
         synth_stats.append(stats.pair_stats(synth, ev.bench.clean[i], lpips=lpips))
         if i < 3:
             mid = len(p.clean) // 2
@@ -269,4 +276,8 @@ def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, calib: _Sid
             "real_spectrum": np.nanmean(goodness.stat_matrix(ev.stats, stats.SPECTRUM_NAMES), axis=0).tolist(),
             "synth_spectrum": np.nanmean(goodness.stat_matrix(synth_stats, stats.SPECTRUM_NAMES), axis=0).tolist(),
             "sheet": sheet}
-    return result, plot
+    n = max(len(ev.pairs), 1)
+    cost = {"family": label, "regime": regime, "pairs": len(ev.pairs), "perturb": round(secs["perturb"] / n, 4),
+            "render": round(secs["render"] / n, 4),
+            "seconds_per_pair": round((secs["perturb"] + secs["render"]) / n, 4)}
+    return result, plot, cost

@@ -62,7 +62,9 @@ def summarise(records: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
     own = [_own(r) for r in recs]
 
     def mean(v: list[float | None]) -> float | None:
-        return None if not v or any(x is None for x in v) else round(sum(float(x) for x in v if x is not None) / len(v), 4)
+        if not v or any(x is None for x in v):
+            return None
+        return round(sum(float(x) for x in v if x is not None) / len(v), 4)
 
     fit_total = None if any(v is None for v in fits.values()) else round(sum(float(v) for v in fits.values()), 3)
     return {"pairs": len(recs), "fits": len(fits), "fit_seconds": fit_total, "corrupted_seconds": mean(own),

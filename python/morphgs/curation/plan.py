@@ -109,7 +109,8 @@ def stop_step(fraction: float, steps: int) -> int:
     return int(round(float(fraction) * int(steps)))
 
 
-def _fraction_params(kind: str, fraction: Any, steps: Any, fit: Any, where: str, shown: str | None = None) -> dict[str, Any]:
+def _fraction_params(kind: str, fraction: Any, steps: Any, fit: Any, where: str,
+                     shown: str | None = None) -> dict[str, Any]:
     """Validated params of an underfit / cross config (`where`: how the error names the config;
     `shown`: the fraction as the user wrote it)."""
     if isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or not math.isfinite(fraction) \
