@@ -144,7 +144,11 @@ def test_cross_on_recorded_cameras_trains_on_the_first_photos(tmp_path: Path) ->
     s = curate([root], out, configs=["cross:0.5@20", "morphological"], pairs_per_scene=1, frames=4,
                resolution=(64, 48), progress=False, log=lambda m: None)
     assert s.ok, s.failed
+    again = curate([root], out, configs=["cross:0.5@20"], pairs_per_scene=1, frames=4, resolution=(64, 48),
+                   trajectory="orbit", progress=False, log=lambda m: None)
+    assert again.done == 0 and again.skipped == 1  # the cross pair follows its capture whatever --trajectory
     recs = {r["config_name"]: r for r in load_manifest(out).values()}
+    assert recs["cross-0.5-20steps"]["up"] is None
     fit = recs["cross-0.5-20steps"]["fit"]
     assert fit["images"] == "images" and fit["train_views"] == list(range(8))
     assert fit["path_views"] == list(range(8, 16))

@@ -127,10 +127,12 @@ class _Cost:
         return round(float(self.d["prep"]) + float(self.d["run"] if run_seconds is None else run_seconds), 3)
 
 
-def _prepare(folder: Path, job: Any, scene: Any, recorded: Cameras | None, up: str) -> dict[str, Any]:
-    """views.json of the fit (writing data/ and it first when needed); the seconds spent go to cost.json."""
+def _prepare(folder: Path, job: Any, scene: Any, recorded: Cameras | None, up: str) -> tuple[dict[str, Any], float]:
+    """(views.json of the fit, seconds spent), writing data/ and views.json first when needed
+    (those seconds also go to cost.json)."""
     views_file = folder / "views.json"
     data = folder / "data"
+    spent = 0.0
     if not (data / "transforms.json").is_file() or not views_file.is_file():
         t0 = time.perf_counter()
         kind, params = job.config.kind, job.config.params
@@ -143,10 +145,11 @@ def _prepare(folder: Path, job: Any, scene: Any, recorded: Cameras | None, up: s
         if kind == "cross":
             info["path_views"] = list(range(sparse.cross_cut(len(cams), params), len(cams)))
         views_file.write_text(json.dumps(info, indent=1) + "\n")
+        spent = time.perf_counter() - t0
         cost = _Cost(folder)
-        cost.d["prep"] = round(time.perf_counter() - t0, 3)
+        cost.d["prep"] = round(spent, 3)
         cost.save()
-    return dict(json.loads(views_file.read_text(encoding="utf-8")))
+    return dict(json.loads(views_file.read_text(encoding="utf-8"))), spent
 
 
 def _run_fit(data: Path, run: Path, cfg: Any, views: dict[str, Any], until: int | None = None) -> Any:
@@ -184,7 +187,7 @@ def fit_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path, *, 
               stops: tuple[tuple[str, int], ...] = ()) -> tuple[Any, dict[str, Any], float]:
     """The cached fit of a `sparse`, `cross` or `underfit` job, fitted first when needed:
     (GaussianScene, the manifest's `fit` record, seconds this call spent fitting and preparing
-    views: 0 when the fit was cached). `up`: the up rule of the capture orbit of a scene file
+    views: 0 when the fit was cached, or made by another process while this one waited). `up`: the up rule of the capture orbit of a scene file
     without cameras (`trajectory.scene_up`). `stops`: (schedule_key, step) of every underfit
     config of the curate run: an underfit run stops at each of its own on the way, in order."""
     cfg = fit_config(job.config.params, job.config.label, job.run_seed)
@@ -203,29 +206,31 @@ def fit_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path, *, 
     if key in _CACHE:
         return (*_CACHE[key], 0.0)
     folder.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
     with open(folder / ".lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # one process fits; the others wait and reuse it
-        views = _prepare(folder, job, scene, recorded, up)
+        views, spent = _prepare(folder, job, scene, recorded, up)
         if target is None:
-            result, info = _full(out_dir, folder, job, cfg, views)
+            result, info, fitting = _full(out_dir, folder, job, cfg, views)
         else:
             mine = sorted({s for k, s in stops if k == schedule_key(cfg) and s < target} | {target})
-            result, info = _underfit(out_dir, folder, job, cfg, views, mine)
+            result, info, fitting = _underfit(out_dir, folder, job, cfg, views, mine)
     _CACHE.clear()
     _CACHE[key] = (result, info)
-    return result, info, time.perf_counter() - t0
+    return result, info, spent + fitting
 
 
-def _full(out_dir: Path, folder: Path, job: Any, cfg: Any, views: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
-    """A sparse or cross fit, to the end of its schedule."""
+def _full(out_dir: Path, folder: Path, job: Any, cfg: Any,
+          views: dict[str, Any]) -> tuple[Any, dict[str, Any], float]:
+    """A sparse or cross fit, to the end of its schedule: (scene, record, seconds spent fitting)."""
     run = folder / "run"
     loaded = sparse._cached_result(run) if (run / "fit.json").is_file() else None
     cost = _Cost(folder)
+    spent = 0.0
     if loaded is None:
         print(f"curate: fitting {job.source.id} from {len(views['train'])} of {views['capture_views']} views "
               f"({job.config.label}, {cfg.steps} steps) -> {run}", file=sys.stderr)
         res = _run_fit(folder / "data", run, cfg, views)
+        spent = res.seconds
         cost.add(run=round(res.seconds, 3))
         cost.d["step"] = res.steps
         cost.save()
@@ -233,11 +238,11 @@ def _full(out_dir: Path, folder: Path, job: Any, cfg: Any, views: dict[str, Any]
         if loaded is None:
             raise MorphgsError(f"sparse fit {run}: its result cannot be read back after fitting")
     summary, result = loaded
-    return result, _info(out_dir, folder, run / summary["ply"], views, summary, int(job.run_seed), cost.total())
+    return result, _info(out_dir, folder, run / summary["ply"], views, summary, int(job.run_seed), cost.total()), spent
 
 
 def _underfit(out_dir: Path, folder: Path, job: Any, cfg: Any, views: dict[str, Any],
-              stops: list[int]) -> tuple[Any, dict[str, Any]]:
+              stops: list[int]) -> tuple[Any, dict[str, Any], float]:
     """The shared run advanced to each of `stops` in turn (the last is the job's), a snapshot
     kept at each; a stop the run has already passed without a snapshot is fitted alone from step
     0 in branches/ (the same state, by determinism; its own cost)."""
@@ -245,6 +250,7 @@ def _underfit(out_dir: Path, folder: Path, job: Any, cfg: Any, views: dict[str, 
     from morphgs.fit import FitPastError
 
     target = stops[-1]
+    spent = 0.0
     for step in stops:
         snap = folder / "snapshots" / f"step_{step:06d}"
         if (snap / "snapshot.json").is_file():
@@ -261,6 +267,7 @@ def _underfit(out_dir: Path, folder: Path, job: Any, cfg: Any, views: dict[str, 
         except FitPastError:  # checkpointed past it by a call killed after its checkpoint
             run, shared = folder / "branches" / f"step_{step:06d}" / "run", False
             res = _run_fit(folder / "data", run, cfg, views, until=step)
+        spent += res.seconds
         if shared:
             cost.add(run=round(res.seconds, 3))
             cost.d["step"] = res.steps
@@ -283,5 +290,6 @@ def _underfit(out_dir: Path, folder: Path, job: Any, cfg: Any, views: dict[str, 
     snap = folder / "snapshots" / f"step_{target:06d}"
     s = json.loads((snap / "snapshot.json").read_text(encoding="utf-8"))
     result = morphgs.load(snap / "point_cloud.ply")
-    return result, _info(out_dir, folder, snap / "point_cloud.ply", views, s, int(job.run_seed), s["seconds"],
-                         schedule_steps=s["schedule_steps"], fraction=job.config.params["fraction"], run=s["run"])
+    info = _info(out_dir, folder, snap / "point_cloud.ply", views, s, int(job.run_seed), s["seconds"],
+                 schedule_steps=s["schedule_steps"], fraction=job.config.params["fraction"], run=s["run"])
+    return result, info, spent

@@ -309,7 +309,10 @@ def uses_orbit(has_cameras: bool, opts: TrajectoryOptions) -> bool:
 def job_up(job: PairJob, scene: Any, recorded: Cameras | None, opts: TrajectoryOptions) -> list[float] | None:
     """The world up of the pair's orbit (None when it follows recorded cameras): +z for the
     built-in synthetic scenes, the recorded cameras' mean up for an orbit of a scene with
-    cameras, else `trajectory.scene_up(scene, opts.up)`."""
+    cameras, else `trajectory.scene_up(scene, opts.up)`. A cross pair follows its capture
+    whatever `opts.kind`: an orbit's up without recorded cameras, None with them."""
+    if job.config.kind == "cross":
+        return None if recorded is not None else orbit_up(job, scene, opts)
     return orbit_up(job, scene, opts, recorded) if uses_orbit(recorded is not None, opts) else None
 
 

@@ -129,7 +129,8 @@ def _same_up(rec: dict[str, Any], job: PairJob, traj: TrajectoryOptions) -> bool
 
     from morphgs.trajectory import scene_up
 
-    if not uses_orbit(job.source.cameras is not None, traj):
+    cross_cameras = job.config.kind == "cross" and job.source.cameras is not None  # along its capture
+    if cross_cameras or not uses_orbit(job.source.cameras is not None, traj):
         return rec.get("up") is None
     got = rec.get("up", [0.0, 0.0, 1.0])
     if got is None:
