@@ -71,6 +71,8 @@ def test_dry_run_shows_the_plan_job_counts_and_a_cost_estimate(preset: str, tmp_
 
 @pytest.mark.parametrize(("text", "match"), [
     ('[conditions]\ntrain = ["morphologic"]\n', r"conditions\.train: unknown condition 'morphologic'"),
+    ('[conditions]\ntrain = ["underfit:1.5"]\n', r"conditions\.train: unknown condition 'underfit:1\.5' \(--config "
+     r"'underfit:1\.5': 'fraction' must be a number strictly between 0 and 1, got 1\.5\)"),
     ('[split]\ntrain_ids = ["sample-0"]\n', r"split\.test_ids: empty split"),
     ('[split]\ntest = 3\n', r"empty training split"),
     ('[regimes]\nevery = [30]\n', r"scene sample-\d has 24 capture views, too few for regime S30"),
@@ -322,3 +324,24 @@ def test_paired_differences_pair_each_seed_with_the_inputs_scene_and_plot(tmp_pa
     assert (m, n) == (-1.5, 4)  # against a trained reference: the same (scene, seed) units
     deltas(tmp_path, recs, ["S8"], ["morphological", "target-S8"])
     assert (tmp_path / "deltas.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_real_fit_sources_are_training_conditions_with_their_fit_in_the_estimate(tmp_path: Path) -> None:
+    """underfit:F and cross:P are accepted where sparse:K is (`conditions.train`), and the dry
+    run's estimate counts their fits (underfit: to its stop step)."""
+    from morphgs.ablation.estimate import estimate
+    from morphgs.ablation.recipe import build_plan
+
+    def trainsets_estimate(train: str) -> float:
+        f = _study(tmp_path, f'preset = "smoke"\n[conditions]\ntargets = false\ntrain = ["{train}"]\n')
+        study = load_study(f)
+        jobs = build_plan(study, tmp_path / "s")
+        (ts,) = [j for j in jobs if j.ref.stage == "trainsets"]
+        spec = ts.call_kwargs()["spec"]
+        assert spec.kind == train.split(":")[0]
+        return estimate(study, jobs)["trainsets"]
+
+    base = trainsets_estimate("cross:0.5@1000")  # a fit of 1000 steps per scene
+    assert trainsets_estimate("underfit:0.5@2000") == pytest.approx(base)  # stopped at 1000 of 2000
+    assert trainsets_estimate("underfit:0.25@2000") < base
+

@@ -144,8 +144,9 @@ def test_the_ablation_stage_writes_the_commands_bytes_and_no_timings_or_lock(hid
     stage, cmd = files(work / "calib"), files(tmp_path / "cmd")
     assert {"calibration.json", "report.md", "configs/morphological-hidden.json"} <= stage
     assert any(f.startswith("plots/") for f in stage)
-    assert not [f for f in stage if f.endswith("timings.json") or Path(f).name.startswith(".morphgs")]
-    assert cmd - stage == {"timings.json", ".morphgs.lock"}
+    apart = ("timings.json", "costs.json", "costs.md")
+    assert not [f for f in stage if Path(f).name in apart or Path(f).name.startswith(".morphgs")]
+    assert cmd - stage == {"timings.json", "costs.json", "costs.md", ".morphgs.lock"}
     for f in sorted(stage):
         assert (work / "calib" / f).read_bytes() == (tmp_path / "cmd" / f).read_bytes(), f
     assert json.loads((work / CONFIG).read_text()) == json.loads((work / "calib" / "configs" /
@@ -280,6 +281,36 @@ def test_sparse_regime_cached_and_deterministic(tmp_path: Path) -> None:
     assert not np.array_equal(real_views, path_views)
 
 
+def test_underfit_and_cross_regimes_and_the_cost_per_pair(tmp_path: Path) -> None:
+    """underfit:F and cross:P are regimes like sparse:K (the built-in fit length when they give no
+    @STEPS; underfit regimes of one schedule made in ascending order share one run), and the cost
+    per pair of each regime and family lands in costs.json / costs.md, not in the files that
+    must be the same bytes on every run."""
+    out = tmp_path / "c"
+    args = ["calibrate", "--regime", "underfit:0.5", "--regime", "underfit:0.25", "--regime", "cross:0.5",
+            "--sample-scenes", "2", "--sample-fit-steps", "20", "--sample-gaussians", "3000", "--size", "48x32",
+            "--frames", "4", "-k", "1", "--no-plots", "--grid", "0.125,16", "--out", str(out)]
+    assert main(args) == 0
+    doc = json.loads((out / "calibration.json").read_text())
+    assert doc["regimes"] == ["underfit:0.5", "underfit:0.25", "cross:0.5"]
+    assert doc["fit_steps"] == {"underfit:0.5": 20, "underfit:0.25": 20, "cross:0.5": 20}
+    recs = load_manifest(out / "real")
+    fits = {(r["config_name"], r["scene"]): r["fit"] for r in recs.values()}
+    assert fits[("underfit-0.25-20steps", "sample-0")]["steps"] == 5
+    assert fits[("underfit-0.5-20steps", "sample-0")]["steps"] == 10
+    assert {f["run"] for k, f in fits.items() if k[0].startswith("underfit")} == {"shared"}
+    cost = json.loads((out / "costs.json").read_text())
+    assert list(cost["regimes"]) == doc["regimes"]
+    for c in cost["regimes"].values():
+        assert c["pairs"] == 2 and c["fits"] == 2 and c["fit_seconds"] > 0
+        assert c["seconds_per_pair"] > c["corrupted_seconds"] > 0
+    assert [(c["family"], c["regime"]) for c in cost["families"]] == [("morphological", r) for r in doc["regimes"]]
+    assert all(c["seconds_per_pair"] > 0 and c["pairs"] == 1 for c in cost["families"])
+    md = (out / "costs.md").read_text()
+    assert "| underfit:0.25 | 2 | 2 |" in md and "| morphological | cross:0.5 | 1 |" in md
+    assert "second" not in (out / "calibration.json").read_text() + (out / "report.md").read_text()
+
+
 def _err(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -298,7 +329,11 @@ def test_bad_input(hidden_strength: Path, tmp_path: Path, capsys: pytest.Capture
         capsys, ["calibrate", "--real", str(hidden_strength), "--family", str(bad_family), "--out", out])
     assert "--regime sparse:96: leaves 1 training view(s) of 96 for scene sample-0" in _err(
         capsys, ["calibrate", "--regime", "sparse:96", "--out", out])
-    assert "--regime morphological: expected sparse:K or sparse-n:N" in _err(
+    assert "--regime cross:0.99: leaves 1 of 96 views of scene sample-0 to render the pairs along" in _err(
+        capsys, ["calibrate", "--regime", "cross:0.99", "--out", out])
+    assert "--regime underfit:2: --config 'underfit:2': 'fraction' must be a number strictly between 0 and 1" in _err(
+        capsys, ["calibrate", "--regime", "underfit:2", "--out", out])
+    assert "--regime morphological: expected sparse:K, sparse-n:N, underfit:F or cross:P" in _err(
         capsys, ["calibrate", "--regime", "morphological", "--out", out])
     empty = tmp_path / "empty"
     empty.mkdir()

@@ -11,7 +11,7 @@ import pytest
 
 import morphgs
 from fit_helpers import make_dataset, small_config
-from morphgs.fit import FitConfig, FitRunError, fit
+from morphgs.fit import FitConfig, FitPastError, FitRunError, fit
 
 
 @pytest.fixture(scope="module")
@@ -84,6 +84,25 @@ def test_a_stopped_run_resumes_to_the_same_scene_and_rows(dataset: Path, tmp_pat
     ra, rb = _rows(straight.run_dir / "loss.csv"), _rows(done.run_dir / "loss.csv")
     assert [[r[k] for k in keys] for r in ra] == [[r[k] for k in keys] for r in rb]
     assert _rows(straight.run_dir / "eval.csv") == _rows(done.run_dir / "eval.csv")
+
+
+def test_until_stops_at_the_full_schedules_state_and_resumes_to_the_same_bytes(dataset: Path, tmp_path: Path) -> None:
+    """`until=S` (what curate's underfit:F uses) keeps the schedule of the full fit: its state at
+    S is that of the full run (a resume from it ends on the uninterrupted run's bytes), not that
+    of an S-step schedule; a run already past S refuses it."""
+    cfg = small_config(120, "mcmc")
+    straight = fit(dataset, tmp_path / "a", config=cfg, init="random", progress=False)
+    part = fit(dataset, tmp_path / "b", config=cfg, init="random", progress=False, until=70)
+    assert part.steps == 70 and part.ply == tmp_path / "b" / "point_cloud" / "iteration_70" / "point_cloud.ply"
+    assert part.ply.is_file() and not (tmp_path / "b" / "fit.json").exists() and part.heldout_psnr is not None
+    short = fit(dataset, tmp_path / "c", config=small_config(70, "mcmc"), init="random", progress=False)
+    assert short.ply.read_bytes() != part.ply.read_bytes()  # another schedule (the position lr decays faster)
+    done = fit(dataset, tmp_path / "b", config=cfg, init="random", progress=False)
+    assert done.steps == 120 and done.ply.read_bytes() == straight.ply.read_bytes()
+    with pytest.raises(FitPastError, match="at step 120, past the step asked for \\(70\\)"):
+        fit(dataset, tmp_path / "b", config=cfg, init="random", progress=False, until=70)
+    with pytest.raises(morphgs.MorphgsError, match="until must be in"):
+        fit(dataset, tmp_path / "d", config=cfg, init="random", progress=False, until=121)
 
 
 def test_views_every_k_trains_on_every_kth_view_of_the_trajectory(dataset: Path, tmp_path: Path) -> None:

@@ -33,8 +33,8 @@ def _as_cameras(cameras: Camera | Cameras | Sequence[Camera]) -> Cameras:
 class Corruption:
     """What a pair does to the clean scene: a perturbation config, or the 2D blur baseline."""
 
-    kind: str  # "perturb" | "strength" | "blur2d" | "sparse" (the corrupted scene is a sparse-view
-    # fit, see morphgs.curation.sparse; `corrupt_scene` cannot make it)
+    kind: str  # "perturb" | "strength" | "blur2d" | "sparse" | "underfit" | "cross" (the last three:
+    # the corrupted scene is a real fit, see morphgs.curation.fits; `corrupt_scene` cannot make it)
     config: dict[str, Any]
     perturb_config: Any = None
     blur_sigma: float = 0.0
@@ -50,8 +50,8 @@ class Corruption:
         kind = getattr(config, "kind", None)
         params = getattr(config, "params", None)
         if isinstance(kind, str) and isinstance(params, dict):  # ConfigSpec
-            if kind == "sparse":
-                return cls("sparse", {"kind": "sparse", **params})
+            if kind in ("sparse", "underfit", "cross"):
+                return cls(kind, {"kind": kind, **params})
             if kind in ("blur2d", "strength"):
                 return cls.make({"kind": kind, **params})
             config = params
@@ -101,7 +101,7 @@ class Corruption:
         return self
 
     def corrupt_scene(self, scene: Any, seed: int, cameras: Any = None) -> Any:
-        """The perturbed copy of `scene` (None for blur2d and sparse); `cameras` are the pair's,
+        """The perturbed copy of `scene` (None for blur2d and the real fits); `cameras` are the pair's,
         whose every K-th the sparse-view ops of a strength config take as training views."""
         if self.kind == "strength":
             from morphgs.strength import from_config

@@ -35,6 +35,7 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
     GPU models in GPU seconds)."""
     from morphgs.ablation import cache
     from morphgs.ablation.jobs import resolve
+    from morphgs.curation.plan import FIT_KINDS, fit_steps, stop_step
 
     S = study.settings
     w, h = S["capture"]["size"]
@@ -52,8 +53,12 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
         elif st == "trainsets":
             n = len(j.kwargs["scene_dirs"]) * S["conditions"]["pairs_per_scene"]
             s = n * frames * px * gauss * 2 * UNIT["render"]
-            if getattr(resolve(j.kwargs["spec"]), "kind", None) == "sparse":
-                s += len(j.kwargs["scene_dirs"]) * S["sparse"]["steps"] * px * UNIT["fit"]
+            spec = resolve(j.kwargs["spec"])
+            if getattr(spec, "kind", None) in FIT_KINDS:  # one fit per scene, to its end (underfit: its stop)
+                steps = fit_steps(spec.params)
+                if spec.kind == "underfit":
+                    steps = stop_step(spec.params["fraction"], steps)
+                s += len(j.kwargs["scene_dirs"]) * steps * px * UNIT["fit"]
         elif st == "calibration":
             # the strength scan and bisection (grid + ~10 points) plus op shares and the goodness of
             # fit render every calibration pair (half the training scenes' pairs) ~len(grid) + 15

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -123,6 +124,12 @@ def by_regime(pairs: Sequence[RealPair]) -> dict[str, list[RealPair]]:
     return out
 
 
+def _add(seconds: dict[str, float] | None, **kw: float) -> None:
+    if seconds is not None:
+        for k, v in kw.items():
+            seconds[k] = seconds.get(k, 0.0) + v
+
+
 def _quantise(rgb: np.ndarray) -> np.ndarray:
     """Frames as a curated folder stores them: round(clip(rgb, 0, 1) * 255) / 255, so synthetic and
     real pairs are compared at the same precision."""
@@ -147,19 +154,27 @@ class Bench:
         self._rgb = [render_many([scenes[p.scene]], p.cameras)[0].rgb for p in self.pairs]
         self.clean = [_quantise(rgb) for rgb in self._rgb]
 
-    def corrupted(self, config: Any, index: int) -> np.ndarray:
+    def corrupted(self, config: Any, index: int, seconds: dict[str, float] | None = None) -> np.ndarray:
         """The synthetic corrupted frames of pair `index` under a `Strength` config, or a
-        `Blur2d` one (the clean render blurred, as curate's blur2d)."""
+        `Blur2d` one (the clean render blurred, as curate's blur2d). `seconds`, when given,
+        gains the wall seconds spent: "perturb" (for blur2d, the blur) and "render"."""
         from morphgs.rendering import render_many
         from morphgs.strength import Blur2d
 
+        t0 = time.perf_counter()
         if isinstance(config, Blur2d):
-            return _quantise(config.blur(self._rgb[index]))
+            out = _quantise(config.blur(self._rgb[index]))
+            _add(seconds, perturb=time.perf_counter() - t0)
+            return out
         p = self.pairs[index]
         scene = config.apply(self.scenes[p.scene], seed=p.seed, cameras=p.cameras, train_cameras=p.train_cameras)
+        t1 = time.perf_counter()
+        _add(seconds, perturb=t1 - t0)
         if len(scene) == 0:
             return np.zeros_like(self.clean[index])
-        return _quantise(render_many([scene], p.cameras)[0].rgb)
+        out = _quantise(render_many([scene], p.cameras)[0].rgb)
+        _add(seconds, render=time.perf_counter() - t1)
+        return out
 
     def frame_psnr(self, config: Any) -> np.ndarray:
         """Per-frame PSNR of every synthetic pair under `config`, concatenated in pair order."""

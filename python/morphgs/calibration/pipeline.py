@@ -15,7 +15,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -123,6 +123,10 @@ class Calibration:
         results: per (regime, family), regime-major, calibration.json's result (plain JSON data;
             `outputs.document` adds its config file's name).
         plots: per result, what report.md's plots draw (PSNR and spectra, a sheet of frames).
+        costs: per result, the family's cost per pair at its calibrated strength, measured on
+            the goodness-of-fit pairs: {"family", "regime", "pairs", "perturb", "render",
+            "seconds_per_pair"} (wall seconds per pair, this machine; kept out of `results`,
+            so that calibration.json is the same bytes on every run).
     """
 
     regimes: list[str]
@@ -133,6 +137,7 @@ class Calibration:
     objective: str
     results: list[dict[str, Any]]
     plots: list[dict[str, Any]]
+    costs: list[dict[str, Any]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -207,7 +212,7 @@ def calibrate_pairs(groups: Mapping[str, Sequence[RealPair]], scenes: Mapping[st
     def side(ps: list[RealPair]) -> _Side:
         return _Side(ps, [stats.pair_stats(p.corrupted, p.clean, lpips=lpips) for p in ps], Bench(scenes, ps))
 
-    results, plots = [], []
+    results, plots, costs = [], [], []
     for regime, pairs in groups.items():
         calib, held = split_scenes(pairs)
         calib_side, held_side = side(calib), (side(held) if held else None)
@@ -219,13 +224,14 @@ def calibrate_pairs(groups: Mapping[str, Sequence[RealPair]], scenes: Mapping[st
             say(f"calibrate: {regime}: real-vs-real classifier floor AUC {floor['auc']:.3f} "
                 f"[{time.perf_counter() - t0:.1f} s]")
         for label, base in families:
-            result, plot = _calibrate_one(label, base, regime, calib_side, held_side, opts, floor, say=say)
+            result, plot, cost = _calibrate_one(label, base, regime, calib_side, held_side, opts, floor, say=say)
             results.append(result)
             plots.append(plot)
+            costs.append(cost)
     return Calibration(regimes=list(groups), families=[label for label, _ in families],
                        frames=sorted({len(p.clean) for ps in groups.values() for p in ps}),
                        resolution=[int(v) for v in next(iter(sizes))[::-1]], search_mix=search_mix,
-                       objective=objective, results=results, plots=plots)
+                       objective=objective, results=results, plots=plots, costs=costs)
 
 
 def _search_mix(label: str, base: Strength, calib: _Side, real_psnr: np.ndarray, pair_of_frame: np.ndarray, *,
@@ -265,8 +271,9 @@ def _search_mix(label: str, base: Strength, calib: _Side, real_psnr: np.ndarray,
 
 
 def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, calib: _Side, held: _Side | None, opts: Options,
-                   floor: dict[str, Any] | None, *, say: Callable[[str], None]) -> tuple[dict[str, Any], dict[str, Any]]:
-    """One family against one regime: (calibration.json's result, its plot data)."""
+                   floor: dict[str, Any] | None, *,
+                   say: Callable[[str], None]) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+    """One family against one regime: (calibration.json's result, its plot data, its cost per pair)."""
     family = base.family
     grid, lpips = opts.grid, opts.lpips
     pairs, bench = calib.pairs, calib.bench
@@ -300,9 +307,10 @@ def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, calib: _Sid
     # goodness of fit on held-out scenes (in-sample when there is only one scene); the floor on every real pair
     ev = held if held is not None else calib
     synth_stats, sheet, synth_held = [], [], []
+    secs: dict[str, float] = {"perturb": 0.0, "render": 0.0}
     for i, p in enumerate(ev.pairs):
         s = draw_strength(config, p.seed)
-        synth = ev.bench.corrupted(base.at(s), i)
+        synth = ev.bench.corrupted(base.at(s), i, seconds=secs)
         synth_held.append(synth)
         synth_stats.append(stats.pair_stats(synth, ev.bench.clean[i], lpips=lpips))
         if i < 3:
@@ -327,7 +335,11 @@ def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, calib: _Sid
             "real_spectrum": np.nanmean(goodness.stat_matrix(ev.stats, stats.SPECTRUM_NAMES), axis=0).tolist(),
             "synth_spectrum": np.nanmean(goodness.stat_matrix(synth_stats, stats.SPECTRUM_NAMES), axis=0).tolist(),
             "sheet": sheet}
-    return result, plot
+    n = max(len(ev.pairs), 1)
+    cost = {"family": label, "regime": regime, "pairs": len(ev.pairs), "perturb": round(secs["perturb"] / n, 4),
+            "render": round(secs["render"] / n, 4),
+            "seconds_per_pair": round((secs["perturb"] + secs["render"]) / n, 4)}
+    return result, plot, cost
 
 
 def _realism(base: Strength | Blur2d, config: Mapping[str, Any], calib: _Side, held: _Side | None,

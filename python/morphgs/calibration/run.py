@@ -39,29 +39,93 @@ def _cpu_seconds() -> float:
 
 def _check_regime(spec: str, sources: Sequence[Any], resolution: tuple[int, int],
                   default_steps: int | None = None) -> Any:
-    """Parse a --regime (sparse:K / sparse-n:N[@STEPS]) and check it leaves enough views;
-    `default_steps` is the fit length when the regime gives none."""
-    from morphgs.curation.plan import ConfigSpec, parse_config
+    """Parse a --regime (a real-fit config: sparse:K, sparse-n:N, underfit:F or cross:P, each
+    [@STEPS]) and check it leaves enough views; `default_steps` is the fit length when the
+    regime gives none."""
+    from morphgs.curation.plan import FIT_KINDS, ConfigSpec, parse_config
     from morphgs.curation.sparse import CAPTURE_VIEWS, split_views
 
     try:
         cfg = parse_config(spec)
     except ValueError as e:
         raise CalibrationError(f"--regime {spec}: {e}") from None
-    if cfg.kind != "sparse":
-        raise CalibrationError(f"--regime {spec}: expected sparse:K or sparse-n:N (optionally @STEPS); "
-                               "use --real DIR for other real pairs")
+    if cfg.kind not in FIT_KINDS:
+        raise CalibrationError(f"--regime {spec}: expected sparse:K, sparse-n:N, underfit:F or cross:P (optionally "
+                               "@STEPS); use --real DIR for other real pairs")
     if default_steps is not None and "steps" not in cfg.params:
-        cfg = ConfigSpec(f"{cfg.label}-{default_steps}steps", "sparse", {**cfg.params, "steps": default_steps})
+        cfg = ConfigSpec(f"{cfg.label}-{default_steps}steps", cfg.kind, {**cfg.params, "steps": default_steps})
     for src in sources:
         recorded = src.load_cameras(resolution) if src.cameras is not None else None
         n = len(recorded) if recorded is not None else CAPTURE_VIEWS
-        train, _ = split_views(n, cfg.params)
+        train, _ = split_views(n, cfg.params, cfg.kind)
         if len(train) < MIN_TRAIN_VIEWS:
             raise CalibrationError(f"--regime {spec}: leaves {len(train)} training view(s) of {n} for scene "
                                    f"{src.id} ({src.describe()}); at least {MIN_TRAIN_VIEWS} are needed "
-                                   "(use a smaller K or a larger N)")
+                                   "(use a smaller K, a larger N or a larger P)")
+        if cfg.kind == "cross" and n - len(train) < 2:
+            raise CalibrationError(f"--regime {spec}: leaves {n - len(train)} of {n} views of scene {src.id} to render "
+                                   "the pairs along (at least 2 are needed; use a smaller P)")
     return cfg
+
+
+def _curate_order(specs: Sequence[str], cfgs: Sequence[Any]) -> list[int]:
+    """The order the regimes' pairs are made in: as given, but underfit regimes by ascending
+    step, so that regimes sharing an underfit run advance it instead of fitting a branch."""
+    from morphgs.curation.plan import fit_steps, stop_step
+
+    def key(i: int) -> tuple[int, int, int]:
+        c = cfgs[i]
+        if c.kind != "underfit":
+            return (0, 0, i)
+        return (1, stop_step(c.params["fraction"], fit_steps(c.params)), i)
+
+    return sorted(range(len(specs)), key=key)
+
+
+def _costs(real_dir: Path, labels: Mapping[str, str], real: str | os.PathLike[str] | None,
+           calibration: Any) -> dict[str, Any]:
+    """costs.json: the cost per pair of each regime's real pairs (from their manifest records,
+    `morphgs.curation.costs`) and of each family at its calibrated strength (measured on the
+    goodness-of-fit pairs)."""
+    from morphgs.curation import costs, load_manifest
+
+    regimes: dict[str, Any] = {}
+    if labels:
+        recs = load_manifest(real_dir).values()
+        for spec, label in labels.items():
+            regimes[spec] = {"config": label, **costs.summarise([r for r in recs if r.get("config_name") == label])}
+    if real is not None:
+        recs = load_manifest(Path(real)).values()
+        for name in sorted({str(r.get("config_name", "real")) for r in recs}):
+            regimes.setdefault(name, {"config": name, **costs.summarise(
+                [r for r in recs if str(r.get("config_name", "real")) == name])})
+    return {"regimes": regimes, "families": list(calibration.costs)}
+
+
+def _costs_md(doc: Mapping[str, Any]) -> str:
+    def f(v: Any) -> str:
+        return "n/a" if v is None else f"{v:.3f}"
+
+    lines = ["# Cost per pair", "",
+             "Wall seconds of this run's machine (docs/calibration.md, \"Cost per pair\"): for a real regime, the "
+             "corrupted side of each pair (loading its fit and half the render pass) plus its share of the fit; for a "
+             "family, perturbing the clean scene at the calibrated strength and rendering it (the goodness-of-fit "
+             "pairs).",
+             "", "| real regime | pairs | fits | fit seconds (all) | corrupted side s/pair | **cost s/pair** |",
+             "|---|---|---|---|---|---|"]
+    for spec, c in doc["regimes"].items():
+        lines.append(f"| {spec} | {c['pairs']} | {c['fits']} | {f(c['fit_seconds'])} | {f(c['corrupted_seconds'])} | "
+                     f"**{f(c['seconds_per_pair'])}** |")
+    lines += ["", "| family | vs regime | pairs | perturb s/pair | render s/pair | **cost s/pair** |",
+              "|---|---|---|---|---|---|"]
+    for c in doc["families"]:
+        lines.append(f"| {c['family']} | {c['regime']} | {c['pairs']} | {f(c['perturb'])} | {f(c['render'])} | "
+                     f"**{f(c['seconds_per_pair'])}** |")
+    return "\n".join(lines) + "\n"
+
+
+def _fmt_cost(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.3g}"
 
 
 def find_scenes(scenes: Sequence[str], *, builtin_scenes: int = BUILTIN_SCENES,
@@ -197,15 +261,18 @@ def calibrate(
         out_dir = Path(out)
         groups: dict[str, list[RealPair]] = {}
         fit_steps: dict[str, int | None] = {}
-        for spec in regimes:
-            cfg = _check_regime(spec, sources, resolution, None if scene_list else builtin_fit_steps)
-            fit_steps[spec] = cfg.params.get("steps")
-            real_dir = out_dir / "real"
+        real_dir = out_dir / "real"
+        cfgs = [_check_regime(spec, sources, resolution, None if scene_list else builtin_fit_steps)
+                for spec in regimes]
+        for i in _curate_order(regimes, cfgs):
+            spec, cfg = regimes[i], cfgs[i]
             summary = curate(scene_list, real_dir, configs=[cfg], pairs_per_scene=pairs_per_scene, frames=frames,
                              resolution=resolution, seed=seed, test_fraction=0.0, builtin_gaussians=builtin_gaussians,
                              builtin_scenes=builtin_scenes, workers=workers, progress=False, log=say)
             if not summary.ok:
                 raise CalibrationError(f"--regime {spec}: making the real pairs failed: {summary.failed}")
+        for spec, cfg in zip(regimes, cfgs):
+            fit_steps[spec] = cfg.params.get("steps")
             groups[spec] = read_real_pairs(real_dir, regimes=[cfg.label])
         if real is not None:
             for regime, ps in by_regime(read_real_pairs(real)).items():
@@ -222,9 +289,18 @@ def calibrate(
         doc = document(calibration, scenes=[s.describe() for s in sources], real=None if real is None else str(real),
                        pairs_per_scene=pairs_per_scene, seed=seed, fit_steps=fit_steps)
         write_outputs(out_dir, doc, calibration.plots, plots=plots)
-        # timings apart, so that calibration.json, the configs and report.md are the same bytes on every run
+        # timings and costs apart, so that calibration.json, the configs and report.md are the same
+        # bytes on every run
+        cost = _costs(real_dir, {spec: cfg.label for spec, cfg in zip(regimes, cfgs)}, real, calibration)
+        (out_dir / "costs.json").write_text(json.dumps(cost, indent=1) + "\n", encoding="utf-8")
+        (out_dir / "costs.md").write_text(_costs_md(cost), encoding="utf-8")
         secs = {"wall": round(time.perf_counter() - t_wall, 2), "cpu": round(_cpu_seconds() - t_cpu, 2)}
         (out_dir / "timings.json").write_text(json.dumps(secs) + "\n", encoding="utf-8")
+        many = len(groups) > 1
+        say("calibrate: cost per pair (s): " + "; ".join(
+            [f"{k} {_fmt_cost(c['seconds_per_pair'])}" for k, c in cost["regimes"].items()]
+            + [f"{c['family']}{' vs ' + c['regime'] if many else ''} {_fmt_cost(c['seconds_per_pair'])}"
+               for c in cost["families"]]) + f" ({out_dir / 'costs.md'})")
         say(f"calibrate: wrote {out_dir / 'calibration.json'}, {out_dir / 'report.md'} and "
             f"{len(calibration.results)} config(s) in {out_dir / 'configs'} ({secs['wall']:.1f} s, "
             f"CPU {secs['cpu']:.1f} s)")

@@ -33,7 +33,8 @@ def register(sub: Any) -> None:
     p.add_argument("scenes", nargs="*", metavar="SCENE", help="clean scenes, as for morphgs curate")
     p.add_argument("--out", required=True, help="output folder (a rerun reuses its real pairs and sparse fits)")
     p.add_argument("--regime", action="append", dest="regimes", default=[], metavar="REGIME",
-                   help="sparse-view regime: sparse:K or sparse-n:N, optionally @STEPS (fit length); repeatable")
+                   help="real-fit regime: sparse:K, sparse-n:N, underfit:F or cross:P, optionally @STEPS (fit "
+                        "length); repeatable")
     p.add_argument("--family", action="append", dest="families", default=[], metavar="FAMILY",
                    help="spatial, radiometric, morphological or naive (ops in the preset's proportions), "
                         "blur2d (the 2D render blur, strength = sigma in pixels), or a JSON file {\"family\": ..., "
@@ -67,7 +68,7 @@ def register(sub: Any) -> None:
     p.add_argument("--sample-scenes", type=int, default=4,
                    help="built-in sample scenes when no SCENE is given (4: two calibrate, two are held out)")
     p.add_argument("--sample-fit-steps", type=int, default=1500,
-                   help="sparse fit length on the built-in scenes for a --regime without @STEPS (1500)")
+                   help="fit length on the built-in scenes for a --regime without @STEPS (1500)")
     p.add_argument("--grid", type=_grid, default=None, metavar="LO,HI",
                    help="strength range of the log-grid scan, two points per octave (0.0625,128)")
     p.add_argument("--lpips", action="store_true", help="also compare LPIPS (needs the installed weights)")

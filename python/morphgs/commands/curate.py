@@ -44,8 +44,15 @@ config forms (--config CFG):
                       a real 3DGS reconstruction from every K-th recorded view (cached in DIR/fits)
   sparse-n:N | sparse-n:N@STEPS
                       a reconstruction from N views spread evenly
+  underfit:F | underfit:F@STEPS
+                      a reconstruction from all views stopped at the fraction F (0 < F < 1) of
+                      its schedule of STEPS (default 3000); the fractions of a scene share one run
+  cross:P | cross:P@STEPS
+                      a reconstruction from the first fraction P of the capture path, the pairs
+                      rendered along the rest of it
   FILE.json           a PerturbConfig dict, {"kind": "blur2d", "sigma" | "quantiles"}, {"kind":
-                      "sparse", "every" | "n", "steps", "fit"} or {"kind": "strength", "family",
+                      "sparse", "every" | "n", "steps", "fit"}, {"kind": "underfit" | "cross",
+                      "fraction", "steps", "fit"} or {"kind": "strength", "family",
                       "strength" | "quantiles", "ops"} (what morphgs calibrate writes: each pair
                       draws its strength or sigma, recorded in the manifest)
 """

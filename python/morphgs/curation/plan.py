@@ -25,10 +25,15 @@ from typing import Any
 from morphgs.camera import Cameras
 from morphgs.curation.sources import SceneSource
 
-__all__ = ["ConfigSpec", "PairJob", "TrajectoryOptions", "check_up", "job_cameras", "job_up", "up_rule", "make_plan",
+__all__ = ["FIT_KINDS", "ConfigSpec", "PairJob", "TrajectoryOptions", "check_up", "job_cameras", "job_up", "up_rule", "make_plan",
            "pair_seed", "parse_config", "scene_split"]
 
 PRESETS = ("spatial", "radiometric", "morphological", "naive")
+#: Config kinds whose corrupted side is a real 3DGS fit (morphgs.curation.sparse): every K-th view
+#: or N views (`sparse`), all views stopped early (`underfit`), one part of the path (`cross`).
+FIT_KINDS = ("sparse", "underfit", "cross")
+#: The fit length of a fit config without steps: the `sparse` fit preset's.
+DEFAULT_FIT_STEPS = 3000
 
 
 def _u64(text: str) -> int:
@@ -56,7 +61,8 @@ class ConfigSpec:
     `Strength.to_dict()` without "kind" (a fixed "strength", or a "quantiles" table of a strength
     distribution each pair draws from, see morphgs.strength); kind "blur2d" carries
     {"sigma": pixels} or {"quantiles": a sigma distribution}; kind "sparse" carries {"every": K} or {"n": N}, optionally "steps" and
-    "fit" (FitConfig overrides), see morphgs.curation.sparse.
+    "fit" (FitConfig overrides), see morphgs.curation.sparse; kinds "underfit" and "cross" carry
+    {"fraction": F} with the same optional "steps" and "fit" (`FIT_KINDS`).
     """
 
     label: str
@@ -89,6 +95,63 @@ def _sparse(spec: str, label_prefix: str, key: str, body: str) -> ConfigSpec:
     return ConfigSpec(label, "sparse", params)
 
 
+def fit_steps(params: dict[str, Any]) -> int:
+    """The full schedule length of a fit config's params: "steps", else the "fit" overrides'
+    steps, else the `sparse` fit preset's (`DEFAULT_FIT_STEPS`)."""
+    if "steps" in params:
+        return int(params["steps"])
+    fit = params.get("fit") or {}
+    return int(fit["steps"]) if isinstance(fit.get("steps"), int) else DEFAULT_FIT_STEPS
+
+
+def stop_step(fraction: float, steps: int) -> int:
+    """The step an `underfit` fit stops at: round(fraction x steps) of the full schedule."""
+    return int(round(float(fraction) * int(steps)))
+
+
+def _fraction_params(kind: str, fraction: Any, steps: Any, fit: Any, where: str,
+                     shown: str | None = None) -> dict[str, Any]:
+    """Validated params of an underfit / cross config (`where`: how the error names the config;
+    `shown`: the fraction as the user wrote it)."""
+    if isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or not math.isfinite(fraction) \
+            or not 0.0 < float(fraction) < 1.0:
+        raise ValueError(f"{where}: 'fraction' must be a number strictly between 0 and 1, got "
+                         f"{shown if shown is not None else repr(fraction)}")
+    params: dict[str, Any] = {"fraction": float(fraction)}
+    if steps is not None:
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+            raise ValueError(f"{where}: 'steps' must be an integer >= 1, got {steps!r}")
+        params["steps"] = steps
+    if fit is not None:
+        if not isinstance(fit, dict):
+            raise ValueError(f"{where}: 'fit' must be an object of fit settings")
+        params["fit"] = fit
+    if kind == "underfit":
+        n = fit_steps(params)
+        if stop_step(params["fraction"], n) < 1:
+            raise ValueError(f"{where}: 'fraction' {fraction} of {n} steps stops before the first step")
+    return params
+
+
+def _fraction_config(spec: str, kind: str, body: str) -> ConfigSpec:
+    """`underfit:F[@STEPS]` / `cross:P[@STEPS]`."""
+    value, _, steps = body.partition("@")
+    where = f"--config {spec!r}"
+    letter = "F" if kind == "underfit" else "P"
+    try:
+        f = float(value)
+    except ValueError:
+        raise ValueError(f"{where}: 'fraction' must be a number strictly between 0 and 1 "
+                         f"({kind}:{letter} or {kind}:{letter}@STEPS), got {value!r}") from None
+    try:
+        st = int(steps) if steps else None
+    except ValueError:
+        raise ValueError(f"{where}: 'steps' after '@' must be an integer >= 1, got {steps!r}") from None
+    params = _fraction_params(kind, f, st, None, where, shown=value)
+    label = f"{kind}-{params['fraction']:g}" + (f"-{st}steps" if st is not None else "")
+    return ConfigSpec(label, kind, params)
+
+
 def parse_config(spec: str, *, blur_sigma: float = 2.0) -> ConfigSpec:
     """Parse a --config value.
 
@@ -96,10 +159,13 @@ def parse_config(spec: str, *, blur_sigma: float = 2.0) -> ConfigSpec:
     every intensity scaled by S (`PerturbConfig.scaled`); `blur2d` or `blur2d@SIGMA` (the 2D
     baseline, sigma in pixels, default `blur_sigma`); `NAME~S`, the family NAME at strength S of
     the smooth, scene-aware strength parameterisation (`morphgs.strength.Strength`); `sparse:K` (a reconstruction from every
-    K-th recorded view, the paper's S_K) or `sparse-n:N` (from N views spread evenly), each
+    K-th recorded view, the paper's S_K) or `sparse-n:N` (from N views spread evenly),
+    `underfit:F` (a fit from all views stopped at the fraction F of its schedule) or `cross:P`
+    (a fit from the first fraction P of the capture path, pairs rendered along the rest), each
     optionally `@STEPS`; or a path to a JSON file holding a `PerturbConfig.to_dict()` (or
     {"kind": "blur2d", "sigma": s | "quantiles": {...}}, or {"kind": "sparse", "every": K | "n": N, "steps": S,
-    "fit": {FitConfig overrides}}, or {"kind": "strength", "family", "strength": S | "quantiles":
+    "fit": {FitConfig overrides}}, or {"kind": "underfit" | "cross", "fraction": F, "steps": S,
+    "fit": {...}}, or {"kind": "strength", "family", "strength": S | "quantiles":
     {"p": [...], "strength": [...]}, "ops": {...}} as `morphgs calibrate` writes), labelled by the
     file stem.
     """
@@ -109,6 +175,9 @@ def parse_config(spec: str, *, blur_sigma: float = 2.0) -> ConfigSpec:
         return _sparse(s, "sparse", "every", s[7:])
     if low.startswith("sparse-n:"):
         return _sparse(s, "sparse-n", "n", s[9:])
+    for kind in ("underfit", "cross"):
+        if low.startswith(f"{kind}:"):
+            return _fraction_config(s, kind, s[len(kind) + 1:])
     if s.lower().endswith(".json"):
         p = Path(s)
         try:
@@ -136,6 +205,15 @@ def parse_config(spec: str, *, blur_sigma: float = 2.0) -> ConfigSpec:
             if "fit" in params and not isinstance(params["fit"], dict):
                 raise ValueError(f"--config {spec}: 'fit' must be an object of fit settings")
             return ConfigSpec(p.stem, "sparse", params)
+        if d.get("kind") in ("underfit", "cross"):
+            unknown = sorted(set(d) - {"kind", "name", "fraction", "steps", "fit"})
+            if unknown:
+                raise ValueError(f"--config {spec}: unknown field(s) {', '.join(map(repr, unknown))} of a {d['kind']} "
+                                 "config (expected fraction, steps, fit)")
+            if "fraction" not in d:
+                raise ValueError(f"--config {spec}: a {d['kind']} config needs 'fraction'")
+            return ConfigSpec(p.stem, str(d["kind"]), _fraction_params(str(d["kind"]), d["fraction"],
+                                                                      d.get("steps"), d.get("fit"), f"--config {spec}"))
         if d.get("kind") == "strength":
             return ConfigSpec(p.stem, "strength", _strength_params(d, spec))
         import morphgs
@@ -159,7 +237,7 @@ def parse_config(spec: str, *, blur_sigma: float = 2.0) -> ConfigSpec:
         return ConfigSpec("blur2d" if not factor else f"blur2d-s{factor}", "blur2d", {"sigma": sigma})
     if name not in PRESETS:
         raise ValueError(f"--config {spec!r}: expected one of {', '.join(PRESETS)}, blur2d, NAME@SCALE, "
-                         "NAME~STRENGTH, sparse:K, sparse-n:N or a .json file")
+                         "NAME~STRENGTH, sparse:K, sparse-n:N, underfit:F, cross:P or a .json file")
     import morphgs
 
     cfg = morphgs.PerturbConfig.preset(name)
@@ -231,7 +309,10 @@ def uses_orbit(has_cameras: bool, opts: TrajectoryOptions) -> bool:
 def job_up(job: PairJob, scene: Any, recorded: Cameras | None, opts: TrajectoryOptions) -> list[float] | None:
     """The world up of the pair's orbit (None when it follows recorded cameras): +z for the
     built-in synthetic scenes, the recorded cameras' mean up for an orbit of a scene with
-    cameras, else `trajectory.scene_up(scene, opts.up)`."""
+    cameras, else `trajectory.scene_up(scene, opts.up)`. A cross pair follows its capture
+    whatever `opts.kind`: an orbit's up without recorded cameras, None with them."""
+    if job.config.kind == "cross":
+        return None if recorded is not None else orbit_up(job, scene, opts)
     return orbit_up(job, scene, opts, recorded) if uses_orbit(recorded is not None, opts) else None
 
 
@@ -340,11 +421,17 @@ def job_cameras(job: PairJob, scene: Any, recorded: Cameras | None, opts: Trajec
       `orbit_arc_degrees`; its elevation, in [10, 40] degrees, comes from the pair seed.
     - The built-in synthetic scenes use their own orbit (`synthetic.suggested_orbit`, inside the
       room): pair k's arc starts at 90 + (180 - arc) k / (K - 1) degrees, facing the walls.
+    - A `cross` config's pairs, whatever `opts.kind`: a smooth path through the capture views the
+      fit did not train on (`morphgs.curation.sparse.cross_path`).
     """
     from morphgs import trajectory
 
     if opts.kind not in ("auto", "cameras", "orbit"):
         raise ValueError(f"trajectory must be auto, cameras or orbit, got {opts.kind!r}")
+    if job.config.kind == "cross":  # the part of the capture path the fit did not train on
+        from morphgs.curation.sparse import cross_path
+
+        return cross_path(job, scene, recorded, opts)
     if opts.kind == "cameras" and recorded is None:
         raise ValueError(f"scene {job.source.id} has no cameras (trajectory 'cameras' was asked)")
     if recorded is not None and opts.kind != "orbit":

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from morphgs.curation import manifest
+from morphgs.curation.fits import underfit_stops
 from morphgs.curation.plan import ConfigSpec, PairJob, TrajectoryOptions, check_up, make_plan, parse_config, uses_orbit
 from morphgs.curation.sources import BUILTIN_GAUSSIANS, SceneSource, builtin_sources, discover
 from morphgs.curation.worker import OutputOptions, make_pair, tmp_root
@@ -128,7 +129,8 @@ def _same_up(rec: dict[str, Any], job: PairJob, traj: TrajectoryOptions) -> bool
 
     from morphgs.trajectory import scene_up
 
-    if not uses_orbit(job.source.cameras is not None, traj):
+    cross_cameras = job.config.kind == "cross" and job.source.cameras is not None  # along its capture
+    if cross_cameras or not uses_orbit(job.source.cameras is not None, traj):
         return rec.get("up") is None
     got = rec.get("up", [0.0, 0.0, 1.0])
     if got is None:
@@ -278,7 +280,8 @@ def _curate(*, scenes: Iterable[str | os.PathLike[str]], out: str | os.PathLike[
         raise ValueError(f"chunk must be >= 1, got {chunk}")
     opts = OutputOptions(depth=depth, video=video, fps=fps, background=tuple(background),  # type: ignore[arg-type]
                          chunk=chunk, trajectory=TrajectoryOptions(trajectory, stride, orbit_arc_degrees,
-                                                                   fov_y_degrees, check_up(up)))
+                                                                   fov_y_degrees, check_up(up)),
+                         fit_stops=underfit_stops(specs, seed))
     jobs = make_plan(sources, specs, pairs_per_scene=pairs_per_scene, run_seed=seed, frames=frames,
                      resolution=tuple(resolution), test_fraction=test_fraction,  # type: ignore[arg-type]
                      split_seed=split_seed, shard_index=shard_index, num_shards=num_shards)

@@ -1,40 +1,32 @@
-"""Sparse-view reconstructions for `--config sparse:K` / `sparse-n:N` (docs/curation.md, docs/fit.md).
-
-The corrupted side of such a pair is a real 3DGS reconstruction from few views, rendered along
-the pair's path. Per (scene, views, seed, resolution, fit settings) one fit is made and cached:
-
-    OUT/fits/<scene>/<label>-<W>x<H>-seed<S>-<hash>/
-        data/transforms.json, data/images/      the training (and scoring) views as fitted
-        run/                                    the morphgs fit run folder (resumable)
+"""What a real-fit config's reconstruction sees (`sparse:K`, `sparse-n:N`, `underfit:F`,
+`cross:P`; docs/curation.md, docs/fit.md): its capture, its training and held-out views, their
+images, and the pair path of a `cross` config. The fits themselves, cached and shared, are made
+by `morphgs.curation.fits`.
 
 - The capture: the scene's recorded cameras (transforms.json / COLMAP / INRIA cameras.json, at
   the pair resolution) in capture order; a scene without cameras gets a 96-view 360-degree orbit
   (the built-in synthetic scenes their own room orbit).
-- Training views: every K-th capture view starting with the first (the paper's S_K), or N views
-  spread evenly (both ends included). Up to 8 other views, spread evenly, are held out to score
-  the fit.
+- Training views (`split_views`): every K-th capture view starting with the first (the paper's
+  S_K), or N views spread evenly (both ends included), with up to 8 other views, spread evenly,
+  held out to score the fit; for `underfit`, every view but min(8, n // 8) held-out ones; for
+  `cross`, the first round(P x n) views, up to 8 of the rest held out.
 - Images: the scene folder's real images when every training view has one, else renders of the
   clean scene from those cameras. Real photos keep their own size and orientation (scaled so
   the longer side is the pair's longer side: a capture mixing portrait and landscape, or
   COLMAP's undistorted layout where every image has its own size, fits as it is) and are
   undistorted with their camera's coefficients (docs/fit.md).
 - Initialisation: random points along the training views' rays (`init="random"`,
-  `morphgs.fit.rays`; no SfM points: they would come from all views). The fit config is the `sparse` preset (3000 steps, MCMC capped at 300k Gaussians, SH
-  degree 1) unless the config says otherwise.
-
-A fit is resumable (its run folder checkpoints) and shared: worker processes take a file lock per
-fit, so several pairs and workers reuse one reconstruction.
+  `morphgs.fit.rays`; no SfM points: they would come from all views). The fit config is the
+  `sparse` preset (3000 steps, MCMC capped at 300k Gaussians, SH degree 1) unless the config
+  says otherwise.
 """
 
 from __future__ import annotations
 
 import ast
-import fcntl
-import hashlib
 import json
 import os
 import re
-import sys
 import warnings
 from pathlib import Path
 from typing import Any
@@ -45,12 +37,12 @@ from morphgs._core import MorphgsError, MorphgsWarning
 from morphgs.camera import Cameras
 from morphgs.reliability import one_line
 
-__all__ = ["capture_cameras", "sparse_scene", "split_views"]
+__all__ = ["capture_cameras", "capture_for", "check_split", "cross_cut", "cross_path", "split_views", "views_images",
+           "write_data"]
 
 CAPTURE_VIEWS = 96
 EVAL_VIEWS = 8
 _GL = np.diag([1.0, -1.0, -1.0, 1.0])
-_CACHE: dict[str, tuple[Any, dict[str, Any]]] = {}
 
 
 def capture_cameras(source: Any, scene: Any, recorded: Cameras | None, resolution: tuple[int, int],
@@ -72,20 +64,81 @@ def capture_cameras(source: Any, scene: Any, recorded: Cameras | None, resolutio
                                 arc_degrees=360.0 * (CAPTURE_VIEWS - 1) / CAPTURE_VIEWS)
 
 
-def split_views(n: int, params: dict[str, Any]) -> tuple[list[int], list[int]]:
-    """(training, held-out) capture indices: every K-th or N spread evenly; up to 8 others held
-    out, spread evenly."""
+def split_views(n: int, params: dict[str, Any], kind: str = "sparse") -> tuple[list[int], list[int]]:
+    """(training, held-out) capture indices of a fit config (`kind`, its `params`):
+
+    - "sparse": every K-th ("every") or N spread evenly ("n"); up to 8 others held out, spread
+      evenly;
+    - "underfit": min(8, n // 8) views held out, at the centres of as many equal parts of the
+      capture (never its first or last view), every other view trains;
+    - "cross": the first round(P x n) views ("fraction" P) train; up to 8 of the rest, spread
+      evenly, are held out (they score the fit where its pairs are rendered).
+    """
+    if kind == "underfit":
+        k = min(EVAL_VIEWS, n // 8)  # at most one view in 8 held out: a short capture keeps 7/8
+        held = sorted({int((j + 0.5) * n / k) for j in range(k)})
+        return [i for i in range(n) if i not in set(held)], held
+    if kind == "cross":
+        cut = cross_cut(n, params)
+        return list(range(cut)), _spread(list(range(cut, n)))
     if "every" in params:
         train = list(range(0, n, int(params["every"])))
     else:
         k = int(params["n"])
         train = sorted({int(i) for i in np.round(np.linspace(0, n - 1, min(k, n)))})
-    rest = [i for i in range(n) if i not in set(train)]
-    if rest:
-        held = sorted({rest[int(i)] for i in np.round(np.linspace(0, len(rest) - 1, min(EVAL_VIEWS, len(rest))))})
-    else:
-        held = []
-    return train, held
+    return train, _spread([i for i in range(n) if i not in set(train)])
+
+
+def _spread(views: list[int]) -> list[int]:
+    """Up to `EVAL_VIEWS` of `views`, spread evenly (both ends included)."""
+    if not views:
+        return []
+    return sorted({views[int(i)] for i in np.round(np.linspace(0, len(views) - 1, min(EVAL_VIEWS, len(views))))})
+
+
+def cross_cut(n: int, params: dict[str, Any]) -> int:
+    """How many capture views (the first ones) a `cross` fit trains on: round(P x n)."""
+    return int(round(float(params["fraction"]) * n))
+
+
+def check_split(label: str, kind: str, n: int, params: dict[str, Any], min_train: int = 1) -> None:
+    """MorphgsError naming the config when its split of `n` capture views leaves fewer than
+    `min_train` training views, or (cross) fewer than 2 views to render its pairs along."""
+    train, _ = split_views(n, params, kind)
+    if len(train) < min_train:
+        raise MorphgsError(f"config {label}: leaves {len(train)} training view(s) of {n} capture views "
+                           f"(at least {min_train} needed)")
+    if kind == "cross" and n - len(train) < 2:
+        raise MorphgsError(f"config {label}: 'fraction' {params['fraction']:g} leaves {n - len(train)} of {n} capture "
+                           "views to render its pairs along (at least 2 needed)")
+
+
+def capture_for(job: Any, scene: Any, recorded: Cameras | None, up: Any) -> tuple[Cameras, list[float] | None]:
+    """(the capture a fit of `job` picks its views from, the up of its orbit: None when the views
+    are recorded cameras or the built-in room orbit); `up`: the --up rule."""
+    from morphgs import trajectory
+
+    orbit_up = None
+    if recorded is None and job.source.builtin is None:
+        orbit_up = [float(v) for v in trajectory.scene_up(scene, up)[0]]
+    cams = capture_cameras(job.source, scene, recorded, (job.width, job.height),
+                           up=orbit_up if orbit_up is not None else "file")
+    return cams, orbit_up
+
+
+def cross_path(job: Any, scene: Any, recorded: Cameras | None, opts: Any) -> Cameras:
+    """The camera path of a `cross` pair: a smooth constant-speed path through the capture views
+    the fit did not train on (capture order, as many frames as those views, at least the pair's),
+    cut into clips of the pair's frames every `opts.stride`; pair k takes clip k mod #clips. Its
+    ends are capture views of that part, so no frame lies among the training views."""
+    from morphgs import trajectory
+
+    cams, _ = capture_for(job, scene, recorded, opts.up)
+    check_split(job.config.label, "cross", len(cams), job.config.params)
+    rest = cams[cross_cut(len(cams), job.config.params):]
+    path = trajectory.smooth_path(rest, max(len(rest), job.frames))
+    cl = trajectory.clips(path, job.frames, stride=opts.stride)
+    return cl[job.index % len(cl)]
 
 
 def _real_images(source: Any, count: int) -> tuple[Any, list[int]] | None:
@@ -206,18 +259,6 @@ def fit_view(img: np.ndarray, cam: Any, width: int, height: int) -> tuple[np.nda
     return out, cam.resized(w, h)
 
 
-def _fit_dir(out_dir: Path, job: Any, fit_cfg: dict[str, Any], up: list[float] | None) -> Path:
-    """The cache folder of a sparse fit; `up` (the capture orbit's up, None when the views are
-    recorded cameras or the built-in room orbit) is part of its key, so another --up fits again."""
-    key: dict[str, Any] = {"config": job.config.as_dict(), "fit": fit_cfg, "size": [job.width, job.height],
-                           "seed": job.run_seed, "scene": job.source.describe()}
-    if up is not None:
-        key["up"] = [round(v, 9) for v in up]
-    ident = json.dumps(key, sort_keys=True)
-    h = hashlib.sha256(ident.encode()).hexdigest()[:10]
-    return out_dir / "fits" / job.source.id / f"{job.config.label}-{job.width}x{job.height}-seed{job.run_seed}-{h}"
-
-
 def write_data(folder: Path, cams: Any, images: list[np.ndarray]) -> None:
     """transforms.json + PNGs; sizes per frame (real photos keep their own)."""
     from morphgs._core import _write_png, _write_png_batch
@@ -270,67 +311,3 @@ def _cached_result(run: Path) -> tuple[dict[str, Any], Any] | None:
                       stacklevel=3)
         (run / "fit.json").unlink(missing_ok=True)
         return None
-
-
-def sparse_scene(job: Any, scene: Any, recorded: Cameras | None, out_dir: Path,
-                 up: str = "file") -> tuple[Any, dict[str, Any]]:
-    """The cached sparse reconstruction of a `sparse` job (fitting it first when needed):
-    (GaussianScene, info for the manifest). `up`: the up rule of the capture orbit of a scene
-    file without cameras (`trajectory.scene_up`)."""
-    from morphgs import trajectory
-    from morphgs.fit import FitConfig, FitRunError, fit
-
-    params = dict(job.config.params)
-    cfg = FitConfig.preset("sparse")
-    overrides = dict(params.get("fit", {}))
-    if "steps" in params:
-        overrides["steps"] = int(params["steps"])
-    if overrides:
-        cfg = FitConfig.from_dict({**cfg.to_dict(), **overrides}, source=f"config {job.config.label}")
-    cfg.seed = int(job.run_seed)
-    orbit_up = None
-    if recorded is None and job.source.builtin is None:
-        orbit_up = [float(v) for v in trajectory.scene_up(scene, up)[0]]
-    folder = _fit_dir(out_dir, job, cfg.to_dict(), orbit_up)
-    key = str(folder)
-    if key in _CACHE:
-        return _CACHE[key]
-    folder.mkdir(parents=True, exist_ok=True)
-    with open(folder / ".lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # one process fits; the others wait and reuse it
-        run = folder / "run"
-        done = run / "fit.json"
-        loaded = _cached_result(run) if done.is_file() else None
-        if loaded is None:
-            cams = capture_cameras(job.source, scene, recorded, (job.width, job.height),
-                                   up=orbit_up if orbit_up is not None else "file")
-            train, held = split_views(len(cams), params)
-            data = folder / "data"
-            if not (data / "transforms.json").is_file():
-                order = train + held
-                imgs, vcams, kind = views_images(job.source, scene, cams, order)
-                write_data(data, vcams, imgs)
-                (folder / "views.json").write_text(json.dumps(
-                    {"capture_views": len(cams), "train": train, "heldout": held, "images": kind}, indent=1) + "\n")
-            nt = len(train)
-            print(f"curate: fitting {job.source.id} from {nt} of {len(cams)} views ({job.config.label}, "
-                  f"{cfg.steps} steps) -> {run}", file=sys.stderr)
-            views, holdout = list(range(nt)), list(range(nt, nt + len(held)))
-            try:
-                fit(data, run, config=cfg, views=views, holdout=holdout, init="random", progress=False)
-            except FitRunError:  # no checkpoint of it verifies: fit it from the start
-                fit(data, run, config=cfg, views=views, holdout=holdout, init="random", progress=False,
-                    resume=False)
-            loaded = _cached_result(run)
-            if loaded is None:
-                raise MorphgsError(f"sparse fit {run}: its result cannot be read back after fitting")
-        summary, result = loaded
-        views = json.loads((folder / "views.json").read_text(encoding="utf-8"))
-    info = {"dir": str(folder.relative_to(out_dir)), "ply": str((run / summary["ply"]).relative_to(out_dir)),
-            "capture_views": views["capture_views"], "train_views": views["train"], "images": views["images"],
-            "steps": summary["steps"], "gaussians": summary["gaussians"], "heldout_psnr": summary["heldout_psnr"],
-            "heldout_ssim": summary["heldout_ssim"], "heldout_lpips": summary.get("heldout_lpips"),
-            "seed": int(job.run_seed)}
-    _CACHE.clear()
-    _CACHE[key] = (result, info)
-    return result, info

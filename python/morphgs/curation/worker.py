@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from morphgs.camera import Cameras
-from morphgs.curation.plan import PairJob, TrajectoryOptions, job_cameras, job_up, up_rule
+from morphgs.curation.plan import FIT_KINDS, PairJob, TrajectoryOptions, job_cameras, job_up, up_rule
 from morphgs.pair import Corruption, iter_pair_chunks
 from morphgs.rendering import RenderBuffers
 
@@ -39,6 +39,9 @@ class OutputOptions:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     chunk: int = 8
     trajectory: TrajectoryOptions = TrajectoryOptions()
+    #: (schedule key, step) of every underfit config of the run (`morphgs.curation.fits`): a
+    #: shared underfit run stops at each on its way, so its fractions are made in ascending order
+    fit_stops: tuple[tuple[str, int], ...] = ()
 
 
 def tmp_root(out_dir: Path) -> Path:
@@ -114,10 +117,12 @@ def make_pair(
     corruption = Corruption.make(job.config).for_seed(job.seed)
     t0 = time.perf_counter()
     fit_info = None
-    if corruption.kind == "sparse":
-        from morphgs.curation.sparse import sparse_scene
+    fitting = 0.0  # seconds this pair spent fitting (the first pair of a fit makes it)
+    if job.config.kind in FIT_KINDS:
+        from morphgs.curation.fits import fit_scene
 
-        corrupted_scene, fit_info = sparse_scene(job, scene, recorded, out_dir, up=opts.trajectory.up)
+        corrupted_scene, fit_info, fitting = fit_scene(job, scene, recorded, out_dir, up=opts.trajectory.up,
+                                                       stops=opts.fit_stops)
     else:
         corrupted_scene = corruption.corrupt_scene(scene, job.seed, cams)
     t_perturb = time.perf_counter() - t0
@@ -196,7 +201,12 @@ def make_pair(
         "up": up,
         "paths": paths,
         "timings": {"load": round(load_seconds, 4), "perturb": round(t_perturb, 4),
-                    "render": round(t_render, 4), "write_wait": round(t_wait, 4), "total": round(total, 4)},
+                    "render": round(t_render, 4), "write_wait": round(t_wait, 4), "total": round(total, 4),
+                    # the corrupted side without any fit: making it (perturbing, or loading the
+                    # cached fit) and half the render pass, which renders both scenes at once
+                    "corrupted": round(max(t_perturb - fitting, 0.0) + t_render / 2, 4),
+                    # the whole fit it comes from (shared by its pairs; `morphgs.curation.costs`)
+                    "fit": None if fit_info is None else fit_info.get("seconds")},
         "morphgs_version": morphgs.__version__,
         **extra,
     }

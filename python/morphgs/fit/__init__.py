@@ -28,7 +28,7 @@ from morphgs.fit.data import FitDataError, PosedImages, load_posed_images
 from morphgs.fit.init import InitError, initial_scene
 from morphgs.fit.many import ManyResult, fit_many
 from morphgs.fit.points import read_points
-from morphgs.fit.run import FitResult, FitRunError, fit, scene_scale_of
+from morphgs.fit.run import FitPastError, FitResult, FitRunError, fit, scene_scale_of
 from morphgs.fit.views import ViewSelection, ViewSelectionError, select_views
 
 __all__ = [
@@ -36,6 +36,7 @@ __all__ = [
     "FitConfig",
     "FitConfigError",
     "FitDataError",
+    "FitPastError",
     "FitResult",
     "FitRunError",
     "InitConfig",

@@ -42,7 +42,7 @@ from morphgs.fit.data import PosedImages, describe, load_posed_images
 from morphgs.fit.views import ViewSelection, select_views
 from morphgs.reliability import folder_lock
 
-__all__ = ["FitResult", "FitRunError", "fit", "scene_scale_of"]
+__all__ = ["FitPastError", "FitResult", "FitRunError", "fit", "scene_scale_of"]
 
 LOSS_COLUMNS = ["step", "view", "loss", "l1", "ssim", "psnr", "gaussians", "sh_degree", "lr_means",
                 "duplicated", "split", "pruned", "reset", "relocated", "added", "seconds"]
@@ -52,6 +52,10 @@ EVAL_VIEW_COLUMNS = ["step", "view", "name", "psnr", "ssim", "lpips"]
 
 class FitRunError(MorphgsError):
     """A run folder that holds another run (other config or data) than the one asked for."""
+
+
+class FitPastError(FitRunError):
+    """`fit(..., until=S)` on a run folder whose run is already past step S."""
 
 
 @dataclass
@@ -349,6 +353,7 @@ def fit(
     progress: bool = True,
     callback: Callable[[str, Any], Any] | None = None,
     wait: bool = False,
+    until: int | None = None,
 ) -> FitResult:
     """Fit a 3DGS scene to posed images on the CPU (docs/fit.md).
 
@@ -371,6 +376,12 @@ def fit(
             `_core.Trainer.run`. A true return value stops the run after a checkpoint.
         wait: when another process writes `out`, wait for it instead of raising
             morphgs.reliability.FolderBusyError (the folder is locked while the fit runs).
+        until: stop when this many steps are done (default: the config's steps). The schedule
+            (learning-rate decay, densification, SH degree) stays that of the config's steps, so
+            the result is the full fit's state at that step: a checkpoint and
+            `point_cloud/iteration_<until>/` are written, fit.json is not (the run is not done),
+            and a later call with a larger `until` (or none) resumes from there to the same bytes
+            as an uninterrupted run. FitRunError when the run in `out` is already past it.
 
     Returns:
         FitResult.
@@ -384,7 +395,7 @@ def fit(
     with folder_lock(out, command="fit", wait=wait):
         return _fit(data, out, config=config, views=views, holdout=holdout, init=init, images=images,
                     downscale=downscale, steps=steps, seed=seed, resume=resume, progress=progress,
-                    callback=callback)
+                    callback=callback, until=until)
 
 
 def _fit(
@@ -402,6 +413,7 @@ def _fit(
     resume: bool = True,
     progress: bool = True,
     callback: Callable[[str, Any], Any] | None = None,
+    until: int | None = None,
 ) -> FitResult:
     """`fit` with `out` locked (see there)."""
     from morphgs import _core
@@ -415,6 +427,9 @@ def _fit(
                                    **({"seed": seed} if seed is not None else {})})
     if downscale < 1:
         raise MorphgsError(f"downscale must be >= 1, got {downscale}")
+    target = cfg.steps if until is None else int(until)
+    if not 1 <= target <= cfg.steps:
+        raise MorphgsError(f"until must be in [1, steps = {cfg.steps}], got {until}")
     posed = data if isinstance(data, PosedImages) else load_posed_images(data, images=images)
     sel: ViewSelection = select_views(len(posed), views, holdout=holdout)
     run = Path(out)
@@ -475,6 +490,9 @@ def _fit(
     first_train = (train_imgs[0], train_cams[0])
     del train_imgs
     start = trainer.step
+    if start > target:
+        raise FitPastError(f"{run}: the run is at step {start}, past the step asked for ({target}); "
+                          "use another folder, or resume=False (--restart) to start over")
     _truncate_csv(run / "loss.csv", start, LOSS_COLUMNS)
     _truncate_csv(run / "eval.csv", start, EVAL_COLUMNS)
     _truncate_csv(run / "eval_views.csv", start, EVAL_VIEW_COLUMNS)
@@ -485,7 +503,7 @@ def _fit(
                      score_lpips)
     t_run = time.perf_counter()
     try:
-        ended = trainer.run(cfg.steps, callback=logger, eval_every=cfg.output.eval_every if eval_imgs else 0,
+        ended = trainer.run(target, callback=logger, eval_every=cfg.output.eval_every if eval_imgs else 0,
                     checkpoint=ck_path, checkpoint_every=cfg.output.checkpoint_every, fingerprint=fp,
                     progress_every=cfg.output.progress_every)
     finally:
@@ -495,7 +513,8 @@ def _fit(
     done_steps = trainer.step - start
 
     scene = trainer.scene()
-    if ended == "stopped":  # the callback asked to stop: a PLY of where it is, no fit.json
+    done = ended == "finished" and trainer.step == cfg.steps
+    if not done:  # stopped by the callback or at `until`: a PLY of where it is, no fit.json
         ply = run / "point_cloud" / f"iteration_{trainer.step}" / "point_cloud.ply"
     ply.parent.mkdir(parents=True, exist_ok=True)
     import morphgs
@@ -525,7 +544,7 @@ def _fit(
                "steps_this_call": done_steps,
                "steps_per_second": round(rate, 4) if rate is not None else None,
                "threads": _core.num_threads(), "morphgs_version": morphgs.__version__}
-    if ended == "finished":
+    if done:
         _write_atomic(run / "fit.json", json.dumps(summary, indent=1) + "\n")
     return FitResult(run, ply, scene, trainer.step, sel.train, sel.heldout, psnr, ssim, len(scene),
                      time.perf_counter() - t_start, round(rate, 4) if rate is not None else None, summary, lp_final)
