@@ -135,7 +135,7 @@ def test_the_ablation_stage_writes_the_commands_bytes_and_no_timings_or_lock(hid
         morphgs.save_ply(synthetic.scene(n_gaussians=GAUSSIANS, seed=i), scenes[-1])
     work = tmp_path / "stage"
     work.mkdir()
-    make(work, scene_dirs=scenes, real_dir=str(hidden_strength), family="morphological", grid=GRID)
+    make(work, scene_dirs=scenes, real_dir=str(hidden_strength), family="morphological", grid=GRID, objective="psnr")
     calibrate(scenes, tmp_path / "cmd", real=str(hidden_strength), grid=GRID, log=lambda m: None)
 
     def files(root: Path) -> set[str]:

@@ -50,10 +50,16 @@ DEPTH_SPREAD = 0.3
 DEPTH_CLIP = 4.0
 #: Footprint in the spawning view: a log-normal sigma of median 0.67 pixel (that fit: median 0.67,
 #: 5-95 % 0.26..1.55 pixel).
-FOOTPRINT_PX = 0.67
+FOOTPRINT_PX = 0.5
 FOOTPRINT_SPREAD = 0.5
 #: The largest footprint sigma (pixels) a fragment may have in another training view that sees it.
 MAX_FOOTPRINT_PX = 3.0
+#: The largest colour error (RMS over the channels) a fragment may have in a training view that sees it.
+MAX_ERROR = 0.08
+#: Other wrong depths tried for a fragment the other training views cannot agree with.
+RETRIES = 0
+#: A fragment that fits no wrong depth is dropped (True) or goes back onto the surface (False).
+DROP = True
 #: At most this many fragments per removed Gaussian (large training views spawn at fewer pixels).
 BUDGET = 4
 _C0 = 0.28209479177387814
@@ -68,15 +74,17 @@ def removal(n: int, value: float, seed: int) -> np.ndarray:
 
 def fragments(value: float, images: np.ndarray, depth: np.ndarray, alpha: np.ndarray, world_to_camera: np.ndarray,
               K: np.ndarray, removed: int, seed: int, ridge: float = 1.0,
-              max_error: float = 0.08) -> dict[str, np.ndarray]:
+              max_error: float | None = None) -> dict[str, np.ndarray]:
     """The fragments of the training views (module doc) as arrays of a GaussianScene (means,
-    quats, log_scales, opacity_logits, sh0, and sh1: the band-1 SH coefficients (N, 3, 3)), float32.
+    quats, log_scales, opacity_logits, sh0, and sh1: the band-1 SH coefficients (N, 3, 3)), float32,
+    and view: the training view each was spawned from (N,) int32.
 
     Args:
         value: the op's value v > 0. images (T, H, W, 3), depth (T, H, W), alpha (T, H, W): the
             clean renders of the T training views. world_to_camera (T, 4, 4), K (T, 3, 3).
         removed: how many Gaussians were removed (the fragment budget is twice that).
     """
+    max_error = MAX_ERROR if max_error is None else max_error
     t_n, h, w = depth.shape
     p = 1.0 - float(np.exp(-value))
     valid = (alpha > 0.5) & np.isfinite(depth) & (depth > 0)
@@ -87,12 +95,12 @@ def fragments(value: float, images: np.ndarray, depth: np.ndarray, alpha: np.nda
     q = min(p, BUDGET * max(removed, 1) / (PER_PIXEL * n_valid))
     sigma = DEPTH_SPREAD * float(value)
     rng = np.random.default_rng([seed, OP_ID, 1])
-    out: dict[str, list[np.ndarray]] = {k: [] for k in ("means", "log_scales", "opacity_logits", "sh0", "sh1")}
+    out: dict[str, list[np.ndarray]] = {k: [] for k in ("means", "log_scales", "opacity_logits", "sh0", "sh1", "view")}
     for t in range(t_n):
         # the same draws per view whatever q is: a larger value spawns at a superset of pixels
         u_spawn = rng.random((h, w))
         jitter = rng.random((PER_PIXEL, h, w, 2))
-        z = rng.standard_normal((PER_PIXEL, h, w))
+        z = rng.standard_normal((RETRIES + 1, PER_PIXEL, h, w))
         size = rng.standard_normal((PER_PIXEL, h, w))
         pick = valid[t] & (u_spawn < q)
         ys, xs = np.nonzero(pick)
@@ -101,27 +109,42 @@ def fragments(value: float, images: np.ndarray, depth: np.ndarray, alpha: np.nda
         k = np.repeat(np.arange(PER_PIXEL), len(ys))
         ys, xs = np.tile(ys, PER_PIXEL), np.tile(xs, PER_PIXEL)
         d = depth[t][ys, xs].astype(np.float64)
-        d2 = np.clip(d * np.exp(sigma * z[k, ys, xs]), d / DEPTH_CLIP, d * DEPTH_CLIP)
         fx, fy, cx, cy = K[t][0, 0], K[t][1, 1], K[t][0, 2], K[t][1, 2]
         px = xs + jitter[k, ys, xs, 0]
         py = ys + jitter[k, ys, xs, 1]
         m = np.asarray(world_to_camera[t], np.float64)
         r, tr = m[:3, :3], m[:3, 3]
-        cam = np.stack([(px - cx) / fx * d2, (py - cy) / fy * d2, d2], axis=1)
-        world = (cam - tr) @ r  # R^T (x - t), row-wise
         sigma_px = FOOTPRINT_PX * np.exp(FOOTPRINT_SPREAD * size[k, ys, xs])
-        radius = sigma_px * d2 / (0.5 * (fx + fy))
         own = images[t][ys, xs].astype(np.float64)
+
+        def place(dd: np.ndarray, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            cam = np.stack([(px[sel] - cx) / fx * dd, (py[sel] - cy) / fy * dd, dd], axis=1)
+            return (cam - tr) @ r, sigma_px[sel] * dd / (0.5 * (fx + fy))  # R^T (x - t), row-wise
+
+        every = np.arange(len(ys))
+        d2 = np.clip(d * np.exp(sigma * z[0, k, ys, xs]), d / DEPTH_CLIP, d * DEPTH_CLIP)
+        world, radius = place(d2, every)
         sh0, sh1, worst, spread = _fit_colours(world, radius, own, t, images, depth, world_to_camera, K, ridge=ridge)
-        # where a wrong depth cannot agree with the other training views (a colour it cannot
-        # match, or a splat smeared over another view), the fit found the surface: the fragment
-        # goes back onto it, with its pixel's colour
+        # a wrong depth the other training views cannot agree with (a colour it cannot match,
+        # or a splat smeared over another view) is not where a fit leaves a splat: another depth
+        # is tried (RETRIES times); what still fails is dropped (DROP) or goes onto the surface
         wrong = (worst > max_error) | (spread > MAX_FOOTPRINT_PX)
-        if wrong.any():
-            d_back = d[wrong]
-            world[wrong] = np.stack([(px[wrong] - cx) / fx * d_back, (py[wrong] - cy) / fy * d_back, d_back],
-                                    axis=1) @ r - tr @ r
-            radius[wrong] = sigma_px[wrong] * d_back / (0.5 * (fx + fy))
+        for attempt in range(1, RETRIES + 1):
+            sel = np.flatnonzero(wrong)
+            if len(sel) == 0:
+                break
+            d2[sel] = np.clip(d[sel] * np.exp(sigma * z[attempt, k[sel], ys[sel], xs[sel]]), d[sel] / DEPTH_CLIP,
+                              d[sel] * DEPTH_CLIP)
+            world[sel], radius[sel] = place(d2[sel], sel)
+            f0, f1, fw, fs = _fit_colours(world[sel], radius[sel], own[sel], t, images, depth, world_to_camera, K,
+                                          ridge=ridge)
+            sh0[sel], sh1[sel] = f0, f1
+            wrong[sel] = (fw > max_error) | (fs > MAX_FOOTPRINT_PX)
+        if DROP and wrong.any():
+            ok = ~wrong
+            world, sh0, sh1, ys, xs, radius = world[ok], sh0[ok], sh1[ok], ys[ok], xs[ok], radius[ok]
+        elif wrong.any():
+            world[wrong], radius[wrong] = place(d[wrong], np.flatnonzero(wrong))
             sh0[wrong] = (own[wrong] - 0.5) / _C0
             sh1[wrong] = 0.0
         # opacity: the fragments over a pixel (PER_PIXEL q of them, each covering about
@@ -130,13 +153,15 @@ def fragments(value: float, images: np.ndarray, depth: np.ndarray, alpha: np.nda
         target = np.clip(0.98 * alpha[t][ys, xs].astype(np.float64), 1e-4, 0.999)
         a = np.clip(1.0 - (1.0 - target) ** (1.0 / cover), 1e-3, 0.99)
         out["means"].append(world)
+        out["view"].append(np.full(len(world), t))
         out["log_scales"].append(np.repeat(np.log(radius)[:, None], 3, axis=1))
         out["opacity_logits"].append(np.log(a / (1.0 - a)))
         out["sh0"].append(sh0)
         out["sh1"].append(sh1)
     if not out["means"]:
         return _empty()
-    res = {k: np.ascontiguousarray(np.concatenate(v), dtype=np.float32) for k, v in out.items()}
+    res = {k: np.ascontiguousarray(np.concatenate(v), dtype=np.float32) for k, v in out.items() if k != "view"}
+    res["view"] = np.concatenate(out["view"]).astype(np.int32)
     quats = np.zeros((len(res["means"]), 4), np.float32)
     quats[:, 0] = 1.0
     res["quats"] = quats
@@ -206,4 +231,5 @@ def _fit_colours(points: np.ndarray, radius: np.ndarray, own: np.ndarray, own_vi
 def _empty() -> dict[str, np.ndarray]:
     return {"means": np.zeros((0, 3), np.float32), "quats": np.zeros((0, 4), np.float32),
             "log_scales": np.zeros((0, 3), np.float32), "opacity_logits": np.zeros(0, np.float32),
-            "sh0": np.zeros((0, 3), np.float32), "sh1": np.zeros((0, 3, 3), np.float32)}
+            "sh0": np.zeros((0, 3), np.float32), "sh1": np.zeros((0, 3, 3), np.float32),
+            "view": np.zeros(0, np.int32)}
