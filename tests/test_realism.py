@@ -160,8 +160,10 @@ def test_bad_options_are_one_line(stand_in: tuple[Path, Path], tmp_path: Path,
     out = str(tmp_path / "c")
     for args, msg in ((["--trials", "0"], "--trials must be >= 1"),
                       (["--realism-steps", "0", "--objective", "realism"], "--objective realism needs the classifier"),
-                      (["--realism-steps", "-1"], "--realism-steps must be >= 0")):
-        assert main(["calibrate", "--real", str(real), "--out", out, "--family", str(family), *args]) == 2
+                      (["--realism-steps", "-1"], "--realism-steps must be >= 0"),
+                      (["--objective", "realism", "--family", "holes"], "--objective realism: no --family has two")):
+        fam = [] if "--family" in args else ["--family", str(family)]
+        assert main(["calibrate", "--real", str(real), "--out", out, *fam, *args]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and msg in err[0], err
     with pytest.raises(SystemExit):

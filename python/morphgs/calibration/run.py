@@ -256,6 +256,17 @@ def calibrate(
             raise CalibrationError(f"--realism-steps must be >= 0, got {realism_steps}")
         if objective == "realism" and realism_steps == 0:
             raise CalibrationError("--objective realism needs the classifier: --realism-steps must be >= 1")
+        if objective == "realism":
+            from morphgs.strength import Strength
+
+            mixable = [lbl for lbl, b in bases if isinstance(b, Strength) and len(b.base) >= 2]
+            if not mixable:
+                raise CalibrationError(f"--objective realism: no --family has two or more ops to mix "
+                                       f"({', '.join(lbl for lbl, _ in bases)}); give a family such as sparse-like, "
+                                       "naive or a JSON file {\"family\", \"ops\"} with several ops")
+            for lbl, _ in bases:
+                if lbl not in mixable:
+                    say(f"calibrate: {lbl}: one op, nothing to mix; its strength is calibrated as with --objective psnr")
         scene_list = [str(s) for s in scenes]
         sources = find_scenes(scene_list, builtin_scenes=builtin_scenes, builtin_gaussians=builtin_gaussians)
         out_dir = Path(out)
