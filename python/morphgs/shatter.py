@@ -10,24 +10,28 @@ pixels they were fitted to (docs/artifacts.md shows a built-in room fitted from 
 
 - each Gaussian of the scene is removed with probability p = 1 - exp(-v);
 - each pixel of each virtual training view (alpha > 0.5 in its clean render) spawns, with
-  probability q = min(p, 2 x the expected removals / the valid pixels), one fragment: a small
-  isotropic Gaussian on that pixel's ray (a uniform point within the pixel) at depth
-  d' = d exp(sigma z), z ~ N(0, 1), sigma = 0.3 v, clipped to [d / 4, 4 d], where d is the
-  clean render's depth there; its radius covers the pixel at d' (0.5 / sqrt(q) pixels, so the
-  fragments of a view tile it whatever q is), its colour is the pixel's and its opacity 0.9 x
-  the pixel's alpha. Its colour is view-dependent (SH up to band 1), fitted by least squares to
-  its own pixel and to the pixel of every other training view that sees it in front of its clean
-  surface, as a fit makes its splats match every training view they can (a ridge keeps band 1
-  small where the views disagree). Where that cannot work (a colour error above 0.08 RMS, about
-  20/255, in one of those views, or a splat another training view would see wider than 3 pixels,
-  sigma), the fit found the surface: the fragment goes back onto it (depth d, its pixel's colour).
-  The training views stay close to clean; the views between them see confetti at wrong depths and
-  colour that only fits the training directions.
+  probability q = min(p, BUDGET x the removals / (PER_PIXEL x the valid pixels)), PER_PIXEL (3)
+  fragments: small isotropic Gaussians on that pixel's ray (each at a uniform point within the
+  pixel) at depth d' = d exp(sigma z), z ~ N(0, 1), sigma = DEPTH_SPREAD v (0.3 v), clipped to
+  [d / 4, 4 d], where d is the clean render's depth there; a log-normal footprint of median
+  FOOTPRINT_PX (0.5) pixel in that view; opacities that stack to the pixel's alpha;
+- each fragment's colour is view-dependent (SH up to band 1), fitted by least squares to its
+  own pixel (weight 4) and to the pixel of every other training view whose frustum holds it, as a
+  fit makes its splats match every training view they can (a ridge of 1.0 keeps band 1 small
+  where the views disagree);
+- where that cannot work (a colour error above MAX_ERROR, 0.08 RMS, about 20/255, in one of those
+  views, or a splat another training view would see wider than MAX_FOOTPRINT_PX, 3 pixels,
+  sigma), the fragment is dropped (DROP; a fit makes what it cannot reconcile transparent), or,
+  with DROP off, put back onto the surface with its pixel's colour; RETRIES other depths may be
+  tried first (0 by default).
 
-So at small v a few Gaussians are replaced by fragments close to the surface (mild parallax
-noise); as v grows, every Gaussian goes and the fragments spread along their rays, as a sparse
-fit's do. The op is seeded (NumPy's PCG64 keyed by (seed, 15)) and pure NumPy: the same bytes
-for any thread count.
+The constants were set from a real sparse:20 fit of a built-in room (docs/artifacts.md, "What a
+sparse fit is made of"; `benches/sparse_anatomy.py`): with them the pairs' error spectrum is
+within 0.6 dB of the real pairs' in every band. At small v a few Gaussians are replaced by
+fragments close to the surface; as v grows, every Gaussian goes and the fragments spread along
+their rays, as a sparse fit's do. What still differs: a real fit's training views are right
+(48-51 dB), shatter's are not (12-17 dB). The op is seeded (NumPy's PCG64 keyed by (seed, 16))
+and pure NumPy: the same bytes for any thread count.
 """
 
 from __future__ import annotations
@@ -36,8 +40,8 @@ import numpy as np
 
 __all__ = ["OP_ID", "fragments", "removal"]
 
-#: The op's id in the seed (after the Rust kernel's 10-14).
-OP_ID = 15
+#: The op's id in the seed (after the Rust kernel's 10-14 and popping's 15).
+OP_ID = 16
 #: Fragments per spawning pixel. A sparse fit of the built-in room from 5 of 96 views (sparse:20,
 #: 3000 steps, docs/artifacts.md) holds 2.6 Gaussians per training pixel.
 PER_PIXEL = 3
