@@ -124,8 +124,9 @@ class Bench:
         self.clean = [_quantise(rgb) for rgb in self._rgb]
 
     def corrupted(self, config: Any, index: int) -> np.ndarray:
-        """The synthetic corrupted frames of pair `index` under a `Strength` config, or a
-        `Blur2d` one (the clean render blurred, as curate's blur2d)."""
+        """The synthetic corrupted frames of pair `index` under a `Strength` config (popping
+        included: the render honours the scene's caps frame by frame), or a `Blur2d` one (the
+        clean render blurred, as curate's blur2d)."""
         from morphgs.rendering import render_many
         from morphgs.strength import Blur2d
 
