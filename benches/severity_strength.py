@@ -42,7 +42,8 @@ def main() -> None:
         scene = synthetic.scene(n_gaussians=a.gaussians, seed=sample)
         (clean,) = render_many([scene], cams)
         for fam in FAMILIES:
-            row = [_psnr(render_many([Strength(fam, s).apply(scene, seed=a.seed)], cams)[0], clean) for s in GRID]
+            row = [_psnr(render_many([Strength(fam, s).apply(scene, seed=a.seed, cameras=cams)], cams)[0], clean)
+                   for s in GRID]
             print(f"| sample-{sample} | `{fam}~s` | " + " | ".join(f"{v:.1f}" for v in row) + " |")
         row2 = []
         for k in K_GRID:

@@ -19,9 +19,9 @@ import pytest
 
 import morphgs
 from morphgs import synthetic, trajectory
-from morphgs.strength import FAMILIES, SPARSE_OPS, Strength
+from morphgs.strength import ARTIFACT_OPS, FAMILIES, Strength
 
-FAMS = (*SPARSE_OPS, "sparse-like")
+FAMS = (*ARTIFACT_OPS, "sparse-like")
 
 #: sha256 (first 32 hex digits) of every sparse-view family's output on `room()` at strength 1.5 (the
 #: six Rust ops' part unchanged since they were pinned at cdcbd816...; shatter added).

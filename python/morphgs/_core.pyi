@@ -211,6 +211,16 @@ def _artifacts(
     depth_maps: npt.NDArray[np.float32] | None,
     seed: int,
 ) -> tuple[GaussianScene, npt.NDArray[np.bool_]]: ...
+def _popping(
+    scene: GaussianScene,
+    *,
+    popping: float,
+    world_to_camera: npt.NDArray[np.float64],
+    K: npt.NDArray[np.float64],
+    width: int,
+    height: int,
+    seed: int,
+) -> GaussianScene: ...
 
 # ---- fit (morphgs.fit) ----
 _FitCallback = Any  # (kind: str, payload: Any) -> Any

@@ -136,6 +136,9 @@ def iter_pair_chunks(
 
 def _render_both(scene: Any, corrupted_scene: Any, corruption: Corruption, cameras: Cameras,
                  **render_options: Any) -> tuple[Any, Any]:
+    """The clean and corrupted frames of `cameras`. A corrupted scene with popping caps (the
+    extras `morphgs.strength.POPPING_EXTRAS`) pops here as in every render: the native renderer
+    hides, per camera, what its caps hide, so no caller can forget it."""
     from morphgs._core import gaussian_blur
     from morphgs.rendering import Render, render_many
 

@@ -27,12 +27,16 @@ They keep those views close to clean and break the views between them:
 | holes | a fraction 1 - (1 - b) ** s of the cells of a grid (edge 0.05 E_avg) lose their Gaussians |
 | dilate | every log scale + s * b |
 | floaters | min(10, s * b) new Gaussians per thousand training pixels, near the training cameras, coloured from the pixel they cover |
-| shatter | v = min(8, s * b): each Gaussian removed with probability 1 - exp(-v), the training views' pixels re-made as small fragments on their rays at depth d exp(0.5 v z) (`morphgs.shatter`) |
+| shatter | v = min(8, s * b): each Gaussian removed with probability 1 - exp(-v), the training views' pixels re-made as small fragments on their rays at depth d exp(0.3 v z) (`morphgs.shatter`) |
+| popping | a Gaussian of weight w (opacity x size) pops with probability 1 - (1 - b) ** (s * w): hidden from a cone of views between two training views |
+
+Popping's cones ride along as the scene extras `POPPING_EXTRAS`; every render honours them frame by frame.
 
 Every op is the identity at s = 0, every op's noise grows continuously with s, and the same seed
 gives the same z at every s (common random numbers), so severity is a smooth function of s.
 Every op runs in the Rust perturb kernel (op ids 4, 1, 2, 3 for keep, position, colour and
-opacity; 7 and 8 for log_scale and rotation; 10-14 for the sparse-view ops), keyed by the
+opacity; 7 and 8 for log_scale and rotation; 10-15 for the sparse-view ops but shatter, which is
+NumPy, keyed (seed, 16)), keyed by the
 Gaussian's index in the input scene, with exactly rounded float operations only: the same bytes
 for any thread count and on any CPU.
 """
@@ -49,17 +53,25 @@ import numpy as np
 from morphgs import noise
 from morphgs._core import GaussianScene
 
-__all__ = ["BASE", "BLUR_MAX_SIGMA", "CLASSIC_OPS", "FAMILIES", "OPS", "SPARSE_OPS", "TRAIN_EVERY", "Blur2d",
-           "Strength"]
+__all__ = ["BASE", "BLUR_MAX_SIGMA", "CLASSIC_OPS", "FAMILIES", "OPS", "POPPING_EXTRAS", "SPARSE_OPS", "TRAIN_EVERY",
+           "Blur2d", "Strength"]
 
 #: The ops of the paper's families, in application order.
 CLASSIC_OPS: tuple[str, ...] = ("position", "color", "opacity", "keep", "log_scale", "rotation")
 #: The sparse-view ops (applied first, from the virtual training cameras).
-SPARSE_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "holes", "dilate", "floaters", "shatter")
+SPARSE_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "holes", "dilate", "floaters", "shatter", "popping")
 #: Every op of the strength parameterisation.
 OPS: tuple[str, ...] = CLASSIC_OPS + SPARSE_OPS
+#: The sparse-view ops of the one native pass `_artifacts` (shatter follows it, popping draws its
+#: caps after both).
+ARTIFACT_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "holes", "dilate", "floaters")
 #: The sparse-view ops that need training cameras (all but holes and dilate).
-CAMERA_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "floaters", "shatter")
+CAMERA_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "floaters", "shatter", "popping")
+#: The sparse-view ops whose value is a fraction, 1 - (1 - b) ** s at strength s.
+FRACTION_OPS: tuple[str, ...] = ("needles", "holes", "popping")
+#: The scene extras that carry the popping caps (axis x, y, z and cap height h; docs/artifacts.md):
+#: a scene holding them renders with them, frame by frame.
+POPPING_EXTRAS: tuple[str, ...] = ("popping_x", "popping_y", "popping_z", "popping_h")
 #: Default spacing of the virtual training cameras along a pair's path (every 8th camera).
 TRAIN_EVERY = 8
 
@@ -68,10 +80,12 @@ TRAIN_EVERY = 8
 #: opacity are the paper's sigmas. Sparse-view ops: depth 0.3 (a factor e^0.3 = 1.35 along the
 #: ray at one sigma), view_color 0.3 (SH units), needles 0.2 and holes 0.1 (fractions), dilate 0.3
 #: (a factor 1.35 on every scale), floaters 0.2 per thousand training pixels, shatter 1.0 (63 % of
-#: the Gaussians replaced by fragments at a log-depth spread of 0.5).
+#: the Gaussians replaced by fragments at a log-depth spread of 0.3), popping 0.3 (the share of
+#: median-sized opaque Gaussians that pop).
 BASE: dict[str, float] = {"position": 0.002, "color": 0.05, "opacity": 0.05, "keep": 0.5,
                           "log_scale": 0.5, "rotation": 0.5, "depth": 0.3, "view_color": 0.3, "needles": 0.2,
-                          "holes": 0.1, "dilate": 0.3, "floaters": 0.2, "shatter": 1.0}
+                          "holes": 0.1, "dilate": 0.3, "floaters": 0.2, "shatter": 1.0,
+                          "popping": 0.3}
 
 #: The families and their ops: the paper's four (unchanged), one per sparse-view op, and
 #: `sparse-like`, the sparse-view ops together.
@@ -130,7 +144,7 @@ class Strength:
         clean = {k: _number(ops[k], f"ops.{k}") for k in OPS if k in ops and ops[k] is not None}
         if "keep" in clean and not 0.0 < clean["keep"] <= 1.0:
             raise ValueError(f"ops.keep must be a keep fraction in (0, 1], got {clean['keep']!r}")
-        for k in ("needles", "holes"):
+        for k in FRACTION_OPS:
             if k in clean and clean[k] >= 1.0:
                 raise ValueError(f"ops.{k} must be a fraction in [0, 1), got {clean[k]!r}")
         every = self.train_every
@@ -157,7 +171,8 @@ class Strength:
 
     @property
     def needs_cameras(self) -> bool:
-        """Whether an enabled op needs the pair's cameras (depth, view_color, needles, floaters)."""
+        """Whether an enabled op needs the pair's cameras (depth, view_color, needles, floaters,
+        shatter, popping)."""
         return any(op in self.base for op in CAMERA_OPS)
 
     def values(self) -> dict[str, float]:
@@ -168,7 +183,7 @@ class Strength:
         for k, b in self.base.items():
             if k == "keep":
                 out[k] = b ** s
-            elif k in ("needles", "holes"):
+            elif k in FRACTION_OPS:
                 out[k] = 1.0 - (1.0 - b) ** s
             else:
                 out[k] = min(s * b, _LIMITS.get(k, math.inf))
@@ -213,12 +228,14 @@ class Strength:
 
         The sparse-view ops run first (`_artifacts`, ops 10-14; their training cameras are every
         `train_every`-th of `cameras`, the floaters coloured from clean renders of them), then
-        the paper's ops in one pass (ops 1 to 4, 7 and 8), the holes removed with the pruning. The
-        noise of input Gaussian i is a pure function of (seed, op, i) in both.
+        shatter (`morphgs.shatter`), then popping draws its caps on their output (`_popping`, op 15;
+        the caps become the scene extras `POPPING_EXTRAS`), then the paper's ops in one pass (ops 1
+        to 4, 7 and 8), the holes removed with the pruning (the caps follow their rows). The noise
+        of input Gaussian i is a pure function of (seed, op, i) in each.
 
         Args:
             cameras: the pair's cameras (a `Cameras` or a list): needed by depth, view_color,
-                needles, floaters and shatter.
+                needles, floaters, shatter and popping.
             train_cameras: the virtual training cameras themselves (e.g. the views a real sparse
                 fit of this scene was trained on, as calibrate passes them), of one size,
                 instead of every `train_every`-th of `cameras`.
@@ -241,13 +258,29 @@ class Strength:
             if self.needs_cameras and cameras is None and train_cameras is None:
                 raise ValueError(f"the sparse-view op(s) {', '.join(k for k in CAMERA_OPS if k in v)} need the "
                                  "pair's cameras (cameras=...)")
-            scene, keep = self._sparse_ops(scene, v, seed, cameras, train_cameras)
+            if any(k in v for k in (*ARTIFACT_OPS, "shatter")):
+                scene, keep = self._sparse_ops(scene, v, seed, cameras, train_cameras)
+            if v.get("popping", 0.0) > 0.0:
+                scene = self._popping(scene, v["popping"], seed, cameras, train_cameras)
         result: Any = _perturb(
             scene, position_jitter=v.get("position"), color_noise=v.get("color"),
             opacity_noise=v.get("opacity"), prune=1.0 - v["keep"] if "keep" in v else None,
             scale_noise=None, rotation_noise=None, log_scale_noise=v.get("log_scale"),
             rotation_angle=v.get("rotation"), seed=seed, return_mask=return_mask, keep=keep)
         return result
+
+    def _popping(self, scene: GaussianScene, fraction: float, seed: int, cameras: Any,
+                 train_cameras: Any = None) -> GaussianScene:
+        from morphgs._core import _popping
+        from morphgs.camera import Cameras
+
+        if train_cameras is not None:
+            train = train_cameras if isinstance(train_cameras, Cameras) else Cameras.from_list(list(train_cameras))
+        else:
+            train = self.train_cameras(cameras)
+        return _popping(scene, popping=fraction, seed=seed,
+                        world_to_camera=np.ascontiguousarray(train.world_to_camera, np.float64),
+                        K=np.ascontiguousarray(train.K, np.float64), width=int(train.width), height=int(train.height))
 
     def _sparse_ops(self, scene: GaussianScene, v: Mapping[str, float], seed: int, cameras: Any,
                     train_cameras: Any = None) -> Any:

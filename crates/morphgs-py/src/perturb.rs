@@ -7,6 +7,7 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 use splat_core::perturb::artifacts::{self, ArtifactParams, TrainImages};
+use splat_core::perturb::popping;
 use splat_core::perturb::PerturbParams;
 
 use crate::errors::detach;
@@ -217,8 +218,47 @@ fn _artifacts<'py>(
     PyTuple::new(py, [out, keep.into_pyarray(py).into_any()])
 }
 
+/// Draw the popping caps (`splat_core::perturb::popping`) of every Gaussian of a scene.
+///
+/// Prefer `morphgs.strength.Strength.apply` (op "popping"), which resolves the strength.
+///
+/// Args:
+///     scene: the scene whose rows get caps (never modified).
+///     popping: the fraction p: a Gaussian of weight w (opacity x size, 1 for a median-sized
+///         opaque one) pops with probability 1 - (1 - p)^w.
+///     world_to_camera, K, width, height: the training cameras in path order, (T,4,4), (T,3,3).
+///     seed: the seed of the counter-based generator.
+///
+/// Returns:
+///     The scene (its arrays shared) with the extras popping_x, popping_y, popping_z (the cap
+///     axes) and popping_h (cap heights, 0: never hidden), which `_render` honours.
+///
+/// Raises:
+///     ValueError: a fraction outside [0, 1] or no cameras (named).
+#[pyfunction]
+#[pyo3(signature = (scene, *, popping, world_to_camera, K, width, height, seed))]
+#[allow(non_snake_case)]
+fn _popping(
+    py: Python<'_>,
+    scene: &PyGaussianScene,
+    popping: f32,
+    world_to_camera: PyReadonlyArray3<'_, f64>,
+    K: PyReadonlyArray3<'_, f64>,
+    width: u32,
+    height: u32,
+    seed: u64,
+) -> PyResult<PyGaussianScene> {
+    let cams = cameras_from(&world_to_camera, &K, width, height, 0.01, 1e10)?;
+    let borrow = scene.borrow(py)?;
+    let view = borrow.view()?;
+    let caps = detach(py, || popping::caps(&view, &cams, popping, seed))?;
+    let names = splat_core::raster::caps::EXTRAS.map(str::to_owned);
+    scene.with_extras(py, names.into_iter().zip(caps).collect())
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_perturb, m)?)?;
     m.add_function(wrap_pyfunction!(_artifacts, m)?)?;
+    m.add_function(wrap_pyfunction!(_popping, m)?)?;
     Ok(())
 }

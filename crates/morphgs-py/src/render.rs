@@ -4,14 +4,15 @@ use std::path::PathBuf;
 
 use numpy::ndarray::{Array1, Array2};
 use numpy::{
-    IntoPyArray, PyArray1, PyArray2, PyArray4, PyArray5, PyArrayMethods, PyReadonlyArray2,
-    PyReadonlyArray3, PyUntypedArray, PyUntypedArrayMethods,
+    IntoPyArray, PyArray1, PyArray2, PyArray4, PyArray5, PyArrayMethods, PyReadonlyArray1,
+    PyReadonlyArray2, PyReadonlyArray3, PyUntypedArray, PyUntypedArrayMethods,
 };
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 use splat_core::camera::Camera;
 use splat_core::image_out::{self, Frame};
+use splat_core::raster::caps::{self, Caps};
 use splat_core::raster::{self, RenderOptions, RenderStats};
 
 use crate::errors::detach;
@@ -163,6 +164,28 @@ fn _render<'py>(
         .iter()
         .map(SceneBorrow::view)
         .collect::<PyResult<Vec<_>>>()?;
+    // the popping caps a scene carries as extras (docs/artifacts.md): it renders with them
+    let cap_extras = handles
+        .iter()
+        .map(|h| cap_extras(py, h.get()))
+        .collect::<PyResult<Vec<_>>>()?;
+    let mut caps = Vec::with_capacity(cap_extras.len());
+    for e in &cap_extras {
+        caps.push(match e {
+            Some([x, y, z, h]) => Some(Caps::of(
+                slice_of(x, "popping_x")?,
+                slice_of(y, "popping_y")?,
+                slice_of(z, "popping_z")?,
+                slice_of(h, "popping_h")?,
+            )),
+            None => None,
+        });
+    }
+    let caps: &[Option<Caps<'_>>] = if caps.iter().any(Option::is_some) {
+        &caps
+    } else {
+        &[]
+    };
     let opts = options(background, max_alpha, sh_degree, antialiased)?;
     let (s, f, h, w) = (views.len(), cams.len(), height as usize, width as usize);
     if let Some((rgb, depth, alpha)) = out {
@@ -180,7 +203,7 @@ fn _render<'py>(
                 return Err(PyValueError::new_err("out arrays must be C-contiguous"));
             };
             detach(py, || {
-                raster::render_batch_into(&views, &cams, &opts, rgb_s, depth_s, alpha_s)
+                raster::render_batch_into_caps(&views, caps, &cams, &opts, rgb_s, depth_s, alpha_s)
             })?
         };
         let rgb = rgb.cast_into::<PyArray5<f32>>()?;
@@ -194,7 +217,7 @@ fn _render<'py>(
     let pool = &splat_core::mem::OUTPUTS;
     let (mut rgb, mut depth, mut alpha) = (pool.take(n * 3), pool.take(n), pool.take(n));
     let stats = detach(py, || {
-        raster::render_batch_into(&views, &cams, &opts, &mut rgb, &mut depth, &mut alpha)
+        raster::render_batch_into_caps(&views, caps, &cams, &opts, &mut rgb, &mut depth, &mut alpha)
     });
     let stats = match stats {
         Ok(st) => st,
@@ -212,6 +235,35 @@ fn _render<'py>(
         pooled_array(py, alpha, numpy::ndarray::Dim(shape))?,
         stats_dict(py, &stats)?,
     ))
+}
+
+/// A scene's popping caps: its extras named [`caps::EXTRAS`], all four, or None without any
+/// (a ValueError naming the missing ones for some only).
+fn cap_extras<'py>(
+    py: Python<'py>,
+    scene: &PyGaussianScene,
+) -> PyResult<Option<[PyReadonlyArray1<'py, f32>; 4]>> {
+    let mut found: [Option<PyReadonlyArray1<'py, f32>>; 4] = Default::default();
+    for (name, a) in scene.extras_readonly(py)? {
+        if let Some(k) = caps::EXTRAS.iter().position(|e| *e == name) {
+            found[k] = Some(a);
+        }
+    }
+    let missing: Vec<&str> = caps::EXTRAS
+        .iter()
+        .zip(&found)
+        .filter(|(_, a)| a.is_none())
+        .map(|(n, _)| *n)
+        .collect();
+    match found {
+        [Some(x), Some(y), Some(z), Some(h)] => Ok(Some([x, y, z, h])),
+        _ if missing.len() == 4 => Ok(None),
+        _ => Err(PyValueError::new_err(format!(
+            "the scene carries popping caps without {} (extras {} go together)",
+            missing.join(", "),
+            caps::EXTRAS.join(", ")
+        ))),
+    }
 }
 
 /// The owner of a returned image array's memory: when Python releases the array (and every

@@ -238,6 +238,28 @@ impl PyGaussianScene {
     fn len_py(&self, py: Python<'_>) -> usize {
         self.opacity_logits.bind(py).len()
     }
+
+    /// A scene sharing this scene's arrays with the extras `extra` set (replacing those of the
+    /// same names, appended after the others). Each must have this scene's length.
+    pub fn with_extras(&self, py: Python<'_>, extra: Vec<(String, Vec<f32>)>) -> PyResult<Self> {
+        let n = self.len_py(py);
+        if let Some((name, v)) = extra.iter().find(|(_, v)| v.len() != n) {
+            return Err(PyValueError::new_err(format!(
+                "extras['{name}'] holds {} values, expected {n}",
+                v.len()
+            )));
+        }
+        let mut out = self.with_arrays(py, None, None, None, None, None)?;
+        out.extras
+            .retain(|(name, _)| !extra.iter().any(|(e, _)| e == name));
+        for (name, v) in extra {
+            out.extras.push((
+                name,
+                readonly(Array1::from_vec(v).into_pyarray(py))?.unbind(),
+            ));
+        }
+        Ok(out)
+    }
 }
 
 #[pymethods]

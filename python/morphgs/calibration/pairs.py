@@ -155,9 +155,10 @@ class Bench:
         self.clean = [_quantise(rgb) for rgb in self._rgb]
 
     def corrupted(self, config: Any, index: int, seconds: dict[str, float] | None = None) -> np.ndarray:
-        """The synthetic corrupted frames of pair `index` under a `Strength` config, or a
-        `Blur2d` one (the clean render blurred, as curate's blur2d). `seconds`, when given,
-        gains the wall seconds spent: "perturb" (for blur2d, the blur) and "render"."""
+        """The synthetic corrupted frames of pair `index` under a `Strength` config (popping
+        included: the render honours the scene's caps frame by frame), or a `Blur2d` one (the
+        clean render blurred, as curate's blur2d). `seconds`, when given, gains the wall seconds
+        spent: "perturb" (for blur2d, the blur) and "render"."""
         from morphgs.rendering import render_many
         from morphgs.strength import Blur2d
 

@@ -2,7 +2,9 @@
 
 Also `--preset FAMILY~S` (a family of the strength parameterisation at strength S) and `--config
 FILE` holding a strength config ({"kind": "strength", ...}, e.g. from `morphgs calibrate`; a
-strength distribution draws the strength from the seed, as curate does)."""
+strength distribution draws the strength from the seed, as curate does). Popping is per-frame
+visibility: the written PLY carries its caps as the properties popping_x/y/z/h, which morphgs's
+renderer honours (docs/artifacts.md)."""
 
 from __future__ import annotations
 
@@ -156,6 +158,8 @@ def run(args: argparse.Namespace) -> int:
             cams = trajectory.for_scene(scene, 8 * st.train_every, resolution=(256, 192))
         out, mask = st.apply(scene, seed=args.seed, return_mask=True, cameras=cams)
         extra: dict[str, Any] = {"strength": st.strength, "config": st.to_dict()}
+        if "popping_h" in out.extras:  # per-frame visibility: its caps ride along in the PLY
+            extra["popping"] = int(np.count_nonzero(out.extras["popping_h"]))
         if cams is not None:
             extra["training_cameras"] = f"every {st.train_every}th of an orbit of {len(cams)} views at 256x192"
         drawn = " (drawn from its quantile table)" if "quantiles" in strength else ""
@@ -182,5 +186,8 @@ def run(args: argparse.Namespace) -> int:
     spawned = f", {summary['spawned']:,} floaters spawned" if summary["spawned"] else ""
     print(f"  gaussians : {len(scene):,} in, {kept:,} kept, {len(scene) - kept:,} pruned{spawned}")
     print(f"  operations: {ops or 'none'}")
+    if "popping" in summary:
+        print(f"  popping   : {summary['popping']:,} Gaussians pop (their caps are the PLY properties popping_x, "
+              "popping_y, popping_z, popping_h; morphgs renders them frame by frame, other renderers ignore them)")
     print(f"  config    : {config_text}")
     return 0

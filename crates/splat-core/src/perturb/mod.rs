@@ -14,6 +14,7 @@ use rayon::prelude::*;
 
 pub mod artifacts;
 mod kernel;
+pub mod popping;
 
 use crate::error::{Error, Result};
 use crate::mem::zeroed_f32;

@@ -21,6 +21,7 @@ pub mod blend;
 mod blend_avx2;
 #[cfg(target_arch = "x86_64")]
 mod blend_avx512;
+pub mod caps;
 pub mod diff;
 mod footprint;
 pub mod project;
@@ -343,6 +344,34 @@ pub fn render_batch_into(
     depth: &mut [f32],
     alpha: &mut [f32],
 ) -> Result<RenderStats> {
+    render_batch_into_caps(scenes, &[], cams, opts, rgb, depth, alpha)
+}
+
+/// [`render_batch_into`] with view-dependent visibility: `caps` is empty (no scene has caps) or
+/// holds one entry per scene, and scene `s`'s Gaussians that `caps[s]` hides from a camera are
+/// left out of that camera's frame ([`caps`]). A scene without caps renders as
+/// [`render_batch_into`] renders it.
+pub fn render_batch_into_caps(
+    scenes: &[SceneView<'_>],
+    caps: &[Option<caps::Caps<'_>>],
+    cams: &[Camera],
+    opts: &RenderOptions,
+    rgb: &mut [f32],
+    depth: &mut [f32],
+    alpha: &mut [f32],
+) -> Result<RenderStats> {
+    if !caps.is_empty() && caps.len() != scenes.len() {
+        return Err(Error::InvalidArgument(format!(
+            "caps: expected one entry per scene ({}), got {}",
+            scenes.len(),
+            caps.len()
+        )));
+    }
+    for (s, c) in scenes.iter().zip(caps) {
+        if let Some(c) = c {
+            c.validate(s.len())?;
+        }
+    }
     let total = batch_size(scenes, cams, opts)?.map_or(0, |(_, _, t)| t);
     if rgb.len() != total * 3 || depth.len() != total || alpha.len() != total {
         return Err(Error::InvalidArgument(format!(
@@ -364,15 +393,16 @@ pub fn render_batch_into(
     let maps = colour_maps(scenes, cams.len(), opts)?;
     let pool = scratch::Pool::for_batch();
     let per_unit: Vec<RenderStats> = if let Some(maps) = maps {
-        render_frames_sharing(scenes, cams, opts, &maps, &pool, rgb, depth, alpha)?
+        render_frames_sharing(scenes, caps, cams, opts, &maps, &pool, rgb, depth, alpha)?
     } else {
         rgb.par_chunks_mut(npix * 3)
             .zip(depth.par_chunks_mut(npix))
             .zip(alpha.par_chunks_mut(npix))
             .enumerate()
             .map(|(u, ((rgb, depth), alpha))| {
-                let scene = &scenes[u / cams.len()];
-                let cam = &cams[u % cams.len()];
+                let (s, cam) = (u / cams.len(), &cams[u % cams.len()]);
+                let mut logits = Vec::new();
+                let scene = &with_caps(&scenes[s], caps.get(s), cam, &mut logits);
                 let colours = share::FrameColours::Off;
                 render_into_sharing(scene, cam, opts, rgb, depth, alpha, colours, &pool)
             })
@@ -383,6 +413,26 @@ pub fn render_batch_into(
         stats.add(s);
     }
     Ok(stats)
+}
+
+/// `scene` as `cam` sees it under its caps (its hidden Gaussians' logits -inf, held in
+/// `logits`), or `scene` itself without caps. Colours stay shareable: caps change opacity only.
+fn with_caps<'s>(
+    scene: &SceneView<'s>,
+    caps: Option<&Option<caps::Caps<'_>>>,
+    cam: &Camera,
+    logits: &'s mut Vec<f32>,
+) -> SceneView<'s> {
+    match caps {
+        Some(Some(c)) => {
+            c.logits(scene, caps::centre(cam), logits);
+            SceneView {
+                opacity_logits: logits,
+                ..*scene
+            }
+        }
+        _ => *scene,
+    }
 }
 
 /// Checks a batch (options, cameras of one size, scenes and their SH degrees) and gives its
@@ -456,8 +506,10 @@ fn colour_maps(
 /// The units of [`render_batch`] frame by frame: each frame renders the first scene, recording
 /// its colours, then the others, reusing them where `maps` says a Gaussian's mean and SH equal
 /// one of the first scene's. Returns the per-unit stats in unit order (scene-major).
+#[allow(clippy::too_many_arguments)]
 fn render_frames_sharing(
     scenes: &[SceneView<'_>],
+    caps: &[Option<caps::Caps<'_>>],
     cams: &[Camera],
     opts: &RenderOptions,
     maps: &[Option<Vec<u32>>],
@@ -500,7 +552,9 @@ fn render_frames_sharing(
                         None => share::FrameColours::Off,
                     },
                 };
-                let (scene, cam) = (&scenes[s], &cams[k]);
+                let cam = &cams[k];
+                let mut logits = Vec::new();
+                let scene = &with_caps(&scenes[s], caps.get(s), cam, &mut logits);
                 let st = render_into_sharing(scene, cam, opts, rgb, depth, alpha, colours, pool)?;
                 stats.push(st);
             }
