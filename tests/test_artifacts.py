@@ -21,7 +21,7 @@ import morphgs
 from morphgs import synthetic, trajectory
 from morphgs.strength import ARTIFACT_OPS, FAMILIES, Strength
 
-FAMS = (*ARTIFACT_OPS, "sparse-like")
+FAMS = (*ARTIFACT_OPS, "shatter", "sparse-like")  # popping: tests/test_popping.py
 
 #: sha256 (first 32 hex digits) of every sparse-view family's output on `room()` at strength 1.5 (the
 #: six Rust ops' part unchanged since they were pinned at cdcbd816...; shatter added).
