@@ -222,6 +222,15 @@ class Strength:
         cams = cameras if isinstance(cameras, Cameras) else Cameras.from_list(list(cameras))
         return cams[:: self.train_every]
 
+    def _train_views(self, cameras: Any, train_cameras: Any) -> Any:
+        """The virtual training cameras: `train_cameras` as given, else every `train_every`-th
+        of `cameras`."""
+        from morphgs.camera import Cameras
+
+        if train_cameras is not None:
+            return train_cameras if isinstance(train_cameras, Cameras) else Cameras.from_list(list(train_cameras))
+        return self.train_cameras(cameras)
+
     def apply(self, scene: GaussianScene, *, seed: int, return_mask: bool = False, cameras: Any = None,
               train_cameras: Any = None) -> Any:
         """The perturbed copy of `scene` (seeded; the same bytes for any thread count and CPU).
@@ -272,25 +281,17 @@ class Strength:
     def _popping(self, scene: GaussianScene, fraction: float, seed: int, cameras: Any,
                  train_cameras: Any = None) -> GaussianScene:
         from morphgs._core import _popping
-        from morphgs.camera import Cameras
 
-        if train_cameras is not None:
-            train = train_cameras if isinstance(train_cameras, Cameras) else Cameras.from_list(list(train_cameras))
-        else:
-            train = self.train_cameras(cameras)
+        train = self._train_views(cameras, train_cameras)
         return _popping(scene, popping=fraction, seed=seed,
                         world_to_camera=np.ascontiguousarray(train.world_to_camera, np.float64),
                         K=np.ascontiguousarray(train.K, np.float64), width=int(train.width), height=int(train.height))
 
     def _sparse_ops(self, scene: GaussianScene, v: Mapping[str, float], seed: int, cameras: Any,
                     train_cameras: Any = None) -> Any:
-        if train_cameras is not None:
-            from morphgs.camera import Cameras
-
-            train = (train_cameras if isinstance(train_cameras, Cameras) else Cameras.from_list(list(train_cameras)))
+        if cameras is not None or train_cameras is not None:
+            train = self._train_views(cameras, train_cameras)
             cameras = train
-        if cameras is not None:
-            train = train if train_cameras is not None else self.train_cameras(cameras)
             w2c, K = train.world_to_camera, train.K
             width, height = train.width, train.height
         else:  # holes and dilate only

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["auc", "classifier_auc", "compare", "distances", "iqr_scale", "stat_matrix", "usable", "w1"]
+__all__ = ["auc", "bootstrap_auc", "classifier_auc", "compare", "distances", "iqr_scale", "stat_matrix", "usable", "w1"]
 
 
 def stat_matrix(stats: Sequence[dict[str, Any]], names: Sequence[str]) -> np.ndarray:
@@ -106,19 +106,28 @@ def classifier_auc(x: np.ndarray, y: np.ndarray, groups: Sequence[str], *, n_boo
         w = _logistic((x[train] - mu) / sd, y[train])
         scores[test] = np.hstack([(x[test] - mu) / sd, np.ones((int(test.sum()), 1))]) @ w
     value = auc(scores, y)
+    units = g if len(uniq) > 1 else np.arange(len(y))  # one scene: each row its own unit
+    return {"auc": value, "ci": bootstrap_auc(scores, y, units, n_boot=n_boot, seed=seed),
+            "bootstrap": "scenes" if len(uniq) > 1 else "pairs"}
+
+
+def bootstrap_auc(scores: np.ndarray, labels: np.ndarray, units: np.ndarray, *, n_boot: int,
+                  seed: int) -> list[float]:
+    """The 95% interval of `auc` over `n_boot` resamples of the units (rows sharing a unit, e.g.
+    a scene, are drawn together); NaN when no resample holds both labels."""
+    uniq = sorted(set(units.tolist()))
     rng = np.random.default_rng(seed)
     boots = []
     for _ in range(n_boot):
-        pick = rng.choice(len(uniq), size=len(uniq), replace=True) if len(uniq) > 1 else None
-        if pick is None:
-            idx = rng.choice(len(y), size=len(y), replace=True)
-        else:
-            idx = np.concatenate([np.flatnonzero(g == uniq[i]) for i in pick])
-        a = auc(scores[idx], y[idx])
+        pick = rng.choice(len(uniq), size=len(uniq), replace=True)
+        idx = np.concatenate([np.flatnonzero(units == uniq[i]) for i in pick])
+        a = auc(scores[idx], labels[idx])
         if np.isfinite(a):
             boots.append(a)
-    lo, hi = (np.quantile(boots, [0.025, 0.975]).tolist() if boots else [float("nan")] * 2)
-    return {"auc": value, "ci": [float(lo), float(hi)], "bootstrap": "scenes" if len(uniq) > 1 else "pairs"}
+    if not boots:
+        return [float("nan"), float("nan")]
+    lo, hi = np.quantile(boots, [0.025, 0.975])
+    return [float(lo), float(hi)]
 
 
 def _halves(groups: Sequence[str]) -> np.ndarray:

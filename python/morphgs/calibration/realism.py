@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from morphgs.calibration.goodness import auc
+from morphgs.calibration.goodness import auc, bootstrap_auc
 
 __all__ = ["CROP", "STEPS", "Clip", "classifier_test", "floor_test", "realism_test"]
 
@@ -129,22 +129,6 @@ def _score(net: Any, frames: np.ndarray) -> np.ndarray:
         return net(torch.from_numpy(frames)).squeeze(1).numpy().astype(np.float64)  # type: ignore[no-any-return]
 
 
-def _bootstrap(scores: np.ndarray, labels: np.ndarray, units: np.ndarray, *, n_boot: int, seed: int) -> list[float]:
-    uniq = sorted(set(units.tolist()))
-    rng = np.random.default_rng(seed)
-    boots = []
-    for _ in range(n_boot):
-        pick = rng.choice(len(uniq), size=len(uniq), replace=True)
-        idx = np.concatenate([np.flatnonzero(units == uniq[i]) for i in pick])
-        a = auc(scores[idx], labels[idx])
-        if np.isfinite(a):
-            boots.append(a)
-    if not boots:
-        return [float("nan"), float("nan")]
-    lo, hi = np.quantile(boots, [0.025, 0.975])
-    return [float(lo), float(hi)]
-
-
 def classifier_test(train: Sequence[Clip], test: Sequence[Clip] | None = None, *, seed: int = 0,
                     steps: int = STEPS, n_boot: int = 200) -> dict[str, Any]:
     """The CNN two-sample test (module doc): trained on `train`, scored on `test`; with no `test`,
@@ -196,7 +180,7 @@ def classifier_test(train: Sequence[Clip], test: Sequence[Clip] | None = None, *
         scene_of = {i: clips[i].scene for _, te in folds for i in te}
         un = np.array([scene_of[int(u)] for u in un])
     value = auc(sc, lb)
-    return {"auc": value, "ci": _bootstrap(sc, lb, un, n_boot=n_boot, seed=seed),
+    return {"auc": value, "ci": bootstrap_auc(sc, lb, un, n_boot=n_boot, seed=seed),
             "bootstrap": "scenes" if len(scenes) > 1 else "pairs",
             "frames": {"real": int(np.sum(lb == 0)), "synthetic": int(np.sum(lb == 1))},
             "held_out": bool(test), "steps": int(steps)}
