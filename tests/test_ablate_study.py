@@ -209,7 +209,7 @@ def test_the_capture_stage_uses_a_scene_folders_cameras_and_real_images(tmp_path
     folder = _scene_folder(tmp_path / "room", views=10)
     (src,), problems = discover([folder])
     assert not problems
-    captures.make(tmp_path / "cap", source=src, views=96, size=(32, 24), up="file")
+    captures.make(tmp_path / "cap", source=src, views=96, size=(32, 24), up="file", clean_dir=None)
     out, info = captures.load_capture(tmp_path / "cap")
     assert info["views"] == 10 and info["images"] == "images"  # its 10 cameras, not a 96-view orbit
     real = np.stack([np.asarray(Image.open(p)) for p in sorted((folder / "images").iterdir())])
@@ -293,7 +293,7 @@ def test_the_capture_orbit_of_a_scene_file_is_upright_and_up_is_checked(tmp_path
         morphgs.save(scene, folder / "scene.ply")
         (src,), problems = discover([folder])
         assert not problems
-        captures.make(tmp_path / f"cap-{name}", source=src, views=8, size=(32, 24), up=up)
+        captures.make(tmp_path / f"cap-{name}", source=src, views=8, size=(32, 24), up=up, clean_dir=None)
         out, _ = captures.load_capture(tmp_path / f"cap-{name}")
         orbits[name] = Cameras.from_dict(json.loads((out / "cameras.json").read_text())).camera_to_world
     got, want = orbits["ydown"], orbits["zup"]

@@ -48,7 +48,9 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
         if cache.is_done(j.ref):
             continue
         st = j.ref.stage
-        if st == "captures":
+        if st == "cleanfits":  # the photos shrunk to 1-2x the study size a side: ~2x its pixels
+            s = S["clean"]["steps"] * 2 * px * UNIT["fit"]
+        elif st == "captures":
             s = S["capture"]["views"] * px * gauss * UNIT["render"]
         elif st == "trainsets":
             n = len(j.kwargs["scene_dirs"]) * S["conditions"]["pairs_per_scene"]

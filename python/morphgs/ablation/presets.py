@@ -73,6 +73,12 @@ _BASE: dict[str, Any] = {
         "random_points": 20000,
         "cap_max": 60000,
     },
+    "clean": {
+        "steps": 3000,                  # clean fits of captures given as photos (all photos but every 8th)
+        "random_points": 20000,         # (captures without SfM points start from random points)
+        "cap_max": 60000,
+        "min_psnr": 20.0,               # held-out PSNR below which the report names a clean fit as poor
+    },
     "refit": {
         "steps": 200,                   # the 3D re-fit from 14 refined frames
         "random_points": 20000,
@@ -97,6 +103,7 @@ _SMOKE: dict[str, Any] = {
     "model": {"overrides": {"model": _SMALL_TINY}},
     "training": {"steps": 20, "lr": 2e-3, "crop": [48, 48], "window": 4, "probe_every": 5, "probe_rows": 256},
     "sparse": {"steps": 150, "random_points": 3000, "cap_max": 6000},
+    "clean": {"steps": 300, "random_points": 3000, "cap_max": 6000},
     "refit": {"steps": 150, "random_points": 3000, "cap_max": 6000},
     "metrics": {"eflow": True},
 }
@@ -114,6 +121,7 @@ _PAPER: dict[str, Any] = {
     "training": {"steps": 10000, "lr": 2e-4, "crop": [320, 512], "window": 16, "probe_every": 500,
                  "probe_rows": 4096, "threads": 0},
     "sparse": {"steps": 30000, "random_points": 100000, "cap_max": 1_000_000},
+    "clean": {"steps": 30000, "random_points": 100000, "cap_max": 1_000_000},
     "refit": {"steps": 7000, "random_points": 100000, "cap_max": 1_000_000},
 }
 

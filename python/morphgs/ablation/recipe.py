@@ -6,7 +6,9 @@ the stage's `make()` (morphgs.ablation.jobs): an upstream output counts by its k
 sha256, and the stage's VERSION is in it. So a setting reaches a key exactly when it reaches a
 stage, and a rerun remakes what a change touches, nothing else:
 
-    captures/<scene>                  the scene (its files' hashes or built-in parameters), views, size, up
+    cleanfits/<scene>                 a capture given as photos (its files' hashes), size, [clean]
+    captures/<scene>                  the scene (its files' hashes or built-in parameters), views, size, up,
+                                      the clean fit
     trainsets/<condition>             captures of the train scenes, the condition's curate config, pairs, frames
     calibration/<condition>           trainsets/target-<regime>, the family, the strength grid
     trainsets/<calibrated condition>  its calibration output, the captures, pairs, frames
@@ -60,12 +62,20 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
         jobs.append(j)
         return j
 
-    # 1. captures: per scene (the built-in rooms keep their own z-up orbit: no `up`)
+    # 0-1. clean fits of captures given as photos, then captures: per scene (the built-in rooms keep
+    # their own z-up orbit: no `up`)
     cap: dict[str, Job] = {}
+    clean = {k: S["clean"][k] for k in ("steps", "random_points", "cap_max")}
     for sid in sc.train + sc.test:
         src = sc.sources[sid]
-        cap[sid] = add("captures", sid, source=Keyed(src, scene_fingerprint(src)), views=int(S["capture"]["views"]),
-                       size=size, up=S["capture"]["up"] if src.builtin is None else None)
+        fp = scene_fingerprint(src)
+        fitted = None
+        if src.capture is not None:
+            fitted = add("cleanfits", sid, capture=Keyed(src.capture, fp), size=size, clean=clean, seed=FIT_SEED,
+                         meta={"scene": sid, "min_psnr": float(S["clean"]["min_psnr"])})
+        cap[sid] = add("captures", sid, source=Keyed(src, fp), views=int(S["capture"]["views"]),
+                       size=size, up=S["capture"]["up"] if src.builtin is None else None,
+                       clean_dir=Out(fitted) if fitted is not None else None)
 
     # 2. training sets: per condition, on the train scenes' captures (a target per regime also when
     # only a calibrated condition needs it: its real pairs are what the family is calibrated against)
@@ -135,7 +145,7 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
                 meta=meta)
 
     # 8. the report: every output it reads, with what each stands for
-    read = ("trainsets", "calibration", "training", "testsets", "refine", "metrics2d", "metrics3d")
+    read = ("cleanfits", "trainsets", "calibration", "training", "testsets", "refine", "metrics2d", "metrics3d")
     parts = [(j.ref.stage, Out(j), j.meta) for j in jobs if j.ref.stage in read]
     add("report", "report", parts=parts, conditions=[c.name for c in study.conditions],
         regimes=[r.label for r in study.regimes], lpips_note=lpips_note)

@@ -11,9 +11,10 @@ import hashlib
 from dataclasses import dataclass
 from typing import Any
 
+from morphgs._core import MorphgsError
 from morphgs.ablation.study import Regime, Study, StudyError
 
-__all__ = ["SceneSet", "resolve_scenes", "scene_fingerprint"]
+__all__ = ["SceneSet", "check_capture", "resolve_scenes", "scene_fingerprint"]
 
 
 @dataclass(frozen=True)
@@ -39,12 +40,43 @@ def scene_fingerprint(source: Any) -> dict[str, Any]:
     for name, p in (("scene", source.path), ("cameras", source.cameras)):
         if p is None:
             continue
+        out[name] = _sha256(p)
+    if source.capture is not None:  # the photos the clean fit and the capture read
+        from morphgs.fit import load_posed_images
+
+        posed = load_posed_images(source.capture)
         h = hashlib.sha256()
-        with open(p, "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
-        out[name] = h.hexdigest()
+        for p in posed.paths:
+            h.update(f"{p.name}\0{_sha256(p)}\0".encode())
+        out["photos"] = h.hexdigest()
+        if posed.points is not None:
+            out["points"] = _sha256(posed.points)
     return out
+
+
+def _sha256(path: Any) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def check_capture(study: Study, source: Any) -> None:
+    """A capture given as photos is usable: every camera has its photo (one line naming the
+    capture, the camera and the missing file otherwise)."""
+    from morphgs.fit import load_posed_images
+
+    try:
+        posed = load_posed_images(source.capture)
+    except (OSError, ValueError, MorphgsError) as e:
+        raise StudyError(f"{study.source}: scenes.inputs: {source.id}: {e}") from None
+    missing = [i for i, p in enumerate(posed.paths) if not p.is_file()]
+    if missing:
+        i = missing[0]
+        raise StudyError(f"{study.source}: scenes.inputs: {source.id}: camera {i} of {posed.source} has no photo "
+                         f"({posed.paths[i]} is missing; {len(missing)} of {len(posed)} are): add the photos or "
+                         "drop their cameras")
 
 
 def resolve_scenes(study: Study, *, check_views: bool = True) -> SceneSet:
@@ -59,7 +91,7 @@ def resolve_scenes(study: Study, *, check_views: bool = True) -> SceneSet:
     sc, sp = study["scenes"], study["split"]
     size = tuple(study["capture"]["size"])
     if sc["inputs"]:
-        found, problems = discover(sc["inputs"])
+        found, problems = discover(sc["inputs"], captures=True)
         if problems:
             inp, msg = problems[0]
             raise StudyError(f"{study.source}: scenes.inputs: {inp}: {msg}")
@@ -87,11 +119,17 @@ def resolve_scenes(study: Study, *, check_views: bool = True) -> SceneSet:
     views = {}
     for sid in train + test:
         src = sources[sid]
+        if src.capture is not None:
+            check_capture(study, src)
         rec = src.load_cameras(size) if check_views and src.builtin is None else None
         views[sid] = len(rec) if rec is not None else int(study["capture"]["views"])
     for sid in test:
         for r in study.regimes:
             _check_regime(study, sid, views[sid], r)
+        fr = int(study["clips"]["frames"])
+        if sources[sid].capture is not None and views[sid] < fr:
+            raise StudyError(f"{study.source}: test scene {sid} has {views[sid]} photos, fewer than a test clip's "
+                             f"clips.frames = {fr} (its clips are runs of consecutive photos)")
     if any(c.kind in ("target", "calibrated") for c in study.conditions):  # they need real pairs of the train scenes
         for sid in train:
             for r in study.regimes:

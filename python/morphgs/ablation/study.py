@@ -3,7 +3,7 @@
     [study]      seeds                  [conditions]  train, targets, pairs_per_scene, blur_sigma
     [scenes]     inputs, builtin, ...   [regimes]     every, n
     [split]      seed, test, *_ids      [clips]       frames, per_scene, heldout
-    [capture]    views, size            [model] [training] [sparse] [refit] [metrics]
+    [capture]    views, size            [model] [training] [sparse] [clean] [refit] [metrics]
 
 `load_study(path, preset=...)` gives a `Study`: the full settings tree (`settings`, every key
 present, as `--print-config` shows it) and what is derived from it (the conditions as curate
@@ -178,7 +178,7 @@ def _validate(s: dict[str, Any], source: str) -> None:
         raise StudyError(f"{_where(source, 'training.crop')} must be [H, W] within capture.size [W, H] = {size}")
     if s["training"]["window"] < 1 or s["training"]["window"] > fr:
         raise StudyError(f"{_where(source, 'training.window')} must be in [1, clips.frames = {fr}]")
-    for sec in ("training", "sparse", "refit"):
+    for sec in ("training", "sparse", "clean", "refit"):
         if s[sec]["steps"] < 1:
             raise StudyError(f"{_where(source, sec + '.steps')} must be >= 1")
     if s["training"]["probe_every"] < 1:

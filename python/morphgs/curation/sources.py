@@ -9,6 +9,7 @@ the built-in synthetic sample scenes are used.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -39,9 +40,15 @@ class SceneSource:
     cameras: str | None = None
     cameras_kind: str | None = None  # "transforms" | "colmap" | "inria" | "camera_path"
     builtin: dict[str, Any] | None = field(default=None)
+    capture: str | None = None  # a folder of photos and cameras without a scene (ablate fits it)
 
     def describe(self) -> str:
-        src = f"built-in synthetic {self.builtin}" if self.builtin is not None else str(self.path)
+        if self.builtin is not None:
+            src = f"built-in synthetic {self.builtin}"
+        elif self.capture is not None:
+            src = f"capture {self.capture} (photos; its clean scene is fitted)"
+        else:
+            src = str(self.path)
         cams = f"{self.cameras_kind} cameras {self.cameras}" if self.cameras else "no cameras (orbit)"
         return f"{src}; {cams}"
 
@@ -53,7 +60,9 @@ class SceneSource:
             return synthetic.scene(**self.builtin)
         import morphgs
 
-        assert self.path is not None
+        if self.path is None:
+            raise MorphgsError(f"{self.capture}: a capture without a scene file: fit it first "
+                               f"(`morphgs fit {self.capture} --out RUN`, then use RUN)")
         return morphgs.load(self.path)
 
     def load_cameras(self, resolution: tuple[int, int]) -> Cameras | None:
@@ -178,8 +187,25 @@ def _cameras_in(folder: Path) -> tuple[str | None, str | None]:
     return None, None
 
 
-def discover(inputs: Sequence[str | os.PathLike[str]]) -> tuple[list[SceneSource], list[tuple[str, str]]]:
+def _is_capture(folder: Path) -> bool:
+    """Whether a folder holds posed photos (transforms.json or a COLMAP model, and the images)."""
+    from morphgs.fit import load_posed_images
+
+    try:
+        posed = load_posed_images(folder)
+    except (OSError, ValueError, MorphgsError):
+        return False
+    return len(posed) > 0 and any(p.is_file() for p in posed.paths)
+
+
+def discover(inputs: Sequence[str | os.PathLike[str]], *,
+             captures: bool = False) -> tuple[list[SceneSource], list[tuple[str, str]]]:
     """Turn command-line SCENE arguments into sources.
+
+    With `captures`, a folder of posed photos without a scene file (transforms.json or a COLMAP
+    model, and its images) is a source too: `SceneSource.capture` names it and `path` is None (its
+    clean scene is fitted by the caller, as `morphgs ablate` does). Without it such a folder is a
+    problem whose message says to fit it first.
 
     Returns:
         (sources, problems): problems are (input, message) for inputs that are not usable scenes;
@@ -191,11 +217,21 @@ def discover(inputs: Sequence[str | os.PathLike[str]]) -> tuple[list[SceneSource
     problems: list[tuple[str, str]] = []
     for raw in inputs:
         p = Path(raw)
+        capture: str | None = None
         try:
             if p.is_dir():
-                scene_file = scene_file_in(p)
                 cams, kind = _cameras_in(p)
                 name = p.resolve().name
+                try:
+                    scene_file: Path | None = scene_file_in(p)
+                except MorphgsError as e:
+                    if kind not in ("transforms", "colmap") or not _is_capture(p):
+                        raise
+                    if not captures:
+                        raise MorphgsError(f"{e}; it holds photos and cameras: fit it first (`morphgs fit {p} "
+                                           "--out RUN`, then use RUN), or give it to `morphgs ablate`, which "
+                                           "fits it") from None
+                    scene_file, capture = None, str(p.resolve())
             elif p.is_file():
                 scene_file, cams, kind, name = p, None, None, p.stem
             else:
@@ -203,8 +239,8 @@ def discover(inputs: Sequence[str | os.PathLike[str]]) -> tuple[list[SceneSource
         except (OSError, MorphgsError) as e:
             problems.append((str(raw), str(e)))
             continue
-        found.append((str(p.resolve()), SceneSource(id=slug(name), path=str(scene_file), cameras=cams,
-                                                    cameras_kind=kind)))
+        found.append((str(p.resolve()), SceneSource(id=slug(name), path=None if scene_file is None else str(scene_file),
+                                                    cameras=cams, cameras_kind=kind, capture=capture)))
     counts: dict[str, int] = {}
     for _, s in found:
         counts[s.id] = counts.get(s.id, 0) + 1
@@ -213,7 +249,7 @@ def discover(inputs: Sequence[str | os.PathLike[str]]) -> tuple[list[SceneSource
     for resolved, s in found:
         if counts[s.id] > 1:
             suffix = hashlib.sha256(resolved.encode()).hexdigest()[:8]
-            s = SceneSource(id=f"{s.id}-{suffix}", path=s.path, cameras=s.cameras, cameras_kind=s.cameras_kind)
+            s = dataclasses.replace(s, id=f"{s.id}-{suffix}")
         if s.id in seen:  # the same input given twice
             continue
         seen.add(s.id)

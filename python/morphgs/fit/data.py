@@ -238,6 +238,22 @@ def _mask_folder(root: Path, image_paths: list[Path], source: str) -> list[Path 
     return out
 
 
+def _downscaled_folder(root: Path, paths: list[Path]) -> list[Path]:
+    """DL3DV's and nerfstudio's layout: transforms.json names `images/...`, but the folder holds
+    only the downscaled copies (`images_2/`, `images_4/`, `images_8/`, same file names). When
+    every named photo is missing and one such folder has them all, the photos are read from the
+    least downscaled one (their cameras are scaled to them as they are read)."""
+    if not paths or any(p.exists() for p in paths):
+        return paths
+    for k in (2, 4, 8):
+        d = root / f"images_{k}"
+        if d.is_dir():
+            cand = [_with_ext(d / p.name) for p in paths]
+            if all(c.is_file() for c in cand):
+                return cand
+    return paths
+
+
 def _from_transforms(path: Path, images: str | None) -> PosedImages:
     from morphgs.trajectory import find_colmap_model, read_transforms_frames
 
@@ -257,6 +273,8 @@ def _from_transforms(path: Path, images: str | None) -> PosedImages:
         if mp is not None and (not isinstance(mp, str) or not mp):
             raise FitDataError(f"{path}: frames[{i}].mask_path must be a file path, got {mp!r}")
         masks.append(_with_ext(root / mp) if mp else None)
+    if images is None:
+        paths = _downscaled_folder(root, paths)
     if all(m is None for m in masks):
         masks = _mask_folder(root, paths, str(path)) or masks
     elif any(m is None for m in masks):

@@ -7,6 +7,8 @@ fit and the later stages read like any posed scene folder.
   orbit, as `sparse:K` makes it).
 - Images: the scene folder's real images when every recorded camera has one, else renders of the
   clean scene (as `sparse:K` does today).
+- The scene: the scene file, the built-in room, or for a capture given as photos its clean fit
+  (stage 0, `cleanfits`), whose held-out quality `capture.json` keeps (`clean_fit`).
 """
 
 from __future__ import annotations
@@ -36,15 +38,19 @@ def _orbit(source: Any, scene: Any, views: int, size: tuple[int, int], up: str |
     return trajectory.for_scene(scene, views, resolution=size, arc_degrees=arc, up=up or "file")
 
 
-def make(work: Path, *, source: Any, views: int, size: tuple[int, int], up: str | None) -> None:
+def make(work: Path, *, source: Any, views: int, size: tuple[int, int], up: str | None,
+         clean_dir: str | None) -> None:
     """Write the capture folder of one scene into `work/<scene id>/` (`up`: the orbit's world up
-    for a scene file without cameras; None for the built-in rooms, which keep their own orbit)."""
+    for a scene file without cameras; None for the built-in rooms, which keep their own orbit;
+    `clean_dir`: the clean fit of a capture given as photos, else None)."""
     import morphgs
+    from morphgs.ablation.stages import cleanfits
     from morphgs.curation.sparse import views_images, write_data
 
     folder = work / source.id
     folder.mkdir(parents=True, exist_ok=True)
-    scene = source.load()
+    fitted = cleanfits.load(clean_dir) if clean_dir is not None else None
+    scene = morphgs.load(fitted["ply"]) if fitted is not None else source.load()
     recorded = source.load_cameras(size)
     cams = recorded if recorded is not None else _orbit(source, scene, views, size, up)
     # real photos come with their own cameras (each photo's size and orientation, undistorted);
@@ -53,6 +59,9 @@ def make(work: Path, *, source: Any, views: int, size: tuple[int, int], up: str 
     write_data(folder, view_cams, images)
     if source.builtin is not None:
         morphgs.save(scene, folder / "scene.ply")
+    elif fitted is not None:
+        # relative: the study folder can move (work/ and the finished output sit at the same depth)
+        os.symlink(os.path.relpath(Path(fitted["ply"]).resolve(), folder.resolve()), folder / "scene.ply")
     else:
         target = Path(source.path).resolve()
         os.symlink(target, folder / f"scene{''.join(target.suffixes[-2:]) or '.ply'}")
@@ -60,6 +69,9 @@ def make(work: Path, *, source: Any, views: int, size: tuple[int, int], up: str 
     lo, hi = (np.asarray(b, np.float64) for b in scene.bounds())
     info = {"scene": source.id, "source": source.describe(), "views": len(cams), "images": kind,
             "bbox_diagonal": float(np.linalg.norm(hi - lo)), "size": list(size)}
+    if fitted is not None:
+        info["clean_fit"] = {k: fitted[k] for k in ("heldout_psnr", "heldout_ssim", "steps", "gaussians",
+                                                    "photos", "heldout_views", "downscale")}
     (work / "capture.json").write_text(json.dumps(info, indent=1) + "\n", encoding="utf-8")
 
 

@@ -17,9 +17,9 @@ from typing import Any
 from morphgs.ablation.conditions import Condition
 from morphgs.ablation.table import format_table
 
-__all__ = ["IGNORE", "RESUMABLE", "VERSION", "calibration_note", "gather", "make"]
+__all__ = ["IGNORE", "RESUMABLE", "VERSION", "calibration_note", "clean_fit_note", "gather", "make"]
 
-VERSION = 2  # 2: deltas.png (paired differences) replaced bars.png
+VERSION = 3  # 2: deltas.png (paired differences) replaced bars.png; 3: the clean fits of captures
 IGNORE: tuple[str, ...] = ()
 RESUMABLE = False
 
@@ -31,9 +31,15 @@ def gather(parts: Sequence[tuple[str, str, dict[str, Any]]]) -> dict[str, Any]:
     severity: dict[str, float] = {}
     calibration: dict[str, dict[str, Any]] = {}
     cka: list[dict[str, Any]] = []
+    clean_fits: dict[str, dict[str, Any]] = {}
     for stage, path, meta in parts:
         p = Path(path)
-        if stage == "calibration":
+        if stage == "cleanfits":
+            info = json.loads((p / "cleanfit.json").read_text())
+            clean_fits[meta["scene"]] = {**{k: info[k] for k in ("heldout_psnr", "heldout_ssim", "steps",
+                                                                  "gaussians", "photos", "heldout_views")},
+                                         "min_psnr": meta["min_psnr"]}
+        elif stage == "calibration":
             calibration[meta["condition"]] = json.loads((p / "summary.json").read_text())
         elif stage == "trainsets":
             severity[meta["condition"]] = json.loads((p / "severity.json").read_text())["psnr_mean"]
@@ -48,7 +54,7 @@ def gather(parts: Sequence[tuple[str, str, dict[str, Any]]]) -> dict[str, Any]:
                 rec.update(vals)
     records = sorted(recs.values(), key=lambda r: (r["regime"], r["condition"], str(r["seed"]), r["scene"], r["clip"]))
     return {"records": records, "severity": dict(sorted(severity.items())),
-            "calibration": dict(sorted(calibration.items())),
+            "calibration": dict(sorted(calibration.items())), "clean_fits": dict(sorted(clean_fits.items())),
             "cka": sorted(cka, key=lambda c: (c["condition"], c["seed"]))}
 
 
@@ -69,6 +75,22 @@ def calibration_note(condition: str, c: dict[str, Any]) -> str:
             f"(median {c['real_median_psnr']:.2f} dB): {med}; strength p5/p50/p95 {c['strength_p05']:.3g} / {c['strength_p50']:.3g} / {c['strength_p95']:.3g}"
             f"{'' if c['monotone'] else '; severity not monotone in strength'}; held-out goodness of fit: {fit} "
             "(calibration/<condition>/calib/report.md).")
+
+
+def clean_fit_note(fits: dict[str, dict[str, Any]]) -> list[str]:
+    """The clean fits of captures given as photos: each one's held-out quality, and the poor ones
+    (held-out PSNR below the study's clean.min_psnr) named."""
+    if not fits:
+        return []
+    parts = [f"{s} {f['heldout_psnr']:.2f} dB / SSIM {f['heldout_ssim']:.3f} ({f['photos']} photos, "
+             f"{f['heldout_views']} held out, {f['steps']} steps, {f['gaussians']} Gaussians)" for s, f in fits.items()]
+    out = ["Clean scenes fitted from the captures' photos, held-out PSNR: " + "; ".join(parts) + "."]
+    poor = [s for s, f in fits.items() if f["heldout_psnr"] is None or f["heldout_psnr"] < f["min_psnr"]]
+    if poor:
+        lim = next(iter(fits.values()))["min_psnr"]
+        out.append(f"POOR clean fit (held-out PSNR below clean.min_psnr = {lim:g} dB): {', '.join(poor)}; "
+                   "their training pairs' clean side and the geometry reference are renders of a poor scene.")
+    return out
 
 
 def _csv(records: Sequence[dict[str, Any]]) -> str:
@@ -92,13 +114,16 @@ def make(work: Path, *, parts: Sequence[tuple[str, str, dict[str, Any]]], condit
     notes = []
     if lpips_note:
         notes.append(f"LPIPS columns read n/a: {lpips_note}.")
+    notes += clean_fit_note(g["clean_fits"])
     notes += [calibration_note(c, v) for c, v in g["calibration"].items()]
     notes.append("Geometry ground truth: depth of the clean dense 3DGS at the clip cameras, unprojected where "
-                 "alpha >= 0.5, in units of the clean scene's bbox diagonal (docs/ablation.md).")
+                 "alpha >= 0.5, in units of the clean scene's bbox diagonal (docs/ablation.md)"
+                 + (": for captures of photos, their clean fit's depth; the 2D metrics and the re-fit's held-out "
+                    "frames are scored against the photos." if g["clean_fits"] else "."))
     (work / "table.md").write_text(format_table(g["records"], regimes=regimes, conditions=conditions,
                                                 severity=g["severity"], notes=notes), encoding="utf-8")
     (work / "results.json").write_text(json.dumps({"records": g["records"], "severity": g["severity"],
-                                                   "calibration": g["calibration"],
+                                                   "calibration": g["calibration"], "clean_fits": g["clean_fits"],
                                                    "cka": g["cka"], "lpips_note": lpips_note},
                                                   indent=1, sort_keys=True) + "\n", encoding="utf-8")
     (work / "results.csv").write_text(_csv(g["records"]), encoding="utf-8")

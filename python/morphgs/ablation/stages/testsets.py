@@ -7,6 +7,10 @@
   clips of `frames`; `per_scene` of them spread evenly. Per clip: `corrupted/` (the sparse fit's
   render), `clean/` (the clean scene's render), `clean_depth.npy` and `clean_alpha.npy`, and
   `cameras.json`.
+- A capture of real photos: the clips are runs of `frames` consecutive photos along the real camera
+  sequence (video order, or a nearest-neighbour path when the photos have none: `camera_sequence`)
+  and `clean/` holds the photos themselves, so the 2D metrics and the re-fit's held-out frames are
+  scored against real pixels; the depth and alpha stay the clean fit's (the geometry's reference).
 """
 
 from __future__ import annotations
@@ -17,9 +21,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["IGNORE", "RESUMABLE", "VERSION", "clip_cameras", "fit_config", "make", "regime_views"]
+__all__ = ["IGNORE", "RESUMABLE", "VERSION", "camera_sequence", "clip_cameras", "fit_config", "make", "photo_clips",
+           "regime_views"]
 
-VERSION = 1
+VERSION = 2  # 2: a capture of real photos: clips along the capture, the photos as the clean frames
 IGNORE: tuple[str, ...] = ()
 RESUMABLE = True  # the sparse fit resumes from its checkpoint in fit/
 
@@ -56,6 +61,58 @@ def clip_cameras(capture: Any, frames: int, per_scene: int) -> list[Any]:
     return [clips[i] for i in pick]
 
 
+def camera_sequence(centers: np.ndarray) -> list[int]:
+    """The order a capture was walked in: the capture's own (video) order, unless a greedy
+    nearest-neighbour path through the camera centres (from the end of the capture order farthest
+    from the rest) is less than 2/3 of its length, as for photos with no order (shuffled names)."""
+    n = len(centers)
+    if n < 3:
+        return list(range(n))
+    c = np.asarray(centers, np.float64)
+
+    def length(order: list[int]) -> float:
+        return float(np.linalg.norm(np.diff(c[order], axis=0), axis=1).sum())
+
+    d = np.linalg.norm(c[:, None] - c[None], axis=-1)
+    start = int(np.argmax(d.sum(axis=1)))
+    order, left = [start], set(range(n)) - {start}
+    while left:
+        last = order[-1]
+        nxt = min(left, key=lambda k: (d[last, k], k))
+        order.append(nxt)
+        left.remove(nxt)
+    return order if length(order) < length(list(range(n))) * 2 / 3 else list(range(n))
+
+
+def photo_clips(folder: Path, frames: int, per_scene: int) -> list[tuple[list[int], list[np.ndarray], Any]]:
+    """Test clips along the real camera sequence of a capture whose views are photos: `per_scene`
+    runs of `frames` consecutive views (`camera_sequence`), spread evenly; per clip (view indices,
+    photos, their cameras). Photos of another size than the capture's most common one (a pixel
+    off, as undistorted photos are) are resized to it with their cameras, so a clip stacks."""
+    from collections import Counter
+
+    from PIL import Image
+
+    from morphgs.camera import Cameras
+    from morphgs.fit import load_posed_images
+
+    posed = load_posed_images(folder)
+    order = camera_sequence(np.stack([c.center for c in posed.cameras]))
+    starts = list(range(0, len(order) - frames + 1, frames))
+    pick = sorted({int(i) for i in np.round(np.linspace(0, len(starts) - 1, min(per_scene, len(starts))))})
+    (w, h), _ = Counter((c.width, c.height) for c in posed.cameras).most_common(1)[0]
+    out = []
+    for i in pick:
+        idx = order[starts[i]:starts[i] + frames]
+        imgs, cams = posed.load(idx)
+        for k, (im, cam) in enumerate(zip(imgs, cams)):
+            if (cam.width, cam.height) != (w, h):
+                imgs[k] = np.asarray(Image.fromarray(im).resize((w, h), Image.Resampling.LANCZOS))
+                cams[k] = cam.resized(w, h)
+        out.append((idx, imgs, Cameras.from_list(cams)))
+    return out
+
+
 def make(work: Path, *, capture_dir: str, regime: dict[str, int], sparse: dict[str, Any], frames: int,
          per_scene: int, seed: int) -> None:
     import morphgs
@@ -71,18 +128,26 @@ def make(work: Path, *, capture_dir: str, regime: dict[str, int], sparse: dict[s
                  progress=False)
     sparse_scene = result.scene
     clean_scene = load_scene(cap)
-    clips = []
-    for j, cc in enumerate(clip_cameras(cams, frames, per_scene)):
+    if info["images"] == "images":  # real photos: the clips follow the capture, the photos are the clean frames
+        runs = [(idx, imgs, cc) for idx, imgs, cc in photo_clips(folder, frames, per_scene)]
+    else:
+        runs = [(None, None, cc) for cc in clip_cameras(cams, frames, per_scene)]
+    clips, clip_views = [], []
+    for j, (idx, photos, cc) in enumerate(runs):
         d = work / "clips" / f"{j:02d}"
         clean = morphgs.render(clean_scene, cc)
         bad = morphgs.render(sparse_scene, cc)
-        media.write_frames(d / "clean", clean.to_uint8())
+        media.write_frames(d / "clean", clean.to_uint8() if photos is None else np.stack(photos))
         media.write_frames(d / "corrupted", bad.to_uint8())
         np.save(d / "clean_depth.npy", np.asarray(clean.depth, np.float32))
         np.save(d / "clean_alpha.npy", np.asarray(clean.alpha, np.float32))
         (d / "cameras.json").write_text(json.dumps(cc.to_dict()) + "\n", encoding="utf-8")
         clips.append(f"{j:02d}")
+        clip_views.append(idx)
     meta = {"scene": info["scene"], "regime": regime, "train_views": views, "capture_views": len(cams),
-            "clips": clips, "bbox_diagonal": info["bbox_diagonal"]}
+            "clips": clips, "bbox_diagonal": info["bbox_diagonal"],
+            "clean": "photos" if info["images"] == "images" else "renders"}
+    if info["images"] == "images":
+        meta["clip_views"] = clip_views  # the capture views (photos) of each clip, in order
     (work / "testset.json").write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
 

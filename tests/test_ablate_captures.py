@@ -1,0 +1,146 @@
+"""`morphgs ablate` on captures given as photos (issue 35 §1): a folder `morphgs fit` reads is a
+scene input; a cached, resumable clean-fit stage fits its clean scene from all its photos but the
+held-out ones, the report gives each clean fit's held-out quality and names a poor one, and a
+capture that cannot serve says so in one line before any long work."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fit_helpers import make_dataset
+
+SMALL = (48, 48)
+
+
+def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONWARNINGS": "ignore::DeprecationWarning"}
+    return subprocess.run([sys.executable, "-m", "morphgs", *args], cwd=cwd, capture_output=True, text=True,
+                          env=env, timeout=900)
+
+
+def _captures(root: Path, n: int = 3, views: int = 18) -> list[str]:
+    names = []
+    for i in range(n):
+        make_dataset(root / f"cap{i}", views=views, size=SMALL, gaussians=1500, seed=i)
+        names.append(f"cap{i}")
+    return names
+
+
+def _study(root: Path, inputs: list[str], extra: str = "") -> Path:
+    f = root / "study.toml"
+    f.write_text('preset = "smoke"\n[scenes]\ninputs = ' + json.dumps(inputs) + "\n"
+                 '[conditions]\ntrain = ["morphological"]\n[study]\nseeds = [0]\n'
+                 '[clean]\nsteps = 120\nmin_psnr = 99.0\n' + extra, encoding="utf-8")
+    return f
+
+
+def test_a_capture_of_photos_is_fitted_then_studied_and_a_rerun_computes_nothing(tmp_path: Path) -> None:
+    _study(tmp_path, _captures(tmp_path))
+    r = _cli("ablate", "--study", "study.toml", "--out", "out", "-j", "2", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    runs = [json.loads(x) for x in (tmp_path / "out" / "runs.jsonl").read_text().splitlines()]
+    assert runs[-1]["counts"]["cleanfits"] == {"computed": 3, "reused": 0}
+    # each clean fit held out every 8th photo and says how well it renders them
+    (d,) = (tmp_path / "out" / "cleanfits").glob("cap0-*")
+    info = json.loads((d / "cleanfit.json").read_text())
+    assert info["photos"] == 18 and info["heldout_views"] == 3 and info["steps"] == 120
+    assert 5.0 < info["heldout_psnr"] < 60.0
+    # the capture folder the later stages read holds the photos and the fitted scene
+    (c,) = (tmp_path / "out" / "captures").glob("cap0-*")
+    cap = json.loads((c / "capture.json").read_text())
+    assert cap["images"] == "images" and cap["clean_fit"]["heldout_psnr"] == info["heldout_psnr"]
+    assert (c / "cap0" / "scene.ply").resolve() == (d / info["ply"]).resolve()
+    table = (tmp_path / "out" / "table.md").read_text()
+    assert f"cap0 {info['heldout_psnr']:.2f} dB" in table
+    assert "POOR clean fit (held-out PSNR below clean.min_psnr = 99 dB): cap0, cap1, cap2" in table
+    # the test clips run along the capture and their clean frames are its photos, byte for byte
+    (t,) = (tmp_path / "out" / "testsets").glob("*")
+    ts = json.loads((t / "testset.json").read_text())
+    assert ts["clean"] == "photos" and ts["clip_views"] == [list(range(8))]
+    from morphgs import media
+
+    clean = media.read_clip(t / "clips" / "00" / "clean")
+    photos = [media.read_image(tmp_path / ts["scene"] / "images" / f"frame_{i:05d}.png") for i in range(8)]
+    assert np.array_equal(clean, np.stack(photos))
+    res = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert sorted(res["clean_fits"]) == ["cap0", "cap1", "cap2"]
+
+    before = (tmp_path / "out" / "results.json").read_bytes()
+    r = _cli("ablate", "--study", "study.toml", "--out", "out", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "0 stage output(s) computed" in r.stderr
+    assert (tmp_path / "out" / "results.json").read_bytes() == before
+
+    # the threshold is the report's alone: changing it remakes the report, no fit
+    f = tmp_path / "study.toml"
+    f.write_text(f.read_text().replace("min_psnr = 99.0", "min_psnr = 1.0"))
+    r = _cli("ablate", "--study", "study.toml", "--out", "out", "--recompute", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "1 stage output(s) computed" in r.stderr
+    assert "POOR" not in (tmp_path / "out" / "table.md").read_text()
+
+
+def test_a_capture_that_cannot_serve_is_one_line_before_any_work(tmp_path: Path) -> None:
+    names = _captures(tmp_path, views=18)
+    # a camera whose photo is missing
+    os.remove(tmp_path / "cap1" / "images" / "frame_00004.png")
+    _study(tmp_path, names)
+    r = _cli("ablate", "--study", "study.toml", "--out", "out", cwd=tmp_path)
+    assert r.returncode != 0
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert "cap1" in lines[0] and "camera 4" in lines[0] and "frame_00004.png" in lines[0]
+    assert not (tmp_path / "out" / "cleanfits").exists()
+    # too few photos for a regime
+    shutil.rmtree(tmp_path / "cap1")
+    make_dataset(tmp_path / "cap1", views=6, size=SMALL, gaussians=500, seed=1)
+    r = _cli("ablate", "--study", "study.toml", "--out", "out", cwd=tmp_path)
+    assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "scene cap1 has 6 capture views, too few for regime S8" in r.stderr
+
+
+def test_curate_says_to_fit_a_capture_of_photos_first(tmp_path: Path) -> None:
+    make_dataset(tmp_path / "cap", views=6, size=SMALL, gaussians=300)
+    r = _cli("curate", "cap", "--out", "data", "--frames", "4", cwd=tmp_path)
+    assert r.returncode != 0, r.stderr
+    assert "holds photos and cameras: fit it first" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_the_dl3dv_layout_reads_the_downscaled_photos(tmp_path: Path) -> None:
+    """DL3DV's transforms.json names images/frame_XXXXX.png, the folder holds images_4/ (or
+    images_8/) only: the photos are read from there, their cameras scaled to them."""
+    from morphgs.fit import load_posed_images
+    from PIL import Image
+
+    root, _, cams = make_dataset(tmp_path / "dl3dv", views=6, size=(64, 48), gaussians=300)
+    (root / "images_4").mkdir()
+    for p in sorted((root / "images").iterdir()):
+        Image.open(p).resize((16, 12), Image.Resampling.BOX).save(root / "images_4" / p.name)
+    shutil.rmtree(root / "images")
+    posed = load_posed_images(root)
+    assert [p.parent.name for p in posed.paths] == ["images_4"] * 6
+    imgs, pcams = posed.load([0, 5])
+    assert imgs[0].shape == (12, 16, 3) and pcams[0].width == 16
+    assert pcams[1].fx == pytest.approx(cams[5].fx / 4)
+    # a photo missing from every folder stays the named file
+    os.remove(root / "images_4" / "frame_00003.png")
+    assert load_posed_images(root).paths[3] == root / "images" / "frame_00003.png"
+
+
+def test_test_clips_follow_the_video_order_or_a_nearest_neighbour_path_through_shuffled_photos() -> None:
+    from morphgs.ablation.stages.testsets import camera_sequence
+
+    t = np.linspace(0, np.pi, 20)
+    path = np.stack([np.cos(t), np.sin(t), 0.1 * t], axis=1)  # a walk around half a circle
+    assert camera_sequence(path) == list(range(20))  # video order kept
+    perm = np.random.default_rng(0).permutation(20)
+    order = camera_sequence(path[perm])  # photos with no order: walked from one end to the other
+    walked = perm[order].tolist()
+    assert walked in (list(range(20)), list(range(19, -1, -1)))
