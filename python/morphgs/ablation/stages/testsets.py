@@ -128,6 +128,7 @@ def make(work: Path, *, capture_dir: str, regime: dict[str, int], sparse: dict[s
                  progress=False)
     sparse_scene = result.scene
     clean_scene = load_scene(cap)
+    runs: list[tuple[list[int] | None, list[np.ndarray] | None, Any]]
     if info["images"] == "images":  # real photos: the clips follow the capture, the photos are the clean frames
         runs = [(idx, imgs, cc) for idx, imgs, cc in photo_clips(folder, frames, per_scene)]
     else:
