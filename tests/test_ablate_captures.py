@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -41,50 +42,99 @@ def _study(root: Path, inputs: list[str], extra: str = "") -> Path:
     return f
 
 
-def test_a_capture_of_photos_is_fitted_then_studied_and_a_rerun_computes_nothing(tmp_path: Path) -> None:
-    _study(tmp_path, _captures(tmp_path))
-    r = _cli("ablate", "--study", "study.toml", "--out", "out", "-j", "2", cwd=tmp_path)
+@pytest.fixture(scope="module")
+def captured(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder with three captures of photos, study.toml, and the uninterrupted study in out/."""
+    root = tmp_path_factory.mktemp("captures")
+    _study(root, _captures(root))
+    r = _cli("ablate", "--study", "study.toml", "--out", "out", "-j", "2", cwd=root)
     assert r.returncode == 0, r.stderr
-    runs = [json.loads(x) for x in (tmp_path / "out" / "runs.jsonl").read_text().splitlines()]
+    return root
+
+
+def _same_results(a: Path, b: Path) -> None:
+    for f in ("results.json", "results.csv", "table.md"):
+        assert (a / f).read_bytes() == (b / f).read_bytes(), f
+
+
+def test_a_capture_of_photos_is_fitted_then_studied_and_a_rerun_computes_nothing(captured: Path) -> None:
+    out = captured / "out"
+    runs = [json.loads(x) for x in (out / "runs.jsonl").read_text().splitlines()]
     assert runs[-1]["counts"]["cleanfits"] == {"computed": 3, "reused": 0}
     # each clean fit held out every 8th photo and says how well it renders them
-    (d,) = (tmp_path / "out" / "cleanfits").glob("cap0-*")
+    (d,) = (out / "cleanfits").glob("cap0-*")
     info = json.loads((d / "cleanfit.json").read_text())
     assert info["photos"] == 18 and info["heldout_views"] == 3 and info["steps"] == 120
     assert 5.0 < info["heldout_psnr"] < 60.0
     # the capture folder the later stages read holds the photos and the fitted scene
-    (c,) = (tmp_path / "out" / "captures").glob("cap0-*")
+    (c,) = (out / "captures").glob("cap0-*")
     cap = json.loads((c / "capture.json").read_text())
     assert cap["images"] == "images" and cap["clean_fit"]["heldout_psnr"] == info["heldout_psnr"]
     assert (c / "cap0" / "scene.ply").resolve() == (d / info["ply"]).resolve()
-    table = (tmp_path / "out" / "table.md").read_text()
+    table = (out / "table.md").read_text()
     assert f"cap0 {info['heldout_psnr']:.2f} dB" in table
     assert "POOR clean fit (held-out PSNR below clean.min_psnr = 99 dB): cap0, cap1, cap2" in table
     # the test clips run along the capture and their clean frames are its photos, byte for byte
-    (t,) = (tmp_path / "out" / "testsets").glob("*")
+    (t,) = (out / "testsets").glob("*")
     ts = json.loads((t / "testset.json").read_text())
     assert ts["clean"] == "photos" and ts["clip_views"] == [list(range(8))]
     from morphgs import media
 
     clean = media.read_clip(t / "clips" / "00" / "clean")
-    photos = [media.read_image(tmp_path / ts["scene"] / "images" / f"frame_{i:05d}.png") for i in range(8)]
+    photos = [media.read_image(captured / ts["scene"] / "images" / f"frame_{i:05d}.png") for i in range(8)]
     assert np.array_equal(clean, np.stack(photos))
-    res = json.loads((tmp_path / "out" / "results.json").read_text())
+    res = json.loads((out / "results.json").read_text())
     assert sorted(res["clean_fits"]) == ["cap0", "cap1", "cap2"]
 
-    before = (tmp_path / "out" / "results.json").read_bytes()
-    r = _cli("ablate", "--study", "study.toml", "--out", "out", cwd=tmp_path)
+    again = captured / "again"
+    shutil.copytree(out, again, symlinks=True)  # a moved study folder still reads its clean fits
+    r = _cli("ablate", "--study", "study.toml", "--out", "again", cwd=captured)
     assert r.returncode == 0, r.stderr
     assert "0 stage output(s) computed" in r.stderr
-    assert (tmp_path / "out" / "results.json").read_bytes() == before
+    _same_results(out, again)
 
     # the threshold is the report's alone: changing it remakes the report, no fit
-    f = tmp_path / "study.toml"
+    f = captured / "study.toml"
     f.write_text(f.read_text().replace("min_psnr = 99.0", "min_psnr = 1.0"))
-    r = _cli("ablate", "--study", "study.toml", "--out", "out", "--recompute", cwd=tmp_path)
+    try:
+        r = _cli("ablate", "--study", "study.toml", "--out", "again", "--recompute", cwd=captured)
+    finally:
+        f.write_text(f.read_text().replace("min_psnr = 1.0", "min_psnr = 99.0"))
     assert r.returncode == 0, r.stderr
     assert "1 stage output(s) computed" in r.stderr
-    assert "POOR" not in (tmp_path / "out" / "table.md").read_text()
+    assert "POOR" not in (again / "table.md").read_text()
+
+
+def test_sigkill_at_ten_random_moments_then_reruns_give_the_uninterrupted_bytes(captured: Path) -> None:
+    """The chaos test: the study and its workers killed (SIGKILL to the process group) at 10
+    seeded random moments, rerun after each; then run to the end: the results equal the
+    uninterrupted run's, byte for byte."""
+    out = captured / "chaos"
+    runs = [json.loads(x) for x in (captured / "out" / "runs.jsonl").read_text().splitlines()]
+    whole = float(runs[0]["seconds"]) + 3.0  # the uninterrupted run's wall time, and the start-up
+    rng = np.random.default_rng(35)
+    killed = 0
+    for moment in rng.uniform(0.5, max(2.0, 0.6 * whole), 10):
+        proc = subprocess.Popen([sys.executable, "-m", "morphgs", "ablate", "--study", "study.toml", "--out", "chaos",
+                                 "-j", "2"], cwd=captured, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                start_new_session=True)
+        try:
+            proc.wait(timeout=float(moment))
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=60)
+            killed += 1
+    assert killed >= 5  # most moments fell mid-study
+    r = _cli("ablate", "--study", "study.toml", "--out", "chaos", cwd=captured)
+    assert r.returncode == 0, r.stderr
+    _same_results(captured / "out", out)
+
+
+def test_the_capture_study_on_a_local_ray_cluster_gives_the_same_bytes(captured: Path) -> None:
+    __import__("ray") if os.environ.get("CI") else pytest.importorskip("ray")
+    r = _cli("ablate", "--study", "study.toml", "--out", "ray", "--backend", "ray", "-j", "2", cwd=captured)
+    assert r.returncode == 0, r.stderr
+    _same_results(captured / "out", captured / "ray")
 
 
 def test_a_capture_that_cannot_serve_is_one_line_before_any_work(tmp_path: Path) -> None:
