@@ -194,3 +194,52 @@ def test_test_clips_follow_the_video_order_or_a_nearest_neighbour_path_through_s
     order = camera_sequence(path[perm])  # photos with no order: walked from one end to the other
     walked = perm[order].tolist()
     assert walked in (list(range(20)), list(range(19, -1, -1)))
+
+
+def test_a_colmap_capture_is_keyed_by_its_model_and_photos(tmp_path: Path) -> None:
+    """A COLMAP capture (sparse/0 and images/) plans a clean fit; its key follows the model's files
+    and the photos: one changed photo changes the clean fit's key and what reads it."""
+    from capture_helpers import Shot, orbit_poses, pinhole, room, write_capture
+
+    from morphgs.ablation import build_plan, load_study
+
+    for i in range(3):
+        shots = [Shot(f"p{k:03d}.png", pinhole(w2c, 48, 48)) for k, w2c in enumerate(orbit_poses(18))]
+        write_capture(tmp_path / f"col{i}", room(800, seed=i), shots, points=200)
+    f = _study(tmp_path, ["col0", "col1", "col2"])
+
+    def keys() -> dict[str, str]:
+        return {f"{j.ref.stage}/{j.ref.name}": j.ref.key for j in build_plan(load_study(f), tmp_path / "s")
+                if j.ref.stage in ("cleanfits", "captures")}
+
+    before = keys()
+    assert sorted(k for k in before if k.startswith("cleanfits/")) == ["cleanfits/col0", "cleanfits/col1",
+                                                                        "cleanfits/col2"]
+    from PIL import Image
+
+    p = tmp_path / "col1" / "images" / "p004.png"
+    Image.fromarray(255 - np.asarray(Image.open(p))).save(p)
+    after = keys()
+    assert {k for k in before if before[k] != after[k]} == {"cleanfits/col1", "captures/col1"}
+
+
+def test_a_blender_layout_transforms_json_takes_the_photo_size_from_the_photos(tmp_path: Path) -> None:
+    """instant-ngp / Blender transforms.json gives camera_angle_x and no w/h: the size is the
+    photo's, as instant-ngp reads it."""
+    from morphgs.fit import load_posed_images
+
+    root, _, cams = make_dataset(tmp_path / "ngp", views=6, size=(64, 48), gaussians=300)
+    meta = json.loads((root / "transforms.json").read_text())
+    fov = 2 * np.arctan(0.5 * 64 / meta["fl_x"])
+    for k in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
+        meta.pop(k)
+    meta["camera_angle_x"] = float(fov)
+    (root / "transforms.json").write_text(json.dumps(meta))
+    posed = load_posed_images(root)
+    assert (posed.cameras[0].width, posed.cameras[0].height) == (64, 48)
+    assert posed.cameras[2].fx == pytest.approx(cams[2].fx)
+    os.remove(root / "images" / "frame_00000.png")  # no photo to read it from: the one-line error says so
+    from morphgs.trajectory import CaptureError
+
+    with pytest.raises(CaptureError, match=r"frames\[0\].*no image size .* or the frame's photo"):
+        load_posed_images(root)

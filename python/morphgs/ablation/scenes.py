@@ -55,8 +55,17 @@ def scene_fingerprint(source: Any) -> dict[str, Any]:
 
 
 def _sha256(path: Any) -> str:
+    """A file's sha256, or a folder's (a COLMAP model): its files' names and contents."""
+    from pathlib import Path
+
+    p = Path(path)
+    if p.is_dir():
+        h = hashlib.sha256()
+        for x in sorted(x for x in p.iterdir() if x.is_file()):
+            h.update(f"{x.name}\0{_sha256(x)}\0".encode())
+        return h.hexdigest()
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    with open(p, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()

@@ -187,15 +187,18 @@ def _cameras_in(folder: Path) -> tuple[str | None, str | None]:
     return None, None
 
 
-def _is_capture(folder: Path) -> bool:
-    """Whether a folder holds posed photos (transforms.json or a COLMAP model, and the images)."""
+def _capture_problem(folder: Path) -> str | None:
+    """None when a folder holds posed photos (transforms.json or a COLMAP model, and the
+    images), else why its cameras do not make a capture."""
     from morphgs.fit import load_posed_images
 
     try:
         posed = load_posed_images(folder)
-    except (OSError, ValueError, MorphgsError):
-        return False
-    return len(posed) > 0 and any(p.is_file() for p in posed.paths)
+    except (OSError, ValueError, MorphgsError) as e:
+        return str(e).splitlines()[0] if str(e) else type(e).__name__
+    if not len(posed) or not any(p.is_file() for p in posed.paths):
+        return f"none of the {len(posed)} photos its cameras name is there (e.g. {posed.paths[0] if len(posed) else '-'})"
+    return None
 
 
 def discover(inputs: Sequence[str | os.PathLike[str]], *,
@@ -225,8 +228,11 @@ def discover(inputs: Sequence[str | os.PathLike[str]], *,
                 try:
                     scene_file: Path | None = scene_file_in(p)
                 except MorphgsError as e:
-                    if kind not in ("transforms", "colmap") or not _is_capture(p):
+                    if kind not in ("transforms", "colmap"):
                         raise
+                    why = _capture_problem(p)
+                    if why is not None:
+                        raise MorphgsError(f"{e}, and its cameras are not a capture of photos: {why}") from None
                     if not captures:
                         raise MorphgsError(f"{e}; it holds photos and cameras: fit it first (`morphgs fit {p} "
                                            "--out RUN`, then use RUN), or give it to `morphgs ablate`, which "

@@ -67,6 +67,25 @@ def _num(d: dict[str, Any], key: str, path: Path, where: str) -> float:
     return f
 
 
+def _photo_size(root: Path, file_path: Any) -> tuple[int, int] | None:
+    """The (W, H) of a frame's photo read from its header, as instant-ngp does when a
+    transforms.json (the Blender layout) gives no `w`/`h`; None when there is no such photo."""
+    if not isinstance(file_path, str) or not file_path:
+        return None
+    p = root / file_path
+    cands = [p] if p.suffix else [p] + [p.with_suffix(e) for e in (".png", ".jpg", ".jpeg", ".JPG", ".PNG")]
+    for c in cands:
+        if c.is_file():
+            try:
+                from PIL import Image
+
+                with Image.open(c) as im:
+                    return int(im.size[0]), int(im.size[1])
+            except (OSError, ValueError):
+                return None
+    return None
+
+
 def _intrinsics(frame: dict[str, Any], meta: dict[str, Any], path: Path, i: int,
                 where: str) -> tuple[float, float, float, float, int, int]:
     """(fx, fy, cx, cy, w, h) with per-frame values overriding the shared ones, checked
@@ -80,7 +99,11 @@ def _intrinsics(frame: dict[str, Any], meta: dict[str, Any], path: Path, i: int,
 
     w, h = get("w"), get("h")
     if w is None or h is None:
-        raise CaptureError(f"{where}: no image size (fields 'w' and 'h', shared or per frame)")
+        size = _photo_size(path.parent, frame.get("file_path"))
+        if size is None:
+            raise CaptureError(f"{where}: no image size (fields 'w' and 'h', shared or per frame, or the "
+                               "frame's photo to read it from)")
+        w, h = float(size[0]), float(size[1])
     w, h = check_size(where, w, h)
     fx, fy = get("fl_x"), get("fl_y")
     if fx is None and fy is None:
