@@ -243,3 +243,46 @@ def test_a_blender_layout_transforms_json_takes_the_photo_size_from_the_photos(t
 
     with pytest.raises(CaptureError, match=r"frames\[0\].*no image size .* or the frame's photo"):
         load_posed_images(root)
+
+
+FIXTURE = Path(__file__).parent / "fixtures" / "captures" / "skull"
+
+
+def test_the_real_smoke_preset_on_a_committed_real_capture(tmp_path: Path) -> None:
+    """`--preset real-smoke` through the CLI with a real capture as the test scene (24 DSLR photos
+    of a skull, COLMAP SIMPLE_RADIAL, CC BY 4.0: tests/fixtures/captures/skull/ATTRIBUTION.md):
+    its clean fit comes from its photos, its sparse fits train on them and its test clip's clean
+    frames are those photos (undistorted, at the study's size). The two training captures are
+    renders of built-in rooms (one real capture fits in the repository)."""
+    shutil.copytree(FIXTURE, tmp_path / "skull")
+    for i in range(2):
+        make_dataset(tmp_path / f"room{i}", views=18, size=(72, 48), gaussians=1500, seed=i)
+    (tmp_path / "study.toml").write_text(
+        'preset = "real-smoke"\n[scenes]\ninputs = ["skull", "room0", "room1"]\n'
+        '[split]\ntrain_ids = ["room0", "room1"]\ntest_ids = ["skull"]\n'
+        '[conditions]\ntrain = ["morphological"]\n[study]\nseeds = [0]\n', encoding="utf-8")
+    r = _cli("ablate", "--study", "study.toml", "--out", "out", "-j", "2", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "out"
+    (d,) = (out / "cleanfits").glob("skull-*")
+    info = json.loads((d / "cleanfit.json").read_text())
+    assert info["photos"] == 24 and info["heldout_views"] == 3 and info["heldout_psnr"] > 15.0
+    (t,) = (out / "testsets").glob("skull-S4-*")
+    ts = json.loads((t / "testset.json").read_text())
+    assert ts["clean"] == "photos" and ts["train_views"] == list(range(0, 24, 4))
+    from morphgs import media
+    from morphgs.fit import load_posed_images
+
+    (c,) = (out / "captures").glob("skull-*")
+    posed = load_posed_images(c / "skull")  # the photos at the study's size, undistorted
+    (views,) = ts["clip_views"]
+    photos, _ = posed.load(views)
+    assert np.array_equal(media.read_clip(t / "clips" / "00" / "clean"), np.stack(photos))
+    assert photos[0].shape == (48, 72, 3)
+    assert f"skull {info['heldout_psnr']:.2f} dB" in (out / "table.md").read_text()
+
+
+def test_the_real_presets_need_captures(tmp_path: Path) -> None:
+    r = _cli("ablate", "--preset", "real", "--out", "out", "--dry-run", cwd=tmp_path)
+    assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "scenes.inputs: the real preset runs on real captures" in r.stderr

@@ -97,7 +97,13 @@ def resolve_scenes(study: Study, *, check_views: bool = True) -> SceneSet:
     """
     from morphgs.curation.sources import builtin_sources, discover
 
+    from morphgs.ablation.presets import NEEDS_INPUTS
+
     sc, sp = study["scenes"], study["split"]
+    if study.preset in NEEDS_INPUTS and not sc["inputs"]:
+        raise StudyError(f"{study.source}: scenes.inputs: the {study.preset} preset runs on real captures: list "
+                         'their folders (inputs = ["captures/statue", ...]; photos with transforms.json or a '
+                         "COLMAP model)")
     size = tuple(study["capture"]["size"])
     if sc["inputs"]:
         found, problems = discover(sc["inputs"], captures=True)

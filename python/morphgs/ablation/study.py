@@ -223,7 +223,7 @@ def load_study(path: str | os.PathLike[str] | None, *, preset: str | None = None
     name = preset or data.pop("preset", None) or "toy"
     data.pop("preset", None)
     if name not in presets.PRESETS:
-        raise StudyError(f"{source}: unknown preset {name!r} (smoke, toy or paper)")
+        raise StudyError(f"{source}: unknown preset {name!r} ({', '.join(presets.PRESETS)})")
     base = presets.preset(name)
     _check_types(base, data, "", source)
     settings = presets.merge(base, data)

@@ -18,7 +18,7 @@ def register(sub: Any) -> None:
                     "test sets, refine, 2D and 3D metrics, and the report (table.md, results.csv/json, plots). "
                     "Every stage is cached under --out by a hash of what it reads; a rerun continues.")
     p.add_argument("--study", default=None, help="study TOML (keys it leaves out come from the preset)")
-    p.add_argument("--preset", choices=("smoke", "toy", "paper"), default=None,
+    p.add_argument("--preset", choices=("smoke", "toy", "paper", "real", "real-smoke"), default=None,
                    help="the base settings (default: the study file's `preset`, else toy)")
     p.add_argument("--out", default=None, help="the study folder (required unless --print-config)")
     p.add_argument("--print-config", action="store_true", help="print every setting, pinned, and exit")
