@@ -69,6 +69,36 @@ def test_dry_run_shows_the_plan_job_counts_and_a_cost_estimate(preset: str, tmp_
         assert "blur2d, naive, spatial, radiometric, morphological, target-S20, target-S40, target-S80" in r.stdout
 
 
+def test_the_paper_scale_planned_for_a_ray_cluster(tmp_path: Path) -> None:
+    """--dry-run --backend ray --cluster: per stage its jobs, CPU- and GPU-hours, wall time at its
+    spread over the nodes and peak memory per job; the training's GPU-hours are its jobs' steps."""
+    r = _cli("--preset", "paper", "--out", str(tmp_path / "s"), "--dry-run", "--backend", "ray",
+             "--cluster", "8x32x8", "-j", "8")
+    assert r.returncode == 0, r.stderr
+    out = r.stdout.splitlines()
+    assert any(x.startswith("cluster plan: 8 node(s) x 32 CPUs x 8 GPUs; Ray tasks of 4 CPU(s), 64 at a time")
+               for x in out)
+    rows = {x.split()[0]: x.split() for x in out[out.index(next(x for x in out if x.startswith("cluster plan"))) + 2:]
+            if x.split() and x.split()[0] in ("captures", "trainsets", "training", "testsets", "refine",
+                                               "metrics2d", "metrics3d", "report")}
+    assert set(rows) == {"captures", "trainsets", "training", "testsets", "refine", "metrics2d", "metrics3d", "report"}
+    assert rows["captures"][1] == "250" and rows["testsets"][1] == "150" and "32 per node" in " ".join(rows["captures"])
+    s = load_study(None, preset="paper")
+    assert float(rows["training"][3]) == pytest.approx(24 * s["training"]["steps"] * 1.0 / 3600, abs=0.05)
+    assert float(rows["training"][2]) == 0.0 and float(rows["metrics3d"][2]) > 0
+    assert "GB/GPU" in " ".join(rows["training"])
+    total = next(x for x in out if x.startswith("total: "))
+    cpu = sum(float(v[2]) for v in rows.values())
+    assert total.startswith(f"total: {cpu:.1f} CPU-h") or abs(float(total.split()[1]) - cpu) < 0.2
+    for bad, msg in ((["--cluster", "8y32"], "expected NODESxCPUS"),
+                     (["--cluster", "2x4"], "use it with --dry-run --backend ray")):
+        args = ["--preset", "smoke", "--out", str(tmp_path / "s"), "--dry-run", *bad]
+        if "8y32" in bad:
+            args += ["--backend", "ray"]
+        r = _cli(*args)
+        assert r.returncode == 2 and msg in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
 @pytest.mark.parametrize(("text", "match"), [
     ('[conditions]\ntrain = ["morphologic"]\n', r"conditions\.train: unknown condition 'morphologic'"),
     ('[conditions]\ntrain = ["underfit:1.5"]\n', r"conditions\.train: unknown condition 'underfit:1\.5' \(--config "

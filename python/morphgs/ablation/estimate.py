@@ -85,3 +85,109 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
             s = 1.0
         out[st] = out.get(st, 0.0) + s
     return out
+
+
+# bytes of one Gaussian while it is fitted: 59 float32 parameters, their gradients and Adam's two
+# moments (4 x 59 x 4 B), rounded up for the renderer's per-Gaussian buffers
+FIT_BYTES_PER_GAUSSIAN = 1024
+SCENE_BYTES_PER_GAUSSIAN = 248  # a loaded scene (INRIA PLY layout, SH degree 3)
+BASE_BYTES = 400e6              # the Python process with NumPy and the extension
+TORCH_BYTES = 900e6             # ... and torch with a small model
+# the GPU refiners' memory per GPU, from docs/refiners.md (estimates: no GPU run measured them)
+GPU_MEMORY = {"sandbox": ("1 GPU", 24e9), "controlnet": ("8 GPUs (FSDP2)", 26e9)}
+
+
+def parse_cluster(text: str) -> tuple[int, int, int]:
+    """`NODESxCPUS` or `NODESxCPUSxGPUS` (GPUs per node) -> (nodes, cpus, gpus); ValueError else."""
+    parts = text.lower().split("x")
+    try:
+        vals = [int(p) for p in parts]
+    except ValueError:
+        vals = []
+    if len(vals) not in (2, 3) or any(v < 0 for v in vals) or vals[0] < 1 or vals[1] < 1:
+        raise ValueError(f"--cluster {text!r}: expected NODESxCPUS or NODESxCPUSxGPUS, e.g. 8x32x8")
+    return vals[0], vals[1], vals[2] if len(vals) == 3 else 0
+
+
+def peak_memory(study: Study, stage: str) -> float:
+    """Estimated peak host memory of one job of a stage, in bytes (sizes of what it holds)."""
+    S = study.settings
+    w, h = S["capture"]["size"]
+    px = w * h
+    gauss = S["scenes"]["builtin_gaussians"] if not S["scenes"]["inputs"] else 500_000
+    views = S["capture"]["views"]
+    frames, img = S["clips"]["frames"], 3 * 4 * px  # a float32 RGB frame
+
+    def fit(cap: int) -> float:
+        return BASE_BYTES + cap * FIT_BYTES_PER_GAUSSIAN + 2 * views * img
+
+    if stage == "cleanfits":
+        return fit(int(S["clean"]["cap_max"]))
+    if stage in ("captures", "calibration"):
+        return BASE_BYTES + gauss * SCENE_BYTES_PER_GAUSSIAN * 2 + views * img
+    if stage == "trainsets":  # a target's sparse fit or a perturbed render of the scene
+        return max(fit(int(S["sparse"]["cap_max"])), BASE_BYTES + gauss * SCENE_BYTES_PER_GAUSSIAN * 2 + 2 * frames * img)
+    if stage == "testsets":
+        return max(fit(int(S["sparse"]["cap_max"])), BASE_BYTES + gauss * SCENE_BYTES_PER_GAUSSIAN + 4 * frames * img)
+    if stage == "metrics3d":
+        return fit(int(S["refit"]["cap_max"])) + TORCH_BYTES
+    if stage == "training" and S["model"]["name"] != "tiny":
+        return TORCH_BYTES + 8e9  # the host side of a GPU run: the frozen weights staged once
+    return BASE_BYTES + TORCH_BYTES + 8 * frames * img
+
+
+def _gb(b: float) -> str:
+    return f"{b / 1e9:.1f} GB"
+
+
+def cluster_plan(study: Study, jobs: list[Any], cluster: tuple[int, int, int], threads: int) -> list[str]:
+    """Lines of `--dry-run --backend ray`: per stage its jobs, CPU-hours, GPU-hours, peak memory per
+    job, and how its jobs spread over the nodes (Ray tasks of `threads` CPUs, the stages run level
+    by level): jobs at a time, waves, and the stage's wall time at that spread."""
+    from morphgs.ablation.stages import STAGES
+
+    nodes, cpus, gpus = cluster
+    model = study["model"]["name"]
+    per_stage: dict[str, list[Any]] = {}
+    for j in jobs:
+        per_stage.setdefault(j.ref.stage, []).append(j)
+    est = estimate(study, jobs)  # seconds on 2 cores (CPU stages use both; GPU training: GPU seconds)
+    slots = nodes * max(1, cpus // threads)
+    lines = [f"cluster plan: {nodes} node(s) x {cpus} CPUs" + (f" x {gpus} GPUs" if gpus else "")
+             + f"; Ray tasks of {threads} CPU(s), {slots} at a time (an estimate from the 2-core unit costs; "
+             "memory from the sizes each job holds)",
+             "stage        jobs    CPU-h    GPU-h   wall      peak mem/job              spread"]
+    cpu_total = gpu_total = wall = 0.0
+    for st in STAGES:
+        js = per_stage.get(st, [])
+        if not js:
+            continue
+        s = est.get(st, 0.0)
+        gpu_stage = st == "training" and model != "tiny"
+        if gpu_stage:
+            need, per_gpu = GPU_MEMORY.get(model, ("1 GPU", 24e9))
+            n_gpu = 8 if need.startswith("8") else 1
+            gpu_h, cpu_h = s * n_gpu / 3600, 0.0
+            mem = f"{_gb(peak_memory(study, st))} + {_gb(per_gpu)}/GPU"
+            at_once = max(1, (nodes * gpus) // n_gpu) if gpus else 0
+            spread = (f"{at_once} run(s) at a time on {need} each" if at_once else f"needs {need} each: no GPUs given")
+            per_job = s / len(js)
+            st_wall = (-(-len(js) // at_once)) * per_job if at_once else float("inf")
+        else:
+            cpu_h, gpu_h = s * 2 / 3600, 0.0
+            mem = _gb(peak_memory(study, st))
+            at_once = min(len(js), slots)
+            waves = -(-len(js) // at_once)
+            per_job = s * 2 / len(js) / threads  # CPU-seconds over the task's CPUs (linear: an estimate)
+            per_node = -(-len(js) // nodes)
+            spread = f"{per_node} per node, {waves} wave(s) of {at_once}"
+            st_wall = waves * per_job
+        cpu_total += cpu_h
+        gpu_total += gpu_h
+        wall += st_wall
+        w_txt = "n/a" if st_wall == float("inf") else f"{st_wall / 3600:.1f} h"
+        lines.append(f"{st:<12} {len(js):>5} {cpu_h:>8.1f} {gpu_h:>8.1f}   {w_txt:<9} {mem:<25} {spread}")
+    when = "n/a (no GPUs for the GPU training)" if wall == float("inf") else f"{wall / 3600:.1f} h"
+    lines.append(f"total: {cpu_total:.1f} CPU-h, {gpu_total:.1f} GPU-h; wall about {when} "
+                 "(stages one after another, each spread as shown)")
+    return lines

@@ -26,6 +26,9 @@ def register(sub: Any) -> None:
     p.add_argument("--workers", "-j", type=int, default=1, help="local worker processes per stage level (1)")
     p.add_argument("--backend", choices=("local", "ray"), default="local", help="local processes or Ray (as curate)")
     p.add_argument("--ray-address", default=None, help="Ray cluster address (default: start a local Ray)")
+    p.add_argument("--cluster", default=None, metavar="NODESxCPUS[xGPUS]",
+                   help="with --dry-run --backend ray: the cluster to plan for (e.g. 8x32x8; default: this "
+                        "machine): CPU- and GPU-hours, peak memory per job and the spread over the nodes")
     p.add_argument("--up", default=None,
                    help="world up of the capture orbits of scene files without cameras: file (the loaders' "
                         "-y, default), scene (from the Gaussians), +x..-z or X,Y,Z (write --up=-y); overrides "
@@ -36,7 +39,7 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
-def _plan_text(study: Any, out: Path, workers: int) -> str:
+def _plan_text(study: Any, out: Path, workers: int, backend: str = "local", cluster: str | None = None) -> str:
     from morphgs.ablation import cache
     from morphgs.ablation.estimate import estimate
     from morphgs.ablation.model_check import missing_model_folders
@@ -67,6 +70,13 @@ def _plan_text(study: Any, out: Path, workers: int) -> str:
         lines.append(f"{st:<12} {len(js):>5} {todo:>7}   {_dur(s)}{gpu}")
     lines.append(f"total estimate: {_dur(total)} with -j {workers} (unit costs measured on a 2-core CPU, scaled "
                  "linearly in pixels, frames, steps and Gaussians: an estimate; docs/ablation.md)")
+    if backend == "ray":
+        import os
+
+        from morphgs.ablation.estimate import cluster_plan, parse_cluster
+
+        shape = parse_cluster(cluster) if cluster else (1, os.cpu_count() or 1, 0)
+        lines += cluster_plan(study, jobs, shape, max(1, shape[1] // max(1, workers)))
     for m in missing_model_folders(study):
         lines.append(f"note: a real run would stop here: {m}")
     return "\n".join(lines)
@@ -91,8 +101,17 @@ def run(args: argparse.Namespace) -> int:
         print("morphgs ablate: error: --out STUDY is required (the study folder)", file=sys.stderr)
         return 2
     out = Path(args.out)
+    if args.cluster and not (args.dry_run and args.backend == "ray"):
+        print("morphgs ablate: error: --cluster plans a Ray cluster: use it with --dry-run --backend ray",
+              file=sys.stderr)
+        return 2
     if args.dry_run:
-        print(_plan_text(study, out, args.workers))
+        try:
+            text = _plan_text(study, out, args.workers, args.backend, args.cluster)
+        except ValueError as e:
+            print(f"morphgs ablate: error: {e}", file=sys.stderr)
+            return 2
+        print(text)
         return 0
     with folder_lock(out, command="ablate", wait=args.wait):
         ledger = run_study(study, out, workers=args.workers, recompute=args.recompute, backend=args.backend,
