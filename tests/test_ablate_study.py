@@ -200,6 +200,8 @@ def test_table_marks_best_bold_and_second_italic_on_a_hand_made_result_set() -> 
     assert cells["naive"][2] == "30.10" and cells["target-S20"][2] == "16.20" and cells["morphological"][2] == "-"
     assert cells["naive"][4] == "n/a"  # no SSIM values given
     assert "### S20: each condition − naive" in text and "### S20: each condition − target-S20" in text
+    # the regime's heading says where its inputs sit beside the paper's 12.9-17.1 dB
+    assert "S20: inputs (the sparse-view renders) at PSNR2D 14.00 dB; the paper's sit at 12.9-17.1 dB." in text
 
 
 def test_mean_ci_and_paired_permutation_test() -> None:

@@ -19,7 +19,7 @@ from morphgs.ablation.table import format_table
 
 __all__ = ["IGNORE", "RESUMABLE", "VERSION", "calibration_note", "clean_fit_note", "gather", "make"]
 
-VERSION = 3  # 2: deltas.png (paired differences) replaced bars.png; 3: the clean fits of captures
+VERSION = 4  # 2: deltas.png replaced bars.png; 3: the clean fits of captures; 4: each regime's input PSNR
 IGNORE: tuple[str, ...] = ()
 RESUMABLE = False
 
