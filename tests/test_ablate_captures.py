@@ -148,6 +148,17 @@ def test_a_capture_that_cannot_serve_is_one_line_before_any_work(tmp_path: Path)
     assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
     assert "cap1" in lines[0] and "camera 4" in lines[0] and "frame_00004.png" in lines[0]
     assert not (tmp_path / "out" / "cleanfits").exists()
+    # a photo that is not an image, and one of another aspect than its camera
+    (tmp_path / "cap1" / "images" / "frame_00004.png").write_bytes(b"not a png")
+    r = _cli("ablate", "--study", "study.toml", "--out", "out", "--dry-run", cwd=tmp_path)
+    assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "cap1" in r.stderr and "frame_00004.png: not a readable image" in r.stderr
+    from PIL import Image
+
+    Image.new("RGB", (40, 48)).save(tmp_path / "cap1" / "images" / "frame_00004.png")
+    r = _cli("ablate", "--study", "study.toml", "--out", "out", "--dry-run", cwd=tmp_path)
+    assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "cap1: camera 4:" in r.stderr and "image is 40x48, but its camera is 48x48" in r.stderr
     # too few photos for a regime
     shutil.rmtree(tmp_path / "cap1")
     make_dataset(tmp_path / "cap1", views=6, size=SMALL, gaussians=500, seed=1)

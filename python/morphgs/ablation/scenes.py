@@ -86,6 +86,21 @@ def check_capture(study: Study, source: Any) -> None:
         raise StudyError(f"{study.source}: scenes.inputs: {source.id}: camera {i} of {posed.source} has no photo "
                          f"({posed.paths[i]} is missing; {len(missing)} of {len(posed)} are): add the photos or "
                          "drop their cameras")
+    from PIL import Image, UnidentifiedImageError
+
+    from morphgs.fit.data import fit_camera_to_image
+
+    for i, (p, cam) in enumerate(zip(posed.paths, posed.cameras)):  # headers only: cheap, before any fit
+        try:
+            with Image.open(p) as im:
+                w, h = im.size
+        except (OSError, UnidentifiedImageError) as e:
+            raise StudyError(f"{study.source}: scenes.inputs: {source.id}: {p}: not a readable image "
+                             f"({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
+        try:
+            fit_camera_to_image(cam, w, h, p)
+        except MorphgsError as e:
+            raise StudyError(f"{study.source}: scenes.inputs: {source.id}: camera {i}: {e}") from None
 
 
 def resolve_scenes(study: Study, *, check_views: bool = True) -> SceneSet:
