@@ -196,7 +196,7 @@ def test_the_dl3dv_layout_reads_the_downscaled_photos(tmp_path: Path) -> None:
 
 
 def test_test_clips_follow_the_video_order_or_a_nearest_neighbour_path_through_shuffled_photos() -> None:
-    from morphgs.ablation.stages.testsets import camera_sequence
+    from morphgs.trajectory import camera_sequence
 
     t = np.linspace(0, np.pi, 20)
     path = np.stack([np.cos(t), np.sin(t), 0.1 * t], axis=1)  # a walk around half a circle
@@ -297,3 +297,75 @@ def test_the_real_presets_need_captures(tmp_path: Path) -> None:
     r = _cli("ablate", "--preset", "real", "--out", "out", "--dry-run", cwd=tmp_path)
     assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "scenes.inputs: the real preset runs on real captures" in r.stderr
+
+
+def _scene_folder(root: Path, views: int = 18, size: tuple[int, int] = SMALL, seed: int = 0) -> Path:
+    """A posed-photo capture that also holds its scene (as a curate scene folder does)."""
+    import morphgs
+
+    folder, scene, _ = make_dataset(root, views=views, size=size, gaussians=1500, seed=seed)
+    morphgs.save(scene, folder / "scene.ply")
+    return folder
+
+
+def test_curate_pairs_at_the_photos_have_the_photos_as_their_clean_side(tmp_path: Path) -> None:
+    """`curate --trajectory photos`: pair k is run k of consecutive photos along the capture, at the
+    photos' cameras; its clean frames are the photos, its corrupted frames the corrupted scene
+    rendered there; a rerun makes nothing, and the same folder with render pairs is refused."""
+    from morphgs import media
+    from morphgs.camera import Cameras
+
+    _scene_folder(tmp_path / "cap")
+    r = _cli("curate", "cap", "--out", "data", "--frames", "8", "--size", "48x48", "--trajectory", "photos",
+             "--config", "morphological", "--pairs-per-scene", "2", "--test-fraction", "0", "--no-progress",
+             cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    recs = sorted((json.loads(x) for x in (tmp_path / "data" / "manifest.jsonl").read_text().splitlines()),
+                  key=lambda x: x["pair_index"])
+    assert [x["clean_source"] for x in recs] == ["photos", "photos"]
+    for k, rec in enumerate(recs):
+        d = tmp_path / "data"
+        clean = media.read_clip(d / rec["paths"]["clean"])
+        photos = np.stack([media.read_image(tmp_path / "cap" / "images" / f"frame_{i:05d}.png")
+                           for i in range(8 * k, 8 * k + 8)])
+        assert np.array_equal(clean, photos)
+        assert not np.array_equal(media.read_clip(d / rec["paths"]["corrupted"]), clean)
+        cams = Cameras.from_dict(json.loads((d / rec["paths"]["cameras"]).read_text()))
+        assert (cams[0].width, cams[0].height) == SMALL
+    r = _cli("curate", "cap", "--out", "data", "--frames", "8", "--size", "48x48", "--trajectory", "photos",
+             "--config", "morphological", "--pairs-per-scene", "2", "--test-fraction", "0", "--no-progress",
+             cwd=tmp_path)
+    assert r.returncode == 0 and "0 pairs made, 2 already done" in r.stderr, r.stderr
+    r = _cli("curate", "cap", "--out", "data", "--frames", "8", "--size", "48x48", "--trajectory", "cameras",
+             "--config", "morphological", "--pairs-per-scene", "2", "--test-fraction", "0", "--no-progress",
+             cwd=tmp_path)
+    assert r.returncode != 0 and "made with other settings" in r.stderr, r.stderr
+    # photos of another aspect than the pair size: the failure names the scene, the photo and a size
+    r = _cli("curate", "cap", "--out", "data2", "--frames", "8", "--size", "64x48", "--trajectory", "photos",
+             "--config", "morphological", "--test-fraction", "0", "--no-progress", cwd=tmp_path)
+    assert r.returncode != 0 and "not of the pair size 64x48's aspect" in r.stderr and "64x64" in r.stderr, r.stderr
+
+
+def test_ablate_with_photos_as_the_training_pairs_clean_side(tmp_path: Path) -> None:
+    """`conditions.clean = "photo"`: every training pair of every condition sits at a run of
+    photos, with the photos as its clean side; a study whose training scenes are not captures of
+    photos is refused in one line."""
+    names = _captures(tmp_path)
+    f = _study(tmp_path, names)
+    f.write_text(f.read_text().replace("[conditions]\n", '[conditions]\nclean = "photo"\n'))
+    r = _cli("ablate", "--study", "study.toml", "--out", "out", "-j", "2", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    from morphgs import media
+
+    for ts in (tmp_path / "out" / "trainsets").glob("*"):
+        recs = [json.loads(x) for x in (ts / "data" / "manifest.jsonl").read_text().splitlines()]
+        assert recs and all(x["clean_source"] == "photos" for x in recs), ts.name
+    rec = recs[0]
+    clean = media.read_clip(ts / "data" / rec["paths"]["clean"])
+    cap = next((tmp_path / "out" / "captures").glob(f"{rec['scene']}-*")) / rec["scene"]
+    assert any(np.array_equal(clean[0], media.read_image(p)) for p in sorted((cap / "images").iterdir()))
+    g = tmp_path / "builtin.toml"
+    g.write_text('preset = "smoke"\n[conditions]\nclean = "photo"\n')
+    r = _cli("ablate", "--study", "builtin.toml", "--out", "o2", "--dry-run", cwd=tmp_path)
+    assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "conditions.clean = 'photo': training scene(s)" in r.stderr

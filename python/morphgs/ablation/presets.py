@@ -46,6 +46,8 @@ _BASE: dict[str, Any] = {
         "targets": True,                # add one target condition per regime (sparse fits of the training scenes)
         "pairs_per_scene": 2,
         "blur_sigma": 2.0,
+        "clean": "render",              # the training pairs' clean side: render (the clean scene) or photo
+                                        # (captures of photos: pairs at the photos, which are the clean side)
     },
     "regimes": {
         "every": [20, 40, 80],          # S_K: every K-th capture view

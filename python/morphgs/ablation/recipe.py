@@ -81,7 +81,7 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
     # only a calibrated condition needs it: its real pairs are what the family is calibrated against)
     scene_dirs = [Out(cap[s], s) for s in sc.train]
     common = dict(scene_dirs=scene_dirs, pairs_per_scene=int(S["conditions"]["pairs_per_scene"]),
-                  frames=int(S["clips"]["frames"]), size=size, seed=PAIRS_SEED)
+                  frames=int(S["clips"]["frames"]), size=size, seed=PAIRS_SEED, clean=S["conditions"]["clean"])
     regimes = {r.label: r for r in study.regimes}
     calibrated = [c for c in study.conditions if c.kind == "calibrated"]
     curated = [c for c in study.conditions if c.kind != "calibrated"]

@@ -160,6 +160,16 @@ def resolve_scenes(study: Study, *, check_views: bool = True) -> SceneSet:
         if sources[sid].capture is not None and views[sid] < fr:
             raise StudyError(f"{study.source}: test scene {sid} has {views[sid]} photos, fewer than a test clip's "
                              f"clips.frames = {fr} (its clips are runs of consecutive photos)")
+    if study["conditions"]["clean"] == "photo":  # pairs at the photos: every training scene needs them
+        bare = [sid for sid in train if sources[sid].capture is None]
+        if bare:
+            raise StudyError(f"{study.source}: conditions.clean = 'photo': training scene(s) {', '.join(bare)} are "
+                             "not captures of photos (give photo folders as scenes.inputs, or clean = 'render')")
+        fr = int(study["clips"]["frames"])
+        few = [sid for sid in train if views[sid] < fr]
+        if few:
+            raise StudyError(f"{study.source}: conditions.clean = 'photo': training scene {few[0]} has {views[few[0]]} "
+                             f"photos, fewer than a pair's clips.frames = {fr}")
     if any(c.kind in ("target", "calibrated") for c in study.conditions):  # they need real pairs of the train scenes
         for sid in train:
             for r in study.regimes:

@@ -155,6 +155,9 @@ def _validate(s: dict[str, Any], source: str) -> None:
             raise StudyError(f"{_where(source, 'conditions.train')}: unknown condition {c!r} ({e})") from None
     if len(set(names)) != len(names):
         raise StudyError(f"{_where(source, 'conditions.train')}: a condition is listed twice: {names}")
+    if s["conditions"]["clean"] not in ("render", "photo"):
+        raise StudyError(f"{_where(source, 'conditions.clean')} must be 'render' or 'photo', got "
+                         f"{s['conditions']['clean']!r}")
     if s["conditions"]["pairs_per_scene"] < 1:
         raise StudyError(f"{_where(source, 'conditions.pairs_per_scene')} must be >= 1")
     every = _ints(s["regimes"]["every"], "regimes.every", source, 2)

@@ -80,9 +80,11 @@ def register(sub: Any) -> None:
     p.add_argument("--video", action="store_true", help="write MP4s (imageio-ffmpeg) instead of PNG frames")
     p.add_argument("--fps", type=int, default=16, help="video frame rate (16)")
     p.add_argument("--background", type=_rgb, default=(0.0, 0.0, 0.0), help="R,G,B in [0,1] (0,0,0)")
-    p.add_argument("--trajectory", choices=("auto", "cameras", "orbit"), default="auto",
-                   help="recorded cameras when present (auto), only them, or an orbit")
-    p.add_argument("--stride", type=int, default=None, help="clip stride along recorded cameras (= frames)")
+    p.add_argument("--trajectory", choices=("auto", "cameras", "orbit", "photos"), default="auto",
+                   help="recorded cameras when present (auto), only them, an orbit, or runs of the capture's "
+                        "own photos, which are then the clean side (photos)")
+    p.add_argument("--stride", type=int, default=None,
+                   help="clip stride along recorded cameras or photos (= frames)")
     p.add_argument("--orbit-arc", type=float, default=60.0, help="degrees an orbit pair sweeps (60)")
     p.add_argument("--fov", type=float, default=50.0, help="vertical field of view of orbits, degrees (50)")
     p.add_argument("--up", default="file", metavar="UP",

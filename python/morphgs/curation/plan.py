@@ -277,7 +277,8 @@ def _strength_params(d: dict[str, Any], spec: str) -> dict[str, Any]:
 @dataclass(frozen=True)
 class TrajectoryOptions:
     """How pair cameras are made. `kind`: "auto" (recorded cameras when the scene has them, else
-    an orbit), "cameras" or "orbit". `up`: the world up of orbits around scene files, a rule of
+    an orbit), "cameras", "orbit" or "photos" (runs of the capture's own photos, which are then
+    the clean side: `curation.photos`). `up`: the world up of orbits around scene files, a rule of
     `trajectory.scene_up` ("file": -y, the loaders' RDF convention; "scene": from the Gaussians;
     "+x" ... "-z" or "X,Y,Z"); the built-in synthetic scenes always orbit around +z."""
 
@@ -426,8 +427,12 @@ def job_cameras(job: PairJob, scene: Any, recorded: Cameras | None, opts: Trajec
     """
     from morphgs import trajectory
 
-    if opts.kind not in ("auto", "cameras", "orbit"):
-        raise ValueError(f"trajectory must be auto, cameras or orbit, got {opts.kind!r}")
+    if opts.kind not in ("auto", "cameras", "orbit", "photos"):
+        raise ValueError(f"trajectory must be auto, cameras, orbit or photos, got {opts.kind!r}")
+    if opts.kind == "photos" and job.config.kind != "cross":  # the capture's own photos (curation.photos)
+        from morphgs.curation.photos import photo_run
+
+        return photo_run(job.source, recorded, job.index, job.frames, (job.width, job.height), opts.stride)[0]
     if job.config.kind == "cross":  # the part of the capture path the fit did not train on
         from morphgs.curation.sparse import cross_path
 

@@ -118,7 +118,9 @@ def _matches(rec: dict[str, Any], job: PairJob, opts: OutputOptions) -> bool:
     want = {"seed": job.seed, "frames": job.frames, "resolution": [job.width, job.height],
             "config": job.config.as_dict(), "depth": opts.depth, "video": opts.video,
             "background": list(opts.background)}
-    return all(rec.get(k) == want[k] for k in _IDENTITY) and _same_up(rec, job, opts.trajectory)
+    photos = opts.trajectory.kind == "photos" and job.config.kind != "cross"
+    return (all(rec.get(k) == want[k] for k in _IDENTITY) and _same_up(rec, job, opts.trajectory)
+            and (rec.get("clean_source") == "photos") == photos)
 
 
 def _same_up(rec: dict[str, Any], job: PairJob, traj: TrajectoryOptions) -> bool:
@@ -224,8 +226,9 @@ def curate(
         test_fraction, split_seed: the deterministic train/test split by scene.
         blur_sigma: sigma (pixels) of "blur2d" when not given in the config.
         depth: also write depth EXRs. video: MP4s instead of PNG frames. fps: video rate.
-        background: RGB background. trajectory: "auto", "cameras" or "orbit". stride: clip
-            stride along recorded cameras. orbit_arc_degrees, fov_y_degrees: orbit paths.
+        background: RGB background. trajectory: "auto", "cameras", "orbit" or "photos" (runs of
+            the capture's photos, which are the clean side). stride: clip stride along recorded
+            cameras or photos. orbit_arc_degrees, fov_y_degrees: orbit paths.
         up: the world up of orbits around scene files (`trajectory.scene_up` rules: "file", the
             loaders' RDF convention, -y; "scene"; "+x" ... "-z"; "X,Y,Z"). Built-in sample
             scenes orbit around +z whatever it says. Recorded in each record's "up".

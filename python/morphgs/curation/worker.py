@@ -14,6 +14,7 @@ import shutil
 import socket
 import time
 import uuid
+from types import SimpleNamespace
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -113,7 +114,14 @@ def make_pair(
     import morphgs
 
     t_start = time.perf_counter()
-    cams = job_cameras(job, scene, recorded, opts.trajectory)
+    photos = None
+    if opts.trajectory.kind == "photos" and job.config.kind != "cross":  # the clean side is the photos
+        from morphgs.curation.photos import photo_run
+
+        cams, photos = photo_run(job.source, recorded, job.index, job.frames, (job.width, job.height),
+                                 opts.trajectory.stride)
+    else:
+        cams = job_cameras(job, scene, recorded, opts.trajectory)
     corruption = Corruption.make(job.config).for_seed(job.seed)
     t0 = time.perf_counter()
     fit_info = None
@@ -148,7 +156,12 @@ def make_pair(
                     pending.result()
                     t_wait += time.perf_counter() - t0
 
-                def _write(s: int = start, a: Any = clean, b: Any = corrupted) -> None:
+                side: Any = clean
+                if photos is not None:  # the photos as the clean side, with the clean render's depth
+                    side = SimpleNamespace(rgb=photos[start:start + len(clean.rgb)].astype(np.float32) / 255.0,
+                                           depth=clean.depth)
+
+                def _write(s: int = start, a: Any = side, b: Any = corrupted) -> None:
                     writer.write(s, "clean", a)
                     writer.write(s, "corrupted", b)
 
@@ -180,6 +193,8 @@ def make_pair(
     up = job_up(job, scene, recorded, opts.trajectory)
     if up is not None:  # an orbit: the world up it turned around, and the rule that gave it
         extra["up_rule"] = up_rule(job, recorded is not None, opts.trajectory)
+    if photos is not None:
+        extra["clean_source"] = "photos"
     drawn = corruption.strength(job.seed)
     if drawn is not None:  # the strength this pair drew (from a strength distribution or fixed)
         extra["strength"] = drawn

@@ -29,7 +29,7 @@ from morphgs.trajectory.nerfstudio import (
     from_transforms_json,
     read_transforms_frames,
 )
-from morphgs.trajectory.smooth import clips, smooth_path
+from morphgs.trajectory.smooth import camera_sequence, clips, smooth_path
 
 __all__ = [
     "FILE_UP",
@@ -42,6 +42,7 @@ __all__ = [
     "check_intrinsics",
     "check_quaternion",
     "check_rotation",
+    "camera_sequence",
     "clips",
     "ellipse",
     "find_colmap_model",

@@ -14,7 +14,7 @@ from morphgs.trajectory._rotations import (
     squad_controls,
 )
 
-__all__ = ["clips", "smooth_path"]
+__all__ = ["camera_sequence", "clips", "smooth_path"]
 
 _SAMPLES_PER_SEGMENT = 64
 
@@ -133,3 +133,26 @@ def clips(cameras: Cameras, frames: int = 16, stride: int | None = None) -> list
     if s < 1 or (stride is not None and s != stride):
         raise ValueError(f"stride must be a positive integer, got {stride!r}")
     return [cameras[i:i + f] for i in range(0, len(cameras) - f + 1, s)]
+
+
+def camera_sequence(centers: np.ndarray) -> list[int]:
+    """The order a capture was walked in: the capture's own (video) order, unless a greedy
+    nearest-neighbour path through the camera centres (from the end of the capture order farthest
+    from the rest) is less than 2/3 of its length, as for photos with no order (shuffled names)."""
+    n = len(centers)
+    if n < 3:
+        return list(range(n))
+    c = np.asarray(centers, np.float64)
+
+    def length(order: list[int]) -> float:
+        return float(np.linalg.norm(np.diff(c[order], axis=0), axis=1).sum())
+
+    d = np.linalg.norm(c[:, None] - c[None], axis=-1)
+    start = int(np.argmax(d.sum(axis=1)))
+    order, left = [start], set(range(n)) - {start}
+    while left:
+        last = order[-1]
+        nxt = min(left, key=lambda k: (d[last, k], k))
+        order.append(nxt)
+        left.remove(nxt)
+    return order if length(order) < length(list(range(n))) * 2 / 3 else list(range(n))

@@ -8,7 +8,7 @@
   render), `clean/` (the clean scene's render), `clean_depth.npy` and `clean_alpha.npy`, and
   `cameras.json`.
 - A capture of real photos: the clips are runs of `frames` consecutive photos along the real camera
-  sequence (video order, or a nearest-neighbour path when the photos have none: `camera_sequence`)
+  sequence (video order, or a nearest-neighbour path when the photos have none: `trajectory.camera_sequence`)
   and `clean/` holds the photos themselves, so the 2D metrics and the re-fit's held-out frames are
   scored against real pixels; the depth and alpha stay the clean fit's (the geometry's reference).
 """
@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["IGNORE", "RESUMABLE", "VERSION", "camera_sequence", "clip_cameras", "fit_config", "make", "photo_clips",
+__all__ = ["IGNORE", "RESUMABLE", "VERSION", "clip_cameras", "fit_config", "make", "photo_clips",
            "regime_views"]
 
 VERSION = 2  # 2: a capture of real photos: clips along the capture, the photos as the clean frames
@@ -61,32 +61,9 @@ def clip_cameras(capture: Any, frames: int, per_scene: int) -> list[Any]:
     return [clips[i] for i in pick]
 
 
-def camera_sequence(centers: np.ndarray) -> list[int]:
-    """The order a capture was walked in: the capture's own (video) order, unless a greedy
-    nearest-neighbour path through the camera centres (from the end of the capture order farthest
-    from the rest) is less than 2/3 of its length, as for photos with no order (shuffled names)."""
-    n = len(centers)
-    if n < 3:
-        return list(range(n))
-    c = np.asarray(centers, np.float64)
-
-    def length(order: list[int]) -> float:
-        return float(np.linalg.norm(np.diff(c[order], axis=0), axis=1).sum())
-
-    d = np.linalg.norm(c[:, None] - c[None], axis=-1)
-    start = int(np.argmax(d.sum(axis=1)))
-    order, left = [start], set(range(n)) - {start}
-    while left:
-        last = order[-1]
-        nxt = min(left, key=lambda k: (d[last, k], k))
-        order.append(nxt)
-        left.remove(nxt)
-    return order if length(order) < length(list(range(n))) * 2 / 3 else list(range(n))
-
-
 def photo_clips(folder: Path, frames: int, per_scene: int) -> list[tuple[list[int], list[np.ndarray], Any]]:
     """Test clips along the real camera sequence of a capture whose views are photos: `per_scene`
-    runs of `frames` consecutive views (`camera_sequence`), spread evenly; per clip (view indices,
+    runs of `frames` consecutive views (`trajectory.camera_sequence`), spread evenly; per clip (view indices,
     photos, their cameras). Photos of another size than the capture's most common one (a pixel
     off, as undistorted photos are) are resized to it with their cameras, so a clip stacks."""
     from collections import Counter
@@ -95,6 +72,7 @@ def photo_clips(folder: Path, frames: int, per_scene: int) -> list[tuple[list[in
 
     from morphgs.camera import Cameras
     from morphgs.fit import load_posed_images
+    from morphgs.trajectory import camera_sequence
 
     posed = load_posed_images(folder)
     order = camera_sequence(np.stack([c.center for c in posed.cameras]))

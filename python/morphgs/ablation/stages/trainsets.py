@@ -6,6 +6,10 @@ A target condition is `{"kind": "sparse", "every": K}` (or "n"): pairs whose cor
 sparse fit of the training scene, with the study's sparse-fit settings. A calibrated condition
 (`calibrated:FAMILY-S_K`) is curated with the strength distribution its calibration stage wrote
 (`stages/calibration.py`): each pair draws its strength from it, seeded.
+
+With `conditions.clean = "photo"` (captures of photos), every pair is a run of consecutive photos
+and its clean side is the photos (`curate --trajectory photos`): the refiner learns to map the
+corrupted render to real pixels, the scene's own error included.
 """
 
 from __future__ import annotations
@@ -61,9 +65,11 @@ def severity(data: Path) -> dict[str, float]:
 
 
 def make(work: Path, *, scene_dirs: list[str], spec: Any, pairs_per_scene: int, frames: int,
-         size: tuple[int, int], seed: int, calibration_dir: str | None) -> None:
+         size: tuple[int, int], seed: int, calibration_dir: str | None, clean: str) -> None:
     """Curate the condition into `work/data` and write `work/severity.json` (`spec` is the label
-    of a calibrated condition, whose config is read from `calibration_dir`, else a ConfigSpec)."""
+    of a calibrated condition, whose config is read from `calibration_dir`, else a ConfigSpec;
+    `clean`: "render", pairs along the capture path with the clean scene's render as the clean
+    side, or "photo", pairs at runs of the capture's photos with the photos as the clean side)."""
     from morphgs.ablation.study import StudyError
     from morphgs.curation import curate
 
@@ -72,7 +78,8 @@ def make(work: Path, *, scene_dirs: list[str], spec: Any, pairs_per_scene: int, 
 
     data = work / "data"
     summary = curate(scene_dirs, data, configs=[spec], pairs_per_scene=pairs_per_scene, frames=frames,
-                     resolution=size, seed=seed, test_fraction=0.0, trajectory="cameras", progress=False,
+                     resolution=size, seed=seed, test_fraction=0.0,
+                     trajectory="photos" if clean == "photo" else "cameras", progress=False,
                      log=lambda m: None)
     if not summary.ok:
         raise StudyError(f"training set {spec.label}: curate failed: {summary.failed}")
