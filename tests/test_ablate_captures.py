@@ -78,6 +78,11 @@ def test_a_capture_of_photos_is_fitted_then_studied_and_a_rerun_computes_nothing
     (t,) = (out / "testsets").glob("*")
     ts = json.loads((t / "testset.json").read_text())
     assert ts["clean"] == "photos" and ts["clip_views"] == [list(range(8))]
+    # the sparse fit's convergence: held-out capture views scored 8 times along it, in the notes
+    conv = ts["convergence"]
+    assert conv["steps"] == 150 and len(conv["psnr_by_step"]) >= 8 and conv["psnr_by_step"][-1][0] == 150
+    assert conv["heldout_views"] and not set(conv["heldout_views"]) & set(ts["train_views"])
+    assert "S8 sparse fits: 150 steps; held-out capture views at" in table
     from morphgs import media
 
     clean = media.read_clip(t / "clips" / "00" / "clean")

@@ -17,9 +17,10 @@ from typing import Any
 from morphgs.ablation.conditions import Condition
 from morphgs.ablation.table import format_table
 
-__all__ = ["IGNORE", "RESUMABLE", "VERSION", "calibration_note", "clean_fit_note", "gather", "make"]
+__all__ = ["IGNORE", "RESUMABLE", "VERSION", "calibration_note", "clean_fit_note", "gather", "make",
+           "sparse_fit_note"]
 
-VERSION = 4  # 2: deltas.png replaced bars.png; 3: the clean fits of captures; 4: each regime's input PSNR
+VERSION = 5  # 2: deltas.png; 3: the clean fits of captures; 4: each regime's input PSNR; 5: sparse-fit convergence
 IGNORE: tuple[str, ...] = ()
 RESUMABLE = False
 
@@ -32,9 +33,14 @@ def gather(parts: Sequence[tuple[str, str, dict[str, Any]]]) -> dict[str, Any]:
     calibration: dict[str, dict[str, Any]] = {}
     cka: list[dict[str, Any]] = []
     clean_fits: dict[str, dict[str, Any]] = {}
+    fits: dict[str, dict[str, Any]] = {}
     for stage, path, meta in parts:
         p = Path(path)
-        if stage == "cleanfits":
+        if stage == "testsets":
+            conv = json.loads((p / "testset.json").read_text()).get("convergence")
+            if conv is not None:
+                fits.setdefault(meta["regime"], {})[meta["scene"]] = conv
+        elif stage == "cleanfits":
             info = json.loads((p / "cleanfit.json").read_text())
             clean_fits[meta["scene"]] = {**{k: info[k] for k in ("heldout_psnr", "heldout_ssim", "steps",
                                                                   "gaussians", "photos", "heldout_views")},
@@ -55,6 +61,7 @@ def gather(parts: Sequence[tuple[str, str, dict[str, Any]]]) -> dict[str, Any]:
     records = sorted(recs.values(), key=lambda r: (r["regime"], r["condition"], str(r["seed"]), r["scene"], r["clip"]))
     return {"records": records, "severity": dict(sorted(severity.items())),
             "calibration": dict(sorted(calibration.items())), "clean_fits": dict(sorted(clean_fits.items())),
+            "sparse_fits": {r: dict(sorted(v.items())) for r, v in sorted(fits.items())},
             "cka": sorted(cka, key=lambda c: (c["condition"], c["seed"]))}
 
 
@@ -93,6 +100,27 @@ def clean_fit_note(fits: dict[str, dict[str, Any]]) -> list[str]:
     return out
 
 
+def sparse_fit_note(fits: dict[str, dict[str, Any]]) -> list[str]:
+    """Per regime, the test sets' sparse fits: their length and how their held-out PSNR moved over
+    the last quarter of it (median over the test scenes; flat within 0.2 dB counts as converged)."""
+    import statistics
+
+    out = []
+    for rg, per in fits.items():
+        gains = [c["last_quarter_gain_db"] for c in per.values() if c.get("last_quarter_gain_db") is not None]
+        steps = sorted({c["steps"] for c in per.values()})
+        if not gains:
+            continue
+        g = statistics.median(gains)
+        ends = [c["psnr_by_step"][-1][1] for c in per.values() if c.get("psnr_by_step")]
+        state = "flat: converged" if abs(g) < 0.2 else ("still rising: longer fits would change the inputs"
+                                                         if g > 0 else "falling: the fits overfit their views")
+        out.append(f"{rg} sparse fits: {'/'.join(map(str, steps))} steps; held-out capture views at "
+                   f"{statistics.median(ends):.2f} dB (median of {len(ends)} test scene(s)), {g:+.2f} dB over the "
+                   f"last quarter ({state}).")
+    return out
+
+
 def _csv(records: Sequence[dict[str, Any]]) -> str:
     keys = ["regime", "condition", "seed", "scene", "clip"]
     extra = sorted({k for r in records for k in r} - set(keys))
@@ -115,6 +143,7 @@ def make(work: Path, *, parts: Sequence[tuple[str, str, dict[str, Any]]], condit
     if lpips_note:
         notes.append(f"LPIPS columns read n/a: {lpips_note}.")
     notes += clean_fit_note(g["clean_fits"])
+    notes += sparse_fit_note(g["sparse_fits"])
     notes += [calibration_note(c, v) for c, v in g["calibration"].items()]
     notes.append("Geometry ground truth: depth of the clean dense 3DGS at the clip cameras, unprojected where "
                  "alpha >= 0.5, in units of the clean scene's bbox diagonal (docs/ablation.md)"
@@ -124,6 +153,7 @@ def make(work: Path, *, parts: Sequence[tuple[str, str, dict[str, Any]]], condit
                                                 severity=g["severity"], notes=notes), encoding="utf-8")
     (work / "results.json").write_text(json.dumps({"records": g["records"], "severity": g["severity"],
                                                    "calibration": g["calibration"], "clean_fits": g["clean_fits"],
+                                                   "sparse_fits": g["sparse_fits"],
                                                    "cka": g["cka"], "lpips_note": lpips_note},
                                                   indent=1, sort_keys=True) + "\n", encoding="utf-8")
     (work / "results.csv").write_text(_csv(g["records"]), encoding="utf-8")

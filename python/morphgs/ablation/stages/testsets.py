@@ -2,7 +2,10 @@
 
 - The fit: `morphgs fit` of the capture folder from the regime's views (every K-th capture view
   starting with the first, or N spread evenly), random initialisation (no SfM points: they would
-  come from all views), the study's [sparse] settings; resumable in `fit/`.
+  come from all views), the study's [sparse] settings; resumable in `fit/`. Up to 16 of the other
+  capture views are held out and scored 8 times along the fit (`testset.json`'s `convergence`:
+  the held-out PSNR by step and its change over the last quarter; the report's notes give it per
+  regime, so a fit length that leaves the fits rising shows).
 - The clips: a smooth path through the capture cameras (`trajectory.smooth_path`), cut into
   clips of `frames`; `per_scene` of them spread evenly. Per clip: `corrupted/` (the sparse fit's
   render), `clean/` (the clean scene's render), `clean_depth.npy` and `clean_alpha.npy`, and
@@ -21,10 +24,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["IGNORE", "RESUMABLE", "VERSION", "clip_cameras", "fit_config", "make", "photo_clips",
+__all__ = ["IGNORE", "RESUMABLE", "VERSION", "clip_cameras", "convergence", "fit_config", "make", "photo_clips",
            "regime_views"]
 
-VERSION = 2  # 2: a capture of real photos: clips along the capture, the photos as the clean frames
+VERSION = 3  # 2: clips of real photos along the capture; 3: the sparse fit's convergence (held-out views)
 IGNORE: tuple[str, ...] = ()
 RESUMABLE = True  # the sparse fit resumes from its checkpoint in fit/
 
@@ -59,6 +62,23 @@ def clip_cameras(capture: Any, frames: int, per_scene: int) -> list[Any]:
     clips = trajectory.clips(path, frames)
     pick = sorted({int(i) for i in np.round(np.linspace(0, len(clips) - 1, min(per_scene, len(clips))))})
     return [clips[i] for i in pick]
+
+
+CONVERGENCE_VIEWS = 16
+
+
+def convergence(eval_csv: Path, steps: int, heldout: list[int]) -> dict[str, Any]:
+    """The sparse fit's held-out PSNR along its steps (from its eval.csv) and the change over its
+    last quarter: how far from converged the fit length leaves it."""
+    import csv
+
+    curve: list[list[float]] = []
+    if eval_csv.is_file():
+        with open(eval_csv, encoding="utf-8") as f:
+            curve = [[int(r["step"]), round(float(r["psnr"]), 4)] for r in csv.DictReader(f) if r.get("psnr")]
+    late = [p for s, p in curve if s >= 0.75 * steps]
+    gain = round(late[-1] - late[0], 4) if len(late) >= 2 else None
+    return {"steps": steps, "heldout_views": heldout, "psnr_by_step": curve, "last_quarter_gain_db": gain}
 
 
 def photo_clips(folder: Path, frames: int, per_scene: int) -> list[tuple[list[int], list[np.ndarray], Any]]:
@@ -102,7 +122,15 @@ def make(work: Path, *, capture_dir: str, regime: dict[str, int], sparse: dict[s
     folder, info = load_capture(cap)
     cams = load_cameras(cap)
     views = regime_views(len(cams), regime)
-    result = fit(folder, work / "fit", config=fit_config(sparse, seed), views=views, holdout="none", init="random",
+    # held-out capture views (up to 16 of those it does not train on), scored 8 times along the fit:
+    # its convergence, reported (they never train, so the fit's bytes are those of holdout "none")
+    others = sorted(set(range(len(cams))) - set(views))
+    held = sorted({others[int(k)] for k in np.round(np.linspace(0, len(others) - 1, min(CONVERGENCE_VIEWS,
+                                                                                          len(others))))}) if others else []
+    cfg = fit_config(sparse, seed)
+    cfg.output.eval_every = max(1, int(sparse["steps"]) // 8) if held else 0
+    cfg.output.lpips = "off"
+    result = fit(folder, work / "fit", config=cfg, views=views, holdout=held or "none", init="random",
                  progress=False)
     sparse_scene = result.scene
     clean_scene = load_scene(cap)
@@ -124,6 +152,7 @@ def make(work: Path, *, capture_dir: str, regime: dict[str, int], sparse: dict[s
         clips.append(f"{j:02d}")
         clip_views.append(idx)
     meta = {"scene": info["scene"], "regime": regime, "train_views": views, "capture_views": len(cams),
+            "convergence": convergence(work / "fit" / "eval.csv", int(sparse["steps"]), held),
             "clips": clips, "bbox_diagonal": info["bbox_diagonal"],
             "clean": "photos" if info["images"] == "images" else "renders"}
     if info["images"] == "images":
