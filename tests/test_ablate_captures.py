@@ -374,3 +374,11 @@ def test_ablate_with_photos_as_the_training_pairs_clean_side(tmp_path: Path) -> 
     r = _cli("ablate", "--study", "builtin.toml", "--out", "o2", "--dry-run", cwd=tmp_path)
     assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "conditions.clean = 'photo': training scene(s)" in r.stderr
+
+
+def test_the_clean_fit_shrinks_photos_to_the_study_size_whatever_their_orientation() -> None:
+    from morphgs.ablation.stages.cleanfits import downscale_for
+
+    assert downscale_for((1280, 720), (128, 72)) == 10
+    assert downscale_for((720, 1280), (128, 72)) == 10  # a portrait capture in a landscape study
+    assert downscale_for((1920, 1440), (128, 96)) == 15 and downscale_for((100, 60), (128, 96)) == 1

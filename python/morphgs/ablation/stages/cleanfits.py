@@ -20,7 +20,7 @@ from typing import Any
 
 __all__ = ["IGNORE", "RESUMABLE", "VERSION", "downscale_for", "fit_config", "load", "make"]
 
-VERSION = 1
+VERSION = 2  # 2: the downscale compares the longer sides (a portrait capture of a landscape study)
 IGNORE: tuple[str, ...] = ()
 RESUMABLE = True  # the fit resumes from its checkpoint in fit/
 HOLDOUT = "every:8"
@@ -28,8 +28,10 @@ HOLDOUT = "every:8"
 
 def downscale_for(photo: tuple[int, int], size: tuple[int, int]) -> int:
     """The largest integer factor that shrinks a `photo` (W, H) to no less than `size` (W, H)
-    on both sides (1 when the photo is already as small)."""
-    return max(1, min(photo[0] // max(1, size[0]), photo[1] // max(1, size[1])))
+    on both sides, longer side against longer side (a portrait photo of a landscape study is
+    turned, as the captures are), 1 when the photo is already as small."""
+    (pl, ps), (sl, ss) = sorted(photo, reverse=True), sorted(size, reverse=True)
+    return max(1, min(pl // max(1, sl), ps // max(1, ss)))
 
 
 def fit_config(clean: dict[str, Any], seed: int) -> Any:
