@@ -190,7 +190,7 @@ def _cameras_in(folder: Path) -> tuple[str | None, str | None]:
 def _capture_problem(folder: Path) -> str | None:
     """None when a folder holds posed photos (transforms.json or a COLMAP model, and the
     images), else why its cameras do not make a capture."""
-    from morphgs.fit import load_posed_images
+    from morphgs.fit.data import load_posed_images
 
     try:
         posed = load_posed_images(folder)

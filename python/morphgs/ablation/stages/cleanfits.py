@@ -37,7 +37,7 @@ def downscale_for(photo: tuple[int, int], size: tuple[int, int]) -> int:
 def fit_config(clean: dict[str, Any], seed: int) -> Any:
     """The FitConfig of a clean fit: the test sets' sparse-fit representation with the [clean]
     steps and sizes, no intermediate evaluation, no LPIPS (the held-out PSNR/SSIM are the note)."""
-    from morphgs.ablation.stages.testsets import fit_config as sparse_config
+    from morphgs.ablation.stages.common import fit_config as sparse_config
 
     cfg = sparse_config({k: clean[k] for k in ("steps", "random_points", "cap_max")}, seed)
     cfg.output.lpips = "off"

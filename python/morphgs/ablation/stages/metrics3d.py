@@ -56,7 +56,7 @@ def make(work: Path, *, testset_dir: str, refined_dir: str, refit: dict[str, Any
     from morphgs import media
     from morphgs import metrics as M
     from morphgs.ablation.stages.common import read_testset, torch_threads
-    from morphgs.ablation.stages.testsets import fit_config
+    from morphgs.ablation.stages.common import fit_config
     from morphgs.camera import Cameras
     from morphgs.fit import fit
 

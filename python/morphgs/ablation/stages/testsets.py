@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from morphgs.ablation.stages.common import fit_config
+
 __all__ = ["IGNORE", "RESUMABLE", "VERSION", "clip_cameras", "convergence", "fit_config", "make", "photo_clips",
            "regime_views"]
 
@@ -37,21 +39,6 @@ def regime_views(n: int, params: dict[str, int]) -> list[int]:
     from morphgs.curation.sparse import split_views
 
     return split_views(n, params)[0]
-
-
-def fit_config(settings: dict[str, Any], seed: int) -> Any:
-    """The FitConfig of a sparse fit or a re-fit: the `sparse` preset with the study's sizes."""
-    from morphgs.fit import FitConfig
-
-    cfg = FitConfig.preset("sparse")
-    d = cfg.to_dict()
-    d["steps"] = int(settings["steps"])
-    d["seed"] = int(seed)
-    d["init"]["random_points"] = int(settings["random_points"])
-    d["mcmc"]["cap_max"] = int(settings["cap_max"])
-    step = max(1, min(500, int(settings["steps"])))
-    d["output"].update({"eval_every": 0, "checkpoint_every": step, "preview_every": 0})
-    return FitConfig.from_dict(d, source="study")
 
 
 def clip_cameras(capture: Any, frames: int, per_scene: int) -> list[Any]:
