@@ -100,6 +100,8 @@ def test_the_paper_scale_planned_for_a_ray_cluster(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(("text", "match"), [
+    ('[training]\ncrop = [46, 48]\n',  # the smoke preset's tiny refiner works in blocks of 4
+     r"training\.crop must be multiples of 4 for the tiny refiner, got \[46, 48\] \(e\.g\. \[44, 48\]\)"),
     ('[conditions]\ntrain = ["morphologic"]\n', r"conditions\.train: unknown condition 'morphologic'"),
     ('[conditions]\ntrain = ["underfit:1.5"]\n', r"conditions\.train: unknown condition 'underfit:1\.5' \(--config "
      r"'underfit:1\.5': 'fraction' must be a number strictly between 0 and 1, got 1\.5\)"),

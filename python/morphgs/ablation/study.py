@@ -179,6 +179,16 @@ def _validate(s: dict[str, Any], source: str) -> None:
     crop = _ints(s["training"]["crop"], "training.crop", source, 4)
     if len(crop) != 2 or crop[0] > size[1] or crop[1] > size[0]:
         raise StudyError(f"{_where(source, 'training.crop')} must be [H, W] within capture.size [W, H] = {size}")
+    if s["model"]["name"] == "tiny":  # its crops must be multiples of its pixel-unshuffle x levels
+        from morphgs.models.tiny import TinyConfig
+
+        try:
+            m = TinyConfig(**dict(s["model"]["overrides"].get("model", {}))).size_multiple
+        except (TypeError, ValueError):
+            m = 1  # a bad model override is named where the model is built
+        if crop[0] % m or crop[1] % m:
+            raise StudyError(f"{_where(source, 'training.crop')} must be multiples of {m} for the tiny refiner, got "
+                             f"{crop} (e.g. [{max(m, crop[0] // m * m)}, {max(m, crop[1] // m * m)}])")
     if s["training"]["window"] < 1 or s["training"]["window"] > fr:
         raise StudyError(f"{_where(source, 'training.window')} must be in [1, clips.frames = {fr}]")
     for sec in ("training", "sparse", "clean", "refit"):
