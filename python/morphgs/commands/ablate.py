@@ -106,12 +106,15 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     if args.dry_run:
-        try:
-            text = _plan_text(study, out, args.workers, args.backend, args.cluster)
-        except ValueError as e:
-            print(f"morphgs ablate: error: {e}", file=sys.stderr)
-            return 2
-        print(text)
+        if args.cluster:
+            from morphgs.ablation.estimate import parse_cluster
+
+            try:
+                parse_cluster(args.cluster)
+            except ValueError as e:
+                print(f"morphgs ablate: error: {e}", file=sys.stderr)
+                return 2
+        print(_plan_text(study, out, args.workers, args.backend, args.cluster))
         return 0
     with folder_lock(out, command="ablate", wait=args.wait):
         ledger = run_study(study, out, workers=args.workers, recompute=args.recompute, backend=args.backend,
