@@ -46,9 +46,11 @@ def smoke(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_smoke_runs_every_stage_and_writes_the_report(smoke: Path) -> None:
     counts = _last_run(smoke)["counts"]
-    # 3 scenes; 3 conditions (blur2d, morphological, target-S8) x 2 seeds; 1 test scene x 1 regime;
+    # 3 scenes; 3 conditions (blur2d, morphological, target-S8) x 2 seeds, the target's sparse fit of
+    # each of the 2 training scenes its own job; 1 test scene x 1 regime;
     # 6 trained rows + 3 control rows, each refined and scored in 2D and 3D
-    assert counts == {"captures": {"computed": 3, "reused": 0}, "trainsets": {"computed": 3, "reused": 0},
+    assert counts == {"captures": {"computed": 3, "reused": 0}, "pairfits": {"computed": 2, "reused": 0},
+                      "trainsets": {"computed": 3, "reused": 0},
                       "training": {"computed": 6, "reused": 0}, "testsets": {"computed": 1, "reused": 0},
                       "refine": {"computed": 9, "reused": 0}, "metrics2d": {"computed": 9, "reused": 0},
                       "metrics3d": {"computed": 9, "reused": 0}, "report": {"computed": 1, "reused": 0}}
@@ -78,10 +80,30 @@ def test_smoke_runs_every_stage_and_writes_the_report(smoke: Path) -> None:
         assert (smoke / "plots" / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_a_targets_sparse_fits_are_made_once_in_their_own_jobs_and_linked_into_its_training_set(
+        smoke: Path) -> None:
+    """Each training scene's sparse fit is a pairfits job; the target's training set links those
+    fit folders (relative links, so a moved study keeps them) and its pairs come from them: curate
+    found them made and fitted nothing itself."""
+    from morphgs.curation import manifest
+
+    (ts,) = (smoke / "trainsets").glob("target-S8-*")
+    fits = sorted((ts / "data" / "fits").iterdir())
+    assert len(fits) == 2
+    for f in fits:
+        assert f.is_symlink() and not os.path.isabs(os.readlink(f))
+        assert f.resolve().parent.parent.parent.parent == (smoke / "pairfits").resolve()
+        (run,) = f.glob("*/run")
+        assert (run / "fit.json").is_file()
+    recs = manifest.load(ts / "data").values()
+    assert {r["fit"]["dir"].split("/")[1] for r in recs} == {f.name for f in fits}
+    assert len(list((smoke / "pairfits").iterdir())) == 2
+
+
 def test_a_second_run_recomputes_nothing(smoke: Path) -> None:
     before = (smoke / "results.json").read_bytes()
     r = _ablate("--preset", "smoke", "--out", str(smoke))
-    assert "0 stage output(s) computed, 41 reused" in r.stderr
+    assert "0 stage output(s) computed, 43 reused" in r.stderr
     assert all(c["computed"] == 0 for c in _last_run(smoke)["counts"].values())
     assert (smoke / "results.json").read_bytes() == before
 

@@ -92,8 +92,10 @@ def test_levels_follow_the_inputs(tmp_path: Path) -> None:
         assert j.level == (1 + max(u.level for u in ups) if ups else 0)
         assert all(jobs.index(u) < jobs.index(j) for u in ups)  # upstream first
     by = {f"{j.ref.stage}/{j.ref.name}": j.level for j in jobs}
-    assert by["captures/sample-0"] == 0 and by["trainsets/target-S8"] == 1
-    assert by["calibration/calibrated_morphological-S8"] == 2 and by["trainsets/calibrated_morphological-S8"] == 3
+    # a target's fits are one job per training scene, read by its training set
+    assert by["captures/sample-0"] == 0 and by["pairfits/target-S8-sample-0"] == 1 and by["trainsets/target-S8"] == 2
+    assert by["calibration/calibrated_morphological-S8"] == 3 and by["trainsets/calibrated_morphological-S8"] == 4
+    assert by["trainsets/morphological"] == 1  # a perturbation's training set fits nothing
     assert by["report/report"] == max(by.values())
 
 

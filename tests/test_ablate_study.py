@@ -79,10 +79,13 @@ def test_the_paper_scale_planned_for_a_ray_cluster(tmp_path: Path) -> None:
     assert any(x.startswith("cluster plan: 8 node(s) x 32 CPUs x 8 GPUs; Ray tasks of 4 CPU(s), 64 at a time")
                for x in out)
     rows = {x.split()[0]: x.split() for x in out[out.index(next(x for x in out if x.startswith("cluster plan"))) + 2:]
-            if x.split() and x.split()[0] in ("captures", "trainsets", "training", "testsets", "refine",
+            if x.split() and x.split()[0] in ("captures", "pairfits", "trainsets", "training", "testsets", "refine",
                                                "metrics2d", "metrics3d", "report")}
-    assert set(rows) == {"captures", "trainsets", "training", "testsets", "refine", "metrics2d", "metrics3d", "report"}
+    assert set(rows) == {"captures", "pairfits", "trainsets", "training", "testsets", "refine", "metrics2d",
+                         "metrics3d", "report"}
     assert rows["captures"][1] == "250" and rows["testsets"][1] == "150" and "32 per node" in " ".join(rows["captures"])
+    # the targets' sparse fits: one job per (regime, training scene), spread over the cluster
+    assert rows["pairfits"][1] == "600" and "75 per node" in " ".join(rows["pairfits"])
     s = load_study(None, preset="paper")
     assert float(rows["training"][3]) == pytest.approx(24 * s["training"]["steps"] * 1.0 / 3600, abs=0.05)
     assert float(rows["training"][2]) == 0.0 and float(rows["metrics3d"][2]) > 0
@@ -373,7 +376,12 @@ def test_real_fit_sources_are_training_conditions_with_their_fit_in_the_estimate
         (ts,) = [j for j in jobs if j.ref.stage == "trainsets"]
         spec = ts.call_kwargs()["spec"]
         assert spec.kind == train.split(":")[0]
-        return estimate(study, jobs)["trainsets"]
+        # the fits are one job per training scene, read by the training set
+        fits = [j for j in jobs if j.ref.stage == "pairfits"]
+        assert len(fits) == len(ts.kwargs["scene_dirs"]) == 2
+        assert {f.ref.key for f in fits} < {u.ref.key for u in ts.depends_on()}
+        est = estimate(study, jobs)
+        return est["trainsets"] + est["pairfits"]
 
     base = trainsets_estimate("cross:0.5@1000")  # a fit of 1000 steps per scene
     assert trainsets_estimate("underfit:0.5@2000") == pytest.approx(base)  # stopped at 1000 of 2000

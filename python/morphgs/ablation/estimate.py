@@ -52,15 +52,17 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
             s = S["clean"]["steps"] * 2 * px * UNIT["fit"]
         elif st == "captures":
             s = S["capture"]["views"] * px * gauss * UNIT["render"]
-        elif st == "trainsets":
-            n = len(j.kwargs["scene_dirs"]) * S["conditions"]["pairs_per_scene"]
-            s = n * frames * px * gauss * 2 * UNIT["render"]
+        elif st in ("trainsets", "pairfits"):
+            scenes = len(j.kwargs["scene_dirs"]) if st == "trainsets" else 1
+            s = scenes * S["conditions"]["pairs_per_scene"] * frames * px * gauss * 2 * UNIT["render"]
             spec = resolve(j.kwargs["spec"])
-            if getattr(spec, "kind", None) in FIT_KINDS:  # one fit per scene, to its end (underfit: its stop)
+            # a fit per scene, to its end (underfit: its stop): in the pairfits jobs (a training set
+            # without them fits its scenes itself)
+            if getattr(spec, "kind", None) in FIT_KINDS and (st == "pairfits" or not j.kwargs["fits"]):
                 steps = fit_steps(spec.params)
                 if spec.kind == "underfit":
                     steps = stop_step(spec.params["fraction"], steps)
-                s += len(j.kwargs["scene_dirs"]) * steps * px * UNIT["fit"]
+                s += scenes * steps * px * UNIT["fit"]
         elif st == "calibration":
             # the strength scan and bisection (grid + ~10 points) plus op shares and the goodness of
             # fit render every calibration pair (half the training scenes' pairs) ~len(grid) + 15
@@ -125,7 +127,9 @@ def peak_memory(study: Study, stage: str) -> float:
         return fit(int(S["clean"]["cap_max"]))
     if stage in ("captures", "calibration"):
         return BASE_BYTES + gauss * SCENE_BYTES_PER_GAUSSIAN * 2 + views * img
-    if stage == "trainsets":  # a target's sparse fit or a perturbed render of the scene
+    if stage == "pairfits":
+        return fit(int(S["sparse"]["cap_max"]))
+    if stage == "trainsets":  # a perturbed render of the scene (a fit when it has no pairfits)
         return max(fit(int(S["sparse"]["cap_max"])), BASE_BYTES + gauss * SCENE_BYTES_PER_GAUSSIAN * 2 + 2 * frames * img)
     if stage == "testsets":
         return max(fit(int(S["sparse"]["cap_max"])), BASE_BYTES + gauss * SCENE_BYTES_PER_GAUSSIAN + 4 * frames * img)

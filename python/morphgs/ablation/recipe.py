@@ -9,7 +9,10 @@ stage, and a rerun remakes what a change touches, nothing else:
     cleanfits/<scene>                 a capture given as photos (its files' hashes), size, [clean]
     captures/<scene>                  the scene (its files' hashes or built-in parameters), views, size, up,
                                       the clean fit
+    pairfits/<condition>-<scene>      a fit-based condition's (target, underfit, cross) fit of one train scene:
+                                      its capture, the condition's curate config, pairs, frames
     trainsets/<condition>             captures of the train scenes, the condition's curate config, pairs, frames
+                                      (and the condition's pairfits, linked in)
     calibration/<condition>           trainsets/target-<regime>, the family, the strength grid
     trainsets/<calibrated condition>  its calibration output, the captures, pairs, frames
     training/<condition>-s<seed>      the training set, the model (and its config file's hash), the run
@@ -51,6 +54,7 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
     from morphgs.ablation.stages import training as T
     from morphgs.ablation.stages import trainsets as TS
     from morphgs.ablation.stages.metrics2d import lpips_status
+    from morphgs.curation.plan import FIT_KINDS
 
     S = study.settings
     sc = scenes or resolve_scenes(study)
@@ -91,7 +95,14 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
         r = regimes[str(cond.regime)] if cond.kind == "target" else None
         spec = TS.condition_spec(cond.name, blur_sigma=float(S["conditions"]["blur_sigma"]),
                                  regime=r.params if r else None, sparse=S["sparse"])
-        tsets[cond.name] = add("trainsets", cond.slug, spec=Keyed(spec, spec.as_dict()), calibration_dir=None,
+        keyed = Keyed(spec, spec.as_dict())
+        # 1b. a fit-based condition fits each training scene in its own job (they spread over the
+        # pool or the cluster); the training set links them in and renders the pairs
+        fits = [Out(add("pairfits", f"{cond.slug}-{s}", scene_dir=Out(cap[s], s), spec=keyed,
+                        meta={"condition": cond.name, "scene": s},
+                        **{k: v for k, v in common.items() if k != "scene_dirs"}))
+                for s in sc.train] if spec.kind in FIT_KINDS else []
+        tsets[cond.name] = add("trainsets", cond.slug, spec=keyed, calibration_dir=None, fits=fits,
                                meta={"condition": cond.name}, **common)
 
     # 2b. calibration: per calibrated condition (family x regime), against the regime's target set;
@@ -101,7 +112,7 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
         calib = add("calibration", cond.slug, scene_dirs=scene_dirs, real_dir=Out(target, "data"),
                     family=cond.family, grid=list(CALIBRATION_GRID), objective=cond.objective,
                     meta={"condition": cond.name})
-        tsets[cond.name] = add("trainsets", cond.slug, spec=cond.slug, calibration_dir=Out(calib),
+        tsets[cond.name] = add("trainsets", cond.slug, spec=cond.slug, calibration_dir=Out(calib), fits=[],
                                meta={"condition": cond.name}, **common)
 
     # 3. training: per (condition, seed); the CKA probe is the first training scene's capture

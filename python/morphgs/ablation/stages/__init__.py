@@ -1,5 +1,6 @@
 """The stages of `morphgs ablate`, one small module each, in the order the recipe runs them
-(morphgs.ablation.recipe): cleanfits (captures given as photos), captures, trainsets, calibration, training, testsets, refine,
+(morphgs.ablation.recipe): cleanfits (captures given as photos), captures, pairfits (the fits of
+fit-based training sets, one per scene), trainsets, calibration, training, testsets, refine,
 metrics2d, metrics3d, report.
 
 Each stage module has
@@ -17,7 +18,7 @@ from types import ModuleType
 
 __all__ = ["STAGES", "stage_module"]
 
-STAGES = ("cleanfits", "captures", "trainsets", "calibration", "training", "testsets", "refine", "metrics2d", "metrics3d",
+STAGES = ("cleanfits", "captures", "pairfits", "trainsets", "calibration", "training", "testsets", "refine", "metrics2d", "metrics3d",
           "report")
 
 

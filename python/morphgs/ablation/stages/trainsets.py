@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["IGNORE", "RESUMABLE", "VERSION", "calibrated_spec", "condition_spec", "make", "severity"]
+__all__ = ["IGNORE", "RESUMABLE", "VERSION", "calibrated_spec", "condition_spec", "link_fits", "make", "severity"]
 
 VERSION = 1
 IGNORE: tuple[str, ...] = ()
@@ -64,19 +64,36 @@ def severity(data: Path) -> dict[str, float]:
     return {"psnr_mean": float(a.mean()), "psnr_min": float(a.min()), "psnr_max": float(a.max()), "pairs": len(vals)}
 
 
+def link_fits(folders: list[Path], into: Path) -> None:
+    """A relative symlink `into/<scene>` to each per-scene fit folder (kept when it is there)."""
+    import os
+
+    into.mkdir(parents=True, exist_ok=True)
+    for f in folders:
+        link = into / f.name
+        if not link.exists() and not link.is_symlink():
+            tmp = into / f".{f.name}.tmp{os.getpid()}"
+            os.symlink(os.path.relpath(f.resolve(), into.resolve()), tmp)
+            os.replace(tmp, link)
+
+
 def make(work: Path, *, scene_dirs: list[str], spec: Any, pairs_per_scene: int, frames: int,
-         size: tuple[int, int], seed: int, calibration_dir: str | None, clean: str) -> None:
+         size: tuple[int, int], seed: int, calibration_dir: str | None, clean: str, fits: list[str]) -> None:
     """Curate the condition into `work/data` and write `work/severity.json` (`spec` is the label
     of a calibrated condition, whose config is read from `calibration_dir`, else a ConfigSpec;
     `clean`: "render", pairs along the capture path with the clean scene's render as the clean
-    side, or "photo", pairs at runs of the capture's photos with the photos as the clean side)."""
+    side, or "photo", pairs at runs of the capture's photos with the photos as the clean side).
+    `fits`: the outputs of the condition's per-scene fit jobs (stages/pairfits.py), linked into
+    `work/data/fits` first, so curate finds every fit made and only renders the pairs."""
     from morphgs.ablation.study import StudyError
+    from morphgs.ablation.stages.pairfits import fit_folders
     from morphgs.curation import curate
 
     if calibration_dir is not None:
         spec = calibrated_spec(spec, calibration_dir)
 
     data = work / "data"
+    link_fits(fit_folders(fits), data / "fits")
     summary = curate(scene_dirs, data, configs=[spec], pairs_per_scene=pairs_per_scene, frames=frames,
                      resolution=size, seed=seed, test_fraction=0.0,
                      trajectory="photos" if clean == "photo" else "cameras", progress=False,
