@@ -111,6 +111,32 @@ def test_ssim_matches_torchmetrics_on_real_renders(dtype: torch.dtype) -> None:
         assert metrics.ssim(p, gt) == pytest.approx(float(ref.mean()), abs=2e-5)
 
 
+@pytest.mark.parametrize("shape", [(2, 3, 128, 128), (1, 3, 96, 130), (3, 3, 7, 9)])
+def test_ssim_matrix_blur_is_the_padded_convolution_and_its_gradient(
+        shape: tuple[int, ...], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Torch images up to 512 pixels a side blur by two matrix products (the training loss's fast
+    path); the SSIM and its gradient equal the grouped 11x11 convolution's within float rounding."""
+    from morphgs.metrics import image
+
+    b = image.blur_matrix(9)
+    v = np.random.default_rng(3).random(9)
+    want = np.convolve(np.pad(v, 5, mode="reflect"), image.gaussian_window(np.float64), mode="valid")
+    np.testing.assert_allclose(b @ v, want, atol=1e-15)
+    np.testing.assert_allclose(b.sum(axis=1), 1.0, atol=1e-15)
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(shape, generator=g, dtype=torch.float64, requires_grad=True)
+    y = (x.detach() + 0.1 * torch.randn(shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+    out = {}
+    for limit in (512, 0):  # the matrix path, then the convolution
+        monkeypatch.setattr(image, "MATRIX_BLUR_MAX", limit)
+        val = metrics.ssim(x, y, reduction="none")
+        (grad,) = torch.autograd.grad(val.sum(), x)
+        out[limit] = (val.detach(), grad)
+    torch.testing.assert_close(out[512][0], out[0][0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(out[512][1], out[0][1], rtol=0, atol=1e-12)
+    assert not torch.equal(out[512][0], torch.ones_like(out[512][0]))
+
+
 def test_ssim_numpy_blur_equals_the_opencv_blur() -> None:
     img = np.random.default_rng(1).random((13, 21, 3), dtype=np.float32)
     np.testing.assert_allclose(_blur_numpy(img), _blur_cv2(img), atol=1e-6)

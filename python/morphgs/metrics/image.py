@@ -121,8 +121,9 @@ def ssim(pred: Any, target: Any, *, data_range: float = 1.0, mask: Any = None, r
     Precision follows the input as in torchmetrics: float64 images are computed in float64,
     others (float32, float16, uint8) in float32, where flat regions carry errors of about 1e-5
     (the variance is E[x^2] - E[x]^2). numpy inputs use OpenCV's separable filter when it is
-    installed (else the same filter in numpy) and average in float64; torch inputs use a grouped
-    11x11 convolution.
+    installed (else the same filter in numpy) and average in float64; torch inputs blur by two
+    matrix products with the padding folded in (up to 512 pixels a side; larger ones by a grouped
+    11x11 convolution), the same sums in another order.
 
     Args:
         pred, target: numpy (..., H, W, C) or torch (..., C, H, W) images of the same shape, at
@@ -220,6 +221,39 @@ def _blur_numpy(img: np.ndarray) -> np.ndarray:
     return out
 
 
+#: Torch images up to this many pixels a side blur by matrix products (`_blur_matrix`), larger
+#: ones by the grouped convolution (the dense matrices' cost grows with the side: at 1080x1920
+#: the convolution is faster).
+MATRIX_BLUR_MAX = 512
+
+
+def blur_matrix(n: int) -> np.ndarray:
+    """The (n, n) float64 matrix of the SSIM window over n samples with reflect (no edge repeat)
+    padding: `B @ v` is the padded 11-tap blur of v (n >= 6)."""
+    g = gaussian_window(np.float64)
+    i = np.arange(n)[:, None] + np.arange(SSIM_WINDOW)[None, :] - _PAD
+    j = np.abs(i)
+    j = np.where(j >= n, 2 * (n - 1) - j, j)
+    m = np.zeros((n, n))
+    np.add.at(m, (np.repeat(np.arange(n), SSIM_WINDOW), j.ravel()), np.tile(g, n))
+    return m
+
+
+_MATRICES: dict[tuple[int, str, str], Any] = {}
+
+
+def _blur_matrix(n: int, dtype: Any, device: Any) -> Any:
+    """`blur_matrix(n)` as a torch tensor, cached per size, dtype and device."""
+    import torch
+
+    key = (n, str(dtype), str(device))
+    if key not in _MATRICES:
+        if len(_MATRICES) > 32:
+            _MATRICES.clear()
+        _MATRICES[key] = torch.as_tensor(blur_matrix(n), dtype=dtype, device=device)
+    return _MATRICES[key]
+
+
 def _ssim_torch(pred: Any, target: Any, r: float, mask: Any, reduction: str) -> Any:
     import torch
     import torch.nn.functional as F
@@ -231,11 +265,19 @@ def _ssim_torch(pred: Any, target: Any, r: float, mask: Any, reduction: str) -> 
         p, t = p.float(), t.float()
     x, y = p.reshape(-1, c, h, w), t.reshape(-1, c, h, w)
     n = x.shape[0]
-    g = torch.as_tensor(gaussian_window(np.float64), dtype=x.dtype, device=x.device)
-    kernel = (g[:, None] * g[None, :]).expand(c, 1, SSIM_WINDOW, SSIM_WINDOW)
     stack = torch.cat([x, y, x * x, y * y, x * y])
-    stack = F.pad(stack, (_PAD, _PAD, _PAD, _PAD), mode="reflect")
-    mu_x, mu_y, xx, yy, xy = F.conv2d(stack, kernel, groups=c).split(n)
+    if max(h, w) <= MATRIX_BLUR_MAX:
+        # the blur as two matrix products, B_h S B_w^T, the reflect padding folded into the
+        # matrices: the same sums as the convolution (in another order: within 1e-6), 3.4x faster
+        # forward and backward than the grouped 11x11 convolution at 128x128 on a CPU
+        bh = _blur_matrix(h, x.dtype, x.device)
+        bw = bh if w == h else _blur_matrix(w, x.dtype, x.device)
+        mu_x, mu_y, xx, yy, xy = torch.matmul(torch.matmul(bh, stack), bw.T).split(n)
+    else:
+        g = torch.as_tensor(gaussian_window(np.float64), dtype=x.dtype, device=x.device)
+        kernel = (g[:, None] * g[None, :]).expand(c, 1, SSIM_WINDOW, SSIM_WINDOW)
+        stack = F.pad(stack, (_PAD, _PAD, _PAD, _PAD), mode="reflect")
+        mu_x, mu_y, xx, yy, xy = F.conv2d(stack, kernel, groups=c).split(n)
     c1, c2 = (SSIM_K1 * r) ** 2, (SSIM_K2 * r) ** 2
     mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
     var_x = (xx - mu_xx).clamp(min=0)
