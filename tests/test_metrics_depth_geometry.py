@@ -107,6 +107,17 @@ def test_missing_points_lower_recall_and_raise_completeness() -> None:
     assert m["fscore"] == pytest.approx(2 * 0.5 / 1.5)
 
 
+def test_metrics_at_several_thresholds_are_those_of_each_threshold_alone() -> None:
+    rng = np.random.default_rng(2)
+    gt = _grid()
+    pred = gt[gt[:, 0] < 4] + rng.normal(scale=0.3, size=(int((gt[:, 0] < 4).sum()), 3))
+    at = metrics.point_cloud_metrics_at(pred, gt, thresholds=[0.1, 0.3, 1.0])
+    assert at == [metrics.point_cloud_metrics(pred, gt, threshold=t) for t in (0.1, 0.3, 1.0)]
+    assert at[0]["fscore"] < at[1]["fscore"] < at[2]["fscore"]
+    with pytest.raises(MetricError, match="threshold"):
+        metrics.point_cloud_metrics_at(pred, gt, thresholds=[0.1, -1.0])
+
+
 def test_nearest_distances_match_brute_force() -> None:
     rng = np.random.default_rng(1)
     a, b = rng.normal(size=(300, 3)), rng.normal(size=(200, 3))

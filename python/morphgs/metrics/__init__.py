@@ -42,6 +42,7 @@ from morphgs.metrics.geometry import (
     fscore,
     nearest_distances,
     point_cloud_metrics,
+    point_cloud_metrics_at,
     scene_points,
 )
 from morphgs.metrics.image import psnr, ssim
@@ -72,6 +73,7 @@ __all__ = [
     "occlusion_mask",
     "optical_flow",
     "point_cloud_metrics",
+    "point_cloud_metrics_at",
     "psnr",
     "scene_points",
     "ssim",

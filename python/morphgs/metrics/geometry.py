@@ -16,6 +16,7 @@ depth maps (`backproject_depth`).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -23,7 +24,7 @@ import numpy as np
 from morphgs.metrics import _arrays as A
 
 __all__ = ["backproject_depth", "chamfer_distance", "fscore", "nearest_distances", "point_cloud_metrics",
-           "scene_points"]
+           "point_cloud_metrics_at", "scene_points"]
 
 
 def _cloud(points: Any, name: str) -> np.ndarray:
@@ -77,14 +78,27 @@ def point_cloud_metrics(pred: Any, target: Any, *, threshold: float) -> dict[str
     Raises:
         MetricError: a non-positive threshold or a bad cloud.
     """
-    if not (np.isfinite(threshold) and threshold > 0):
-        raise A.MetricError(f"threshold must be a positive distance, got {threshold!r}")
+    return point_cloud_metrics_at(pred, target, thresholds=[threshold])[0]
+
+
+def point_cloud_metrics_at(pred: Any, target: Any, *, thresholds: Sequence[float]) -> list[dict[str, float]]:
+    """`point_cloud_metrics` at each of `thresholds`, from one KD-tree pass (the same numbers).
+
+    Raises:
+        MetricError: a non-positive threshold or a bad cloud.
+    """
+    for threshold in thresholds:
+        if not (np.isfinite(threshold) and threshold > 0):
+            raise A.MetricError(f"threshold must be a positive distance, got {threshold!r}")
     d_p, d_g = nearest_distances(pred, target)
-    precision = float(np.mean(d_p < threshold))
-    recall = float(np.mean(d_g < threshold))
-    f = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
-    return {"chamfer": float(0.5 * (d_p.mean() + d_g.mean())), "accuracy": float(d_p.mean()),
-            "completeness": float(d_g.mean()), "precision": precision, "recall": recall, "fscore": f}
+    out = []
+    for threshold in thresholds:
+        precision = float(np.mean(d_p < threshold))
+        recall = float(np.mean(d_g < threshold))
+        f = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+        out.append({"chamfer": float(0.5 * (d_p.mean() + d_g.mean())), "accuracy": float(d_p.mean()),
+                    "completeness": float(d_g.mean()), "precision": precision, "recall": recall, "fscore": f})
+    return out
 
 
 def scene_points(scene: Any, *, min_opacity: float = 0.5) -> np.ndarray:
