@@ -108,11 +108,36 @@ def test_a_second_run_recomputes_nothing(smoke: Path) -> None:
     assert (smoke / "results.json").read_bytes() == before
 
 
+def _assert_cpu_logged(rec: dict) -> None:
+    """A runs.jsonl record has the CPU seconds of every computed job (none for a reused one) and
+    per stage, for the same stages as the wall seconds, above zero for each stage that computed
+    and equal to its jobs' sum. Only that they are there and add up: no time is checked."""
+    for j in rec["jobs"]:
+        assert ("cpu_seconds" in j) == (j["status"] == "computed"), j
+        assert j.get("cpu_seconds", 0.0) >= 0.0, j
+    assert set(rec["stage_cpu_seconds"]) == set(rec["stage_seconds"])
+    for stage, cpu in rec["stage_cpu_seconds"].items():
+        assert cpu > 0.0, stage
+        jobs = [j["cpu_seconds"] for j in rec["jobs"] if j["stage"] == stage and j["status"] == "computed"]
+        assert cpu == pytest.approx(sum(jobs), abs=0.01), stage
+
+
+def test_runs_jsonl_has_every_computed_jobs_cpu_seconds_and_each_stages(smoke: Path) -> None:
+    records = [json.loads(x) for x in (smoke / "runs.jsonl").read_text().splitlines()]
+    first = records[0]  # the fixture's run, in this process (a rerun's record computes nothing)
+    assert sum(c["computed"] for c in first["counts"].values()) == 43
+    assert set(first["stage_cpu_seconds"]) == {"captures", "trainsets", "pairfits", "training", "testsets",
+                                               "refine", "metrics2d", "metrics3d", "report"}
+    for rec in records:
+        _assert_cpu_logged(rec)
+
+
 def test_two_workers_give_the_same_bytes(smoke: Path, tmp_path: Path) -> None:
     out = tmp_path / "j2"
     _ablate("--preset", "smoke", "--out", str(out), "-j", "2")
     for f in ("results.json", "results.csv", "table.md"):
         assert (out / f).read_bytes() == (smoke / f).read_bytes(), f
+    _assert_cpu_logged(_last_run(out))  # measured in the worker processes
 
 
 def test_the_ray_backend_gives_the_same_bytes(smoke: Path, tmp_path: Path) -> None:
@@ -122,6 +147,7 @@ def test_the_ray_backend_gives_the_same_bytes(smoke: Path, tmp_path: Path) -> No
     _ablate("--preset", "smoke", "--out", str(out), "--backend", "ray", "-j", "2")
     for f in ("results.json", "results.csv", "table.md"):
         assert (out / f).read_bytes() == (smoke / f).read_bytes(), f
+    _assert_cpu_logged(_last_run(out))  # measured in the Ray workers
 
 
 def _wait_for_a_training_checkpoint(proc: subprocess.Popen, out: Path) -> None:

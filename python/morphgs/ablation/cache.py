@@ -12,7 +12,7 @@ dvc decides what to rerun.
   output that no longer matches it (a truncated or damaged file) is reported with a
   MorphgsWarning, moved aside as `<name>-<key>.damaged` and made again.
 - The `Ledger` records what each run computed and reused (STUDY/runs.jsonl), which is how a
-  rerun shows that it did no work.
+  rerun shows that it did no work, with each computed job's wall and CPU seconds.
 """
 
 from __future__ import annotations
@@ -63,15 +63,19 @@ def write_json_atomic(path: Path, obj: Any) -> None:
 
 @dataclass
 class Ledger:
-    """What a run did, stage by stage: computed or reused, and seconds spent."""
+    """What a run did, stage by stage: computed or reused, and seconds spent (wall, and CPU where
+    the job was computed and its CPU time measured)."""
 
     entries: list[dict[str, Any]] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def add(self, ref: StageRef, status: str, seconds: float) -> None:
+    def add(self, ref: StageRef, status: str, seconds: float, cpu_seconds: float | None = None) -> None:
+        e: dict[str, Any] = {"stage": ref.stage, "name": ref.name, "key": ref.key, "status": status,
+                             "seconds": round(seconds, 3)}
+        if cpu_seconds is not None and status == "computed":
+            e["cpu_seconds"] = round(cpu_seconds, 3)
         with self.lock:
-            self.entries.append({"stage": ref.stage, "name": ref.name, "key": ref.key, "status": status,
-                                 "seconds": round(seconds, 3)})
+            self.entries.append(e)
 
     def counts(self) -> dict[str, dict[str, int]]:
         out: dict[str, dict[str, int]] = {}
@@ -84,6 +88,15 @@ class Ledger:
         for e in self.entries:
             if e["status"] == "computed":
                 out[e["stage"]] = round(out.get(e["stage"], 0.0) + e["seconds"], 3)
+        return out
+
+    def cpu_seconds(self) -> dict[str, float]:
+        """CPU seconds per stage, summed over its computed jobs (the same stages as `seconds`; a
+        computed job without a measurement counts 0)."""
+        out: dict[str, float] = {}
+        for e in self.entries:
+            if e["status"] == "computed":
+                out[e["stage"]] = round(out.get(e["stage"], 0.0) + e.get("cpu_seconds", 0.0), 3)
         return out
 
 

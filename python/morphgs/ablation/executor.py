@@ -6,6 +6,9 @@ processes, or as Ray tasks; then publishing the report and logging the run.
 - Each job is made by `cache.run_stage`: a work folder renamed into place when complete, so a
   killed study loses no finished output and never sees half of one. Worker processes have fixed
   thread counts, so the bytes do not depend on `workers`.
+- Each computed job's CPU seconds (user + system of the process that ran it, all its threads --
+  torch's and the Rust core's -- and its finished child processes) are measured in that process
+  and logged beside its wall seconds in STUDY/runs.jsonl; they change no study output.
 - A failed job lets the jobs in flight finish (their outputs are kept), starts nothing new, and
   raises. Ctrl-C or SIGTERM stops the workers at once.
 """
@@ -108,8 +111,8 @@ def run_jobs(jobs: Sequence[Job], *, workers: int, backend: str, ledger: cache.L
     say(f"ablate: {len(todo)} job(s) to make ({', '.join(stages)}), {len(jobs) - len(todo)} reused")
     count = [0]
 
-    def done(j: Job, status: str, secs: float) -> None:
-        ledger.add(j.ref, status, secs)
+    def done(j: Job, status: str, secs: float, cpu: float | None) -> None:
+        ledger.add(j.ref, status, secs, cpu)
         finished.add(j.ref.key)
         count[0] += 1
         say(f"  [{count[0]}/{len(todo)}] {j.ref.stage}/{j.ref.name}: {status} in {secs:.1f} s")
@@ -127,14 +130,29 @@ def run_jobs(jobs: Sequence[Job], *, workers: int, backend: str, ledger: cache.L
         _run_pool(todo, workers, threads, ready, done)
 
 
-def make(task: Task) -> tuple[str, float]:
-    """Make one stage output, in this process or a worker: ("computed" | "reused", seconds)."""
+def make(task: Task) -> tuple[str, float, float | None]:
+    """Make one stage output, in this process or a worker: ("computed" | "reused", wall seconds,
+    CPU seconds of this process and its children while it ran, or None when reused)."""
     from morphgs.ablation.stages import stage_module
 
     ref, inputs, kwargs, resumable = task
     mod = stage_module(ref.stage)
+    cpu0 = _cpu_seconds()
     _, status, secs = cache.run_stage(ref, inputs, lambda w: mod.make(w, **kwargs), resumable=resumable)
-    return status, secs
+    cpu = _cpu_seconds() - cpu0 if status == "computed" else None
+    return status, secs, cpu
+
+
+def _cpu_seconds() -> float:
+    """User + system CPU seconds so far of this process (every thread of it) and of its child
+    processes that have ended and been waited for."""
+    try:
+        import resource
+    except ImportError:  # Windows: no getrusage; os.times has no children there (zeros)
+        t = os.times()
+        return t.user + t.system + t.children_user + t.children_system
+    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
 
 
 def _task(j: Job) -> Task:
@@ -145,20 +163,20 @@ def _init_worker(threads: int) -> None:
     os.environ["MORPHGS_NUM_THREADS"] = str(threads)
 
 
-def _ray_make(task: Task, threads: int) -> tuple[str, float]:
+def _ray_make(task: Task, threads: int) -> tuple[str, float, float | None]:
     _init_worker(threads)
     return make(task)
 
 
 Ready = Callable[[list[Job]], list[Job]]
-Done = Callable[[Job, str, float], None]
+Done = Callable[[Job, str, float, float | None], None]
 
 
 def _run_pool(todo: list[Job], workers: int, threads: int, ready: Ready, done: Done) -> None:
     ctx = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(threads,))
     waiting = list(todo)
-    running: dict[Future[tuple[str, float]], Job] = {}
+    running: dict[Future[tuple[str, float, float | None]], Job] = {}
     try:
         while waiting or running:
             for j in ready(waiting):
@@ -238,6 +256,7 @@ def _publish(jobs: Sequence[Job], root: Path) -> None:
 
 def _write_run_log(root: Path, ledger: cache.Ledger, seconds: float, workers: int) -> None:
     rec = {"time": time.strftime("%Y-%m-%dT%H:%M:%S"), "workers": workers, "seconds": round(seconds, 2),
-           "counts": ledger.counts(), "stage_seconds": ledger.seconds(), "jobs": ledger.entries}
+           "counts": ledger.counts(), "stage_seconds": ledger.seconds(),
+           "stage_cpu_seconds": ledger.cpu_seconds(), "jobs": ledger.entries}
     with open(root / "runs.jsonl", "a", encoding="utf-8") as f:
         f.write(json.dumps(rec, sort_keys=True) + "\n")
