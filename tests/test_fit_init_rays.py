@@ -68,3 +68,24 @@ def test_forward_facing_capture_warns_and_ray_init_beats_the_box(tmp_path: Path)
     assert "along the training rays" in json.loads((tmp_path / "rays" / "fit.json").read_text())["init"]
     assert rays.heldout_psnr is not None and box.heldout_psnr is not None
     assert rays.heldout_psnr > box.heldout_psnr + 5.0, (rays.heldout_psnr, box.heldout_psnr)
+
+
+def test_sparse_fits_that_start_from_random_points_on_purpose_do_not_ask_for_sfm_points(tmp_path: Path) -> None:
+    """curate's and ablate's sparse fits start from random points by design (SfM points come
+    from every view): inside `random_init_on_purpose` the forward-facing hint is not shown,
+    other warnings still are, and outside it the hint is back."""
+    import warnings
+
+    from morphgs.fit.run import random_init_on_purpose
+
+    root = write_transforms(tmp_path / "ff", room(2000), forward_facing_cameras((32, 24), (3, 2)))
+    cfg = small_config(5, output={"eval_every": 0, "checkpoint_every": 1000, "preview_every": 0,
+                                  "progress_every": 0.0, "lpips": "off"})
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        with random_init_on_purpose():
+            fit(root, tmp_path / "a", config=cfg, init="random", progress=False)
+            warnings.warn("another warning", MorphgsWarning)
+    assert [str(w.message) for w in seen] == ["another warning"]
+    with pytest.warns(MorphgsWarning, match="forward-facing"):
+        fit(root, tmp_path / "b", config=cfg, init="random", progress=False)

@@ -156,18 +156,20 @@ def _run_fit(data: Path, run: Path, cfg: Any, views: dict[str, Any], until: int 
     """One `morphgs.fit.fit` call on a prepared fit folder (from the start when no checkpoint of
     the run verifies)."""
     from morphgs.fit import FitRunError, fit
+    from morphgs.fit.run import random_init_on_purpose
 
     nt, nh = len(views["train"]), len(views["heldout"])
     tv, hv = list(range(nt)), list(range(nt, nt + nh))
     kw: dict[str, Any] = dict(config=cfg, views=tv, holdout=hv, init="random", progress=False, until=until)
-    try:
-        return fit(data, run, **kw)
-    except FitRunError as e:
-        from morphgs.fit import FitPastError
+    with random_init_on_purpose():
+        try:
+            return fit(data, run, **kw)
+        except FitRunError as e:
+            from morphgs.fit import FitPastError
 
-        if isinstance(e, FitPastError):
-            raise
-        return fit(data, run, resume=False, **kw)  # no checkpoint of it verifies: fit it from the start
+            if isinstance(e, FitPastError):
+                raise
+            return fit(data, run, resume=False, **kw)  # no checkpoint of it verifies: fit it from the start
 
 
 def _info(out_dir: Path, folder: Path, ply: Path, views: dict[str, Any], summary: dict[str, Any], seed: int,

@@ -21,6 +21,7 @@ rows.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import json
@@ -28,7 +29,7 @@ import os
 import shutil
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -42,7 +43,7 @@ from morphgs.fit.data import PosedImages, describe, load_posed_images
 from morphgs.fit.views import ViewSelection, select_views
 from morphgs.reliability import folder_lock
 
-__all__ = ["FitPastError", "FitResult", "FitRunError", "fit", "scene_scale_of"]
+__all__ = ["FitPastError", "FitResult", "FitRunError", "fit", "random_init_on_purpose", "scene_scale_of"]
 
 LOSS_COLUMNS = ["step", "view", "loss", "l1", "ssim", "psnr", "gaussians", "sh_degree", "lr_means",
                 "duplicated", "split", "pruned", "reset", "relocated", "added", "seconds"]
@@ -294,6 +295,16 @@ def _warn_forward_facing(init: Any, posed: PosedImages, cams: Sequence[Camera]) 
                       "SfM points (docs/fit.md, \"Initialisation\"): if you can, run COLMAP on the images and fit "
                       "from its points (morphgs fit --init points; curate's sparse:K fits start from random "
                       "points on purpose, since SfM points come from every view)", MorphgsWarning, stacklevel=3)
+
+
+@contextlib.contextmanager
+def random_init_on_purpose() -> Iterator[None]:
+    """Fits inside it start from random points by design (the sparse fits of curate and ablate:
+    SfM points would come from every view, not the few a sparse fit may see), so the
+    forward-facing hint (`_warn_forward_facing`), which asks for SfM points, is not shown."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*the capture looks forward-facing", category=MorphgsWarning)
+        yield
 
 
 _PREV = "checkpoint.prev.bin"

@@ -104,6 +104,7 @@ def make(work: Path, *, capture_dir: str, regime: dict[str, int], sparse: dict[s
     from morphgs import media
     from morphgs.ablation.stages.captures import load_cameras, load_capture, load_scene
     from morphgs.fit import fit
+    from morphgs.fit.run import random_init_on_purpose
 
     cap = Path(capture_dir)
     folder, info = load_capture(cap)
@@ -117,8 +118,9 @@ def make(work: Path, *, capture_dir: str, regime: dict[str, int], sparse: dict[s
     cfg = fit_config(sparse, seed)
     cfg.output.eval_every = max(1, int(sparse["steps"]) // 8) if held else 0
     cfg.output.lpips = "off"
-    result = fit(folder, work / "fit", config=cfg, views=views, holdout=held or "none", init="random",
-                 progress=False)
+    with random_init_on_purpose():  # a sparse fit from random points by design: no SfM hint
+        result = fit(folder, work / "fit", config=cfg, views=views, holdout=held or "none", init="random",
+                     progress=False)
     sparse_scene = result.scene
     clean_scene = load_scene(cap)
     runs: list[tuple[list[int] | None, list[np.ndarray] | None, Any]]
