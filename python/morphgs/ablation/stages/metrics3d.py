@@ -59,6 +59,7 @@ def make(work: Path, *, testset_dir: str, refined_dir: str, refit: dict[str, Any
     from morphgs.ablation.stages.common import fit_config
     from morphgs.camera import Cameras
     from morphgs.fit import fit
+    from morphgs.fit.run import random_init_on_purpose
 
     torch_threads(threads)
     ts, rd = Path(testset_dir), Path(refined_dir)
@@ -74,8 +75,9 @@ def make(work: Path, *, testset_dir: str, refined_dir: str, refit: dict[str, Any
         if not (data / "transforms.json").is_file():
             _refit_data(data, frames, clean, cams, heldout)
         train = [i for i in range(len(cams)) if i not in heldout]
-        res = fit(data, work / "refit" / j / "run", config=fit_config(refit, seed), views=train, holdout="none",
-                  init="random", progress=False)
+        with random_init_on_purpose():  # the re-fit protocol starts from random points: no SfM hint
+            res = fit(data, work / "refit" / j / "run", config=fit_config(refit, seed), views=train, holdout="none",
+                      init="random", progress=False)
         held_cams = Cameras.from_list([cams[i] for i in heldout])
         r_held = morphgs.render(res.scene, held_cams).to_uint8()
         gt_held = clean[heldout]
