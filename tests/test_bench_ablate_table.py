@@ -6,13 +6,14 @@ from __future__ import annotations
 import importlib.util
 import json
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
 BENCH = Path(__file__).resolve().parents[1] / "benches" / "bench_ablate.py"
 
 
-def _bench():  # type: ignore[no-untyped-def]
+def _bench() -> ModuleType:
     spec = importlib.util.spec_from_file_location("bench_ablate", BENCH)
     assert spec and spec.loader
     mod = importlib.util.module_from_spec(spec)

@@ -38,3 +38,20 @@ def fit_config(settings: dict[str, Any], seed: int) -> Any:
     step = max(1, min(500, int(settings["steps"])))
     d["output"].update({"eval_every": 0, "checkpoint_every": step, "preview_every": 0})
     return FitConfig.from_dict(d, source="study")
+
+
+def curate_condition(scene_dirs: list[str], data: Path, spec: Any, *, pairs_per_scene: int, frames: int,
+                     size: tuple[int, int], seed: int, clean: str, what: str) -> None:
+    """Curate one condition's pairs of `scene_dirs` into `data`, as a training set makes them
+    (no test split; `clean`: "render", pairs along the capture path with the clean scene's render
+    as the clean side, or "photo", pairs at runs of the capture's photos); a failed pair raises
+    StudyError naming `what`."""
+    from morphgs.ablation.study import StudyError
+    from morphgs.curation import curate
+
+    summary = curate(scene_dirs, data, configs=[spec], pairs_per_scene=pairs_per_scene, frames=frames,
+                     resolution=size, seed=seed, test_fraction=0.0,
+                     trajectory="photos" if clean == "photo" else "cameras", progress=False,
+                     log=lambda m: None)
+    if not summary.ok:
+        raise StudyError(f"{what}: curate failed: {summary.failed}")

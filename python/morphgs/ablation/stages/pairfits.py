@@ -28,14 +28,10 @@ RESUMABLE = True  # curate resumes a killed fit from its checkpoint in this fold
 def make(work: Path, *, scene_dir: str, spec: Any, pairs_per_scene: int, frames: int, size: tuple[int, int],
          seed: int, clean: str) -> None:
     """Curate `spec` on the one scene `scene_dir` into `work/data` (its fit under data/fits/<scene>)."""
-    from morphgs.ablation.study import StudyError
-    from morphgs.curation import curate
+    from morphgs.ablation.stages.common import curate_condition
 
-    summary = curate([scene_dir], work / "data", configs=[spec], pairs_per_scene=pairs_per_scene, frames=frames,
-                     resolution=size, seed=seed, test_fraction=0.0,
-                     trajectory="photos" if clean == "photo" else "cameras", progress=False, log=lambda m: None)
-    if not summary.ok:
-        raise StudyError(f"fit of {Path(scene_dir).name} for {spec.label}: curate failed: {summary.failed}")
+    curate_condition([scene_dir], work / "data", spec, pairs_per_scene=pairs_per_scene, frames=frames, size=size,
+                     seed=seed, clean=clean, what=f"fit of {Path(scene_dir).name} for {spec.label}")
 
 
 def fit_folders(outputs: list[str]) -> list[Path]:

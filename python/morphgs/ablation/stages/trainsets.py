@@ -85,20 +85,15 @@ def make(work: Path, *, scene_dirs: list[str], spec: Any, pairs_per_scene: int, 
     side, or "photo", pairs at runs of the capture's photos with the photos as the clean side).
     `fits`: the outputs of the condition's per-scene fit jobs (stages/pairfits.py), linked into
     `work/data/fits` first, so curate finds every fit made and only renders the pairs."""
-    from morphgs.ablation.study import StudyError
+    from morphgs.ablation.stages.common import curate_condition
     from morphgs.ablation.stages.pairfits import fit_folders
-    from morphgs.curation import curate
 
     if calibration_dir is not None:
         spec = calibrated_spec(spec, calibration_dir)
 
     data = work / "data"
     link_fits(fit_folders(fits), data / "fits")
-    summary = curate(scene_dirs, data, configs=[spec], pairs_per_scene=pairs_per_scene, frames=frames,
-                     resolution=size, seed=seed, test_fraction=0.0,
-                     trajectory="photos" if clean == "photo" else "cameras", progress=False,
-                     log=lambda m: None)
-    if not summary.ok:
-        raise StudyError(f"training set {spec.label}: curate failed: {summary.failed}")
+    curate_condition(scene_dirs, data, spec, pairs_per_scene=pairs_per_scene, frames=frames, size=size, seed=seed,
+                     clean=clean, what=f"training set {spec.label}")
     (work / "severity.json").write_text(json.dumps(severity(data), indent=1, sort_keys=True) + "\n",
                                         encoding="utf-8")
