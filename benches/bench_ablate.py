@@ -192,6 +192,13 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=1, help="runs of each build, alternating (medians shown)")
     ap.add_argument("--json", type=Path, metavar="OUT", help="also save the figures as JSON")
     a = ap.parse_args()
+    if a.baseline and not (Path(a.baseline).is_file() and os.access(a.baseline, os.X_OK)):
+        ap.error(f"--baseline {a.baseline}: not an executable python (give another venv's bin/python)")
+    if a.baseline_pythonpath and not (Path(a.baseline_pythonpath) / "morphgs").is_dir():
+        ap.error(f"--baseline-pythonpath {a.baseline_pythonpath}: no morphgs package in it (give a checkout's "
+                 "python/ folder)")
+    if a.jobs < 1 or a.rounds < 1:
+        ap.error("-j and --rounds must be at least 1")
 
     builds: dict[str, tuple[str, dict[str, str]]] = {"current": (sys.executable, dict(os.environ))}
     if a.baseline:
