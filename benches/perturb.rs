@@ -1,6 +1,10 @@
 //! Criterion: `perturb` over 1M Gaussians of SH degree 3 for each preset, next to a plain copy of
-//! the scene arrays (the floor). `cargo bench -p splat-core --bench perturb`.
+//! the scene arrays (the floor), and the `shatter` op's fragments for 12 training views of a
+//! textured plane at 128x96 (its colour fit over the other views is the cost).
+//! `cargo bench -p splat-core --bench perturb`.
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use splat_core::camera::Camera;
+use splat_core::perturb::shatter::{fragments, ShatterParams, Views};
 use splat_core::perturb::{perturb, PerturbParams};
 use splat_core::Scene;
 
@@ -46,5 +50,55 @@ fn bench(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench);
+/// 12 cameras along x looking down +z at a plane z = 5, 128x96, and their clean renders.
+fn plane_views() -> (Vec<Camera>, Vec<f32>, Vec<f32>, Vec<f32>) {
+    let (w, h, f) = (128u32, 96u32, 110.0);
+    let (mut cams, mut rgb) = (Vec::new(), Vec::new());
+    for k in 0..12 {
+        let ox = 0.25 * f64::from(k);
+        let m = [
+            [1.0, 0.0, 0.0, -ox],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        cams.push(Camera::new(f, f, 64.0, 48.0, w, h, m));
+        for y in 0..h {
+            for x in 0..w {
+                let wx = (f64::from(x) + 0.5 - 64.0) / f * 5.0 + ox;
+                let wy = (f64::from(y) + 0.5 - 48.0) / f * 5.0;
+                rgb.extend([
+                    (0.5 + 0.4 * (3.0 * wx).sin()) as f32,
+                    (0.5 + 0.4 * (2.0 * wy).cos()) as f32,
+                    0.3,
+                ]);
+            }
+        }
+    }
+    let n = (w * h) as usize * cams.len();
+    (cams, rgb, vec![5.0; n], vec![1.0; n])
+}
+
+fn bench_shatter(c: &mut Criterion) {
+    let (cams, rgb, depth, alpha) = plane_views();
+    let views = Views {
+        rgb: &rgb,
+        depth: &depth,
+        alpha: &alpha,
+    };
+    let mut g = c.benchmark_group("shatter_12x128x96");
+    g.sample_size(10);
+    for value in [1.0f32, 3.0] {
+        let params = ShatterParams {
+            value,
+            ..Default::default()
+        };
+        g.bench_function(format!("v{value}"), |b| {
+            b.iter(|| fragments(&params, &cams, views, 30_000, 7).expect("valid views"))
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench, bench_shatter);
 criterion_main!(benches);

@@ -24,8 +24,8 @@ from morphgs.strength import ARTIFACT_OPS, FAMILIES, Strength
 FAMS = (*ARTIFACT_OPS, "shatter", "sparse-like")  # popping: tests/test_popping.py
 
 #: sha256 (first 32 hex digits) of every sparse-view family's output on `room()` at strength 1.5 (the
-#: six Rust ops' part unchanged since they were pinned at cdcbd816...; shatter added).
-PINNED = "66761b9f2e1ad25f669f37147a7dd40a"
+#: six Rust ops' part unchanged since they were pinned at cdcbd816...; shatter re-pinned when it moved to Rust).
+PINNED = "51262b972e9ee2ad19b35e52041dd0d6"
 
 
 def room() -> tuple[morphgs.GaussianScene, morphgs.Cameras]:
@@ -173,3 +173,28 @@ def test_the_paper_families_are_unchanged() -> None:
     assert Strength("morphological", 2.0).to_dict() == {"kind": "strength", "family": "morphological",
                                                           "strength": 2.0,
                                                           "ops": {"keep": 0.5, "log_scale": 0.5, "rotation": 0.5}}
+
+
+def test_shatter_kernel_names_maps_that_do_not_match_its_cameras() -> None:
+    """`morphgs.shatter.fragments` (the Rust kernel): maps of the wrong shape, a camera count
+    that differs from the views', or a bad value are one ValueError naming the problem."""
+    from morphgs import shatter
+
+    scene, cams = room()
+    train = cams[::6]
+    r = morphgs.render(scene, train)
+    t_n, h, w = len(train), train.height, train.width
+    img, dep = np.asarray(r.rgb).reshape(t_n, h, w, 3), np.asarray(r.depth).reshape(t_n, h, w)
+    alpha = np.asarray(r.alpha).reshape(t_n, h, w)
+    with pytest.raises(ValueError, match="depth and alpha"):
+        shatter.fragments(1.0, img, dep[:, :-1], alpha, train.world_to_camera, train.K, 10, seed=0)
+    with pytest.raises(ValueError, match="one camera per training view"):
+        shatter.fragments(1.0, img, dep, alpha, train.world_to_camera[:-1], train.K[:-1], 10, seed=0)
+    with pytest.raises(ValueError, match="shatter value"):
+        shatter.fragments(float("nan"), img, dep, alpha, train.world_to_camera, train.K, 10, seed=0)
+    with pytest.raises(ValueError, match="max_error"):
+        shatter.fragments(1.0, img, dep, alpha, train.world_to_camera, train.K, 10, seed=0, max_error=-1.0)
+    # value 0 makes nothing; the removal is a superset at a larger value
+    assert len(shatter.fragments(0.0, img, dep, alpha, train.world_to_camera, train.K, 10, seed=0)["means"]) == 0
+    lo, hi = shatter.removal(5000, 0.5, 1), shatter.removal(5000, 2.0, 1)
+    assert lo.dtype == bool and np.all(hi[lo]) and hi.sum() > lo.sum() > 0

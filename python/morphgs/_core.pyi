@@ -221,6 +221,21 @@ def _popping(
     height: int,
     seed: int,
 ) -> GaussianScene: ...
+def _shatter_removal(n: int, *, value: float, seed: int) -> npt.NDArray[np.bool_]: ...
+def _shatter(
+    value: float,
+    images: npt.NDArray[np.float32],
+    depth: npt.NDArray[np.float32],
+    alpha: npt.NDArray[np.float32],
+    world_to_camera: npt.NDArray[np.float64],
+    K: npt.NDArray[np.float64],
+    removed: int,
+    *,
+    seed: int,
+    ridge: float = 1.0,
+    max_error: float = 0.08,
+    drop: bool = True,
+) -> dict[str, npt.NDArray[Any]]: ...
 
 # ---- fit (morphgs.fit) ----
 _FitCallback = Any  # (kind: str, payload: Any) -> Any

@@ -35,9 +35,8 @@ Popping's cones ride along as the scene extras `POPPING_EXTRAS`; every render ho
 Every op is the identity at s = 0, every op's noise grows continuously with s, and the same seed
 gives the same z at every s (common random numbers), so severity is a smooth function of s.
 Every op runs in the Rust perturb kernel (op ids 4, 1, 2, 3 for keep, position, colour and
-opacity; 7 and 8 for log_scale and rotation; 10-15 for the sparse-view ops but shatter, which is
-NumPy, keyed (seed, 16)), keyed by the
-Gaussian's index in the input scene, with exactly rounded float operations only: the same bytes
+opacity; 7 and 8 for log_scale and rotation; 10-16 for the sparse-view ops), keyed by the
+Gaussian's index in the input scene (shatter's fragments by their training pixel's), with exactly rounded float operations only: the same bytes
 for any thread count and on any CPU.
 """
 

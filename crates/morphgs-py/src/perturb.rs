@@ -1,13 +1,15 @@
 //! `_perturb` and `_artifacts`: the native halves of `morphgs.perturb` and of the strength
 //! families' sparse-view ops (the Python side resolves configs).
 use numpy::{
-    IntoPyArray, PyReadonlyArray1, PyReadonlyArray3, PyReadonlyArray4, PyUntypedArrayMethods,
+    IntoPyArray, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray3, PyReadonlyArray4,
+    PyUntypedArrayMethods,
 };
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
-use pyo3::types::PyTuple;
+use pyo3::types::{PyDict, PyTuple};
 use splat_core::perturb::artifacts::{self, ArtifactParams, TrainImages};
 use splat_core::perturb::popping;
+use splat_core::perturb::shatter::{self, ShatterParams, Views};
 use splat_core::perturb::PerturbParams;
 
 use crate::errors::detach;
@@ -256,9 +258,126 @@ fn _popping(
     scene.with_extras(py, names.into_iter().zip(caps).collect())
 }
 
+/// Which of `n` Gaussians the shatter op removes at `value` (`splat_core::perturb::shatter`).
+///
+/// Prefer `morphgs.strength.Strength.apply` (op "shatter").
+///
+/// Returns:
+///     (n,) bool, true: removed (each with probability 1 - exp(-value); a larger value removes a
+///     superset).
+///
+/// Raises:
+///     ValueError: a value that is not a finite number >= 0.
+#[pyfunction]
+#[pyo3(signature = (n, *, value, seed))]
+fn _shatter_removal(py: Python<'_>, n: usize, value: f32, seed: u64) -> PyResult<Bound<'_, PyAny>> {
+    if !(value.is_finite() && value >= 0.0) {
+        return Err(PyValueError::new_err(format!(
+            "shatter value must be a finite number >= 0, got {value}"
+        )));
+    }
+    let gone = detach(py, || Ok(shatter::removal(n, value, seed)))?;
+    Ok(gone.into_pyarray(py).into_any())
+}
+
+/// The shatter op's fragments (`splat_core::perturb::shatter::fragments`): small Gaussians on the
+/// rays of the training views' pixels at wrong depths, coloured to agree with every training
+/// view that sees them.
+///
+/// Prefer `morphgs.strength.Strength.apply` (op "shatter"), which renders the training views.
+///
+/// Args:
+///     value: the op's value v >= 0.
+///     images, depth, alpha: the training views' clean renders, (T,H,W,3), (T,H,W), (T,H,W)
+///         float32.
+///     world_to_camera, K: the training cameras, (T,4,4) and (T,3,3) float64.
+///     removed: how many Gaussians the op removed (the fragment budget is 4 per removal).
+///     seed: the seed of the counter-based generator.
+///     ridge, max_error, drop: the colour fit's band-1 ridge, the largest RMS colour error a kept
+///         fragment may have in a view, and whether a fragment that fails is dropped (else put
+///         back on the surface).
+///
+/// Returns:
+///     A dict of float32 arrays means (N,3), log_scales (N,3), opacity_logits (N,), sh0 (N,3),
+///     sh1 (N,3,3) (band-1 coefficients by channel), quats (N,4) (identity), and view (N,) int32.
+///
+/// Raises:
+///     ValueError: a bad parameter or maps that do not match the cameras (named).
+#[pyfunction]
+#[pyo3(signature = (value, images, depth, alpha, world_to_camera, K, removed, *, seed, ridge = 1.0,
+                    max_error = 0.08, drop = true))]
+#[allow(non_snake_case, clippy::too_many_arguments)]
+fn _shatter<'py>(
+    py: Python<'py>,
+    value: f32,
+    images: PyReadonlyArray4<'py, f32>,
+    depth: PyReadonlyArray3<'py, f32>,
+    alpha: PyReadonlyArray3<'py, f32>,
+    world_to_camera: PyReadonlyArray3<'py, f64>,
+    K: PyReadonlyArray3<'py, f64>,
+    removed: usize,
+    seed: u64,
+    ridge: f64,
+    max_error: f64,
+    drop: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    let (ish, dsh, ash) = (images.shape(), depth.shape(), alpha.shape());
+    if ish.len() != 4 || ish[3] != 3 || dsh != &ish[..3] || ash != &ish[..3] {
+        return Err(PyValueError::new_err(format!(
+            "images must be (T,H,W,3) and depth and alpha (T,H,W), got {ish:?}, {dsh:?} and {ash:?}"
+        )));
+    }
+    let cams = cameras_from(
+        &world_to_camera,
+        &K,
+        ish[2] as u32,
+        ish[1] as u32,
+        0.01,
+        1e10,
+    )?;
+    if cams.len() != ish[0] {
+        return Err(PyValueError::new_err(format!(
+            "one camera per training view: {} cameras for {} images",
+            cams.len(),
+            ish[0]
+        )));
+    }
+    let views = Views {
+        rgb: slice_of(&images, "images")?,
+        depth: slice_of(&depth, "depth")?,
+        alpha: slice_of(&alpha, "alpha")?,
+    };
+    let params = ShatterParams {
+        value,
+        ridge,
+        max_error,
+        drop,
+    };
+    let f = detach(py, || {
+        shatter::fragments(&params, &cams, views, removed, seed)
+    })?;
+    let n = f.len();
+    let flat3 = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
+    let d = PyDict::new(py);
+    d.set_item("means", flat3(&f.means).into_pyarray(py).reshape([n, 3])?)?;
+    let scales: Vec<f32> = f.log_scales.iter().flat_map(|&s| [s; 3]).collect();
+    d.set_item("log_scales", scales.into_pyarray(py).reshape([n, 3])?)?;
+    d.set_item("opacity_logits", f.opacity_logits.into_pyarray(py))?;
+    d.set_item("sh0", flat3(&f.sh0).into_pyarray(py).reshape([n, 3])?)?;
+    let sh1: Vec<f32> = f.sh1.iter().flatten().flatten().copied().collect();
+    d.set_item("sh1", sh1.into_pyarray(py).reshape([n, 3, 3])?)?;
+    let quats: Vec<f32> = (0..n).flat_map(|_| [1.0, 0.0, 0.0, 0.0]).collect();
+    d.set_item("quats", quats.into_pyarray(py).reshape([n, 4])?)?;
+    let view: Vec<i32> = f.view.iter().map(|&v| v as i32).collect();
+    d.set_item("view", view.into_pyarray(py))?;
+    Ok(d)
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_perturb, m)?)?;
     m.add_function(wrap_pyfunction!(_artifacts, m)?)?;
     m.add_function(wrap_pyfunction!(_popping, m)?)?;
+    m.add_function(wrap_pyfunction!(_shatter_removal, m)?)?;
+    m.add_function(wrap_pyfunction!(_shatter, m)?)?;
     Ok(())
 }

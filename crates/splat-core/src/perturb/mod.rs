@@ -15,6 +15,7 @@ use rayon::prelude::*;
 pub mod artifacts;
 mod kernel;
 pub mod popping;
+pub mod shatter;
 
 use crate::error::{Error, Result};
 use crate::mem::zeroed_f32;
