@@ -12,8 +12,9 @@
 //!   spawns, with probability q = min(p, [`BUDGET`] x the removals / ([`PER_PIXEL`] x the valid
 //!   pixels)), [`PER_PIXEL`] fragments ([`fragments`]): small isotropic Gaussians on that
 //!   pixel's ray (each through a uniform point of the pixel) at depth d' = d exp(sigma z),
-//!   z ~ N(0, 1), sigma = [`DEPTH_SPREAD`] v, clipped to [d / [`DEPTH_CLIP`], d [`DEPTH_CLIP`]],
-//!   d the clean depth there; a log-normal footprint of median [`FOOTPRINT_PX`] pixel in that
+//!   z ~ N(0, 1), sigma = [`DEPTH_SPREAD`] v, clipped to [d / c, d c], c = max([`DEPTH_CLIP`],
+//!   e^sigma) (the fixed clip up to v = 4.6, one sigma beyond, so sparser regimes stay within
+//!   reach), d the clean depth there; a log-normal footprint of median [`FOOTPRINT_PX`] pixel in that
 //!   view; opacities that stack to the pixel's alpha;
 //! - each fragment's colour is view-dependent (SH bands 0 and 1), fitted by least squares to its
 //!   own pixel (weight [`OWN_WEIGHT`]) and to the pixel of every other training view whose image
@@ -46,7 +47,8 @@ pub const PER_PIXEL: usize = 3;
 /// Log-depth spread per unit of value: at v = 2, sigma = 0.6, the spread of that fit's Gaussians
 /// about the true surface along their nearest training ray (log depth ratio IQR -0.34..0.44).
 pub const DEPTH_SPREAD: f32 = 0.3;
-/// Fragments stay within this factor of the surface depth (that fit: 5-95 % within 3.4).
+/// Fragments stay within this factor of the surface depth (that fit: 5-95 % within 3.4), or
+/// within one sigma of it where that is wider (v > 4.6).
 pub const DEPTH_CLIP: f64 = 4.0;
 /// Median footprint sigma (pixels) in the spawning view.
 pub const FOOTPRINT_PX: f32 = 0.5;
@@ -305,6 +307,7 @@ pub fn fragments(
         w,
         h,
         sigma: DEPTH_SPREAD * value,
+        clip: DEPTH_CLIP.max(f64::from(fastmath::exp(DEPTH_SPREAD * value))),
         cover,
         params,
         key,
@@ -341,6 +344,8 @@ struct Ctx<'a> {
     w: usize,
     h: usize,
     sigma: f32,
+    /// The depth clip factor, max(DEPTH_CLIP, e^sigma).
+    clip: f64,
     cover: f32,
     params: &'a ShatterParams,
     key: u64,
@@ -385,7 +390,7 @@ impl Ctx<'_> {
             (world, sigma_px * dd / cam.focal)
         };
         let f = f64::from(fastmath::exp(self.sigma * z));
-        let d2 = (d * f).clamp(d / DEPTH_CLIP, d * DEPTH_CLIP);
+        let d2 = (d * f).clamp(d / self.clip, d * self.clip);
         let (mut world, mut radius) = place(d2);
         let own = self.rgb(t, i);
         let own_c = [own[0] - 0.5, own[1] - 0.5, own[2] - 0.5];

@@ -94,6 +94,17 @@ fn a_larger_value_removes_a_superset_and_spreads_the_fragments_further() {
         iqr(&a),
         iqr(&b)
     );
+    // within the clip: a factor 4 up to v = 4.6, one sigma (e^(0.3 v)) beyond
+    let c = run(8.0, 2);
+    let out = |f: &Fragments, clip: f64| {
+        f.means
+            .iter()
+            .filter(|m| (f64::from(m[2]) / 5.0).ln().abs() > clip.ln() + 1e-4)
+            .count()
+    };
+    assert_eq!(out(&c, 2.4f64.exp()), 0);
+    assert!(out(&c, DEPTH_CLIP) > 0);
+    assert!(iqr(&b) < iqr(&c));
     for f in [&a, &b] {
         for m in &f.means {
             let z = f64::from(m[2]);
