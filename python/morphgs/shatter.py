@@ -13,7 +13,8 @@ pixels they were fitted to (docs/artifacts.md shows a built-in room fitted from 
   probability q = min(p, BUDGET x the removals / (PER_PIXEL x the valid pixels)), PER_PIXEL (3)
   fragments: small isotropic Gaussians on that pixel's ray (each at a uniform point within the
   pixel) at depth d' = d exp(sigma z), z ~ N(0, 1), sigma = DEPTH_SPREAD v (0.3 v), clipped to
-  [d / 4, 4 d], where d is the clean render's depth there; a log-normal footprint of median
+  [d / c, c d], c = max(4, e^sigma) (a factor 4 up to v = 4.6, one sigma beyond, so sparser
+  regimes stay within reach), where d is the clean render's depth there; a log-normal footprint of median
   FOOTPRINT_PX (0.5) pixel in that view; opacities that stack to the pixel's alpha;
 - each fragment's colour is view-dependent (SH up to band 1), fitted by least squares to its
   own pixel (weight 4) and to the pixel of every other training view whose frustum holds it, as a
