@@ -14,6 +14,7 @@ import pytest
 
 from morphgs import synthetic, trajectory
 from morphgs.calibration.mix import mixed
+from morphgs.calibration.objective import given
 from morphgs.calibration.realism import Clip, classifier_test, floor_test
 from morphgs.cli import main
 from morphgs.curation import load_manifest
@@ -112,6 +113,9 @@ def test_the_realism_search_recovers_a_hidden_mix_and_curate_and_ablate_take_its
     m = r["mix_search"]
     trials = m["trials"]
     assert len(trials) == 8 and m["objective"] == "realism"
+    # trial 0 is the family as given (equal weights), so the search never ends worse than it
+    assert trials[0]["params"] == given(BASE) and trials[0]["weights"] == {op: 0.5 for op in BASE.base}
+    assert min(t["value"] for t in trials) <= trials[0]["value"]
     chosen = trials[m["chosen"]]
     assert chosen["weights"]["needles"] == pytest.approx(HIDDEN["needles"], abs=0.15), trials
     holey = max(trials, key=lambda t: t["weights"]["holes"])

@@ -10,7 +10,10 @@ strengths on the calibration scenes, and its score is the cross-fitted AUC of th
 test (`realism.classifier_test`) between them and the real pairs. A candidate that cannot reach
 the real median PSNR scores 1 plus its shortfall in tens of dB, worse than any that can.
 
-The search is Optuna's TPE sampler (multivariate), asked for one candidate at a time. Every
+The first candidate is the family as given (every op at its base value, equal weights, and its own
+`train_every`, or the nearest choice), so the search never ends with a mix its objective scores
+worse than the hand-set one. The search is Optuna's TPE sampler (multivariate), asked for one
+candidate at a time. Every
 finished trial is appended to a JSON-lines state file; a rerun reads it, replays the finished
 trials into a fresh study and goes on, and the sampler of trial n is seeded with (seed, n), so an
 interrupted search ends where an uninterrupted one does. A state file written for other inputs
@@ -36,7 +39,7 @@ from morphgs.calibration.realism import Clip, classifier_test
 from morphgs.calibration.search import search
 from morphgs.strength import SPARSE_OPS, Strength
 
-__all__ = ["EVERY_CHOICES", "OBJECTIVES", "TRIALS", "candidate", "realism_search"]
+__all__ = ["EVERY_CHOICES", "OBJECTIVES", "TRIALS", "candidate", "given", "realism_search"]
 
 #: The objectives `morphgs calibrate --objective` accepts.
 OBJECTIVES: tuple[str, ...] = ("psnr", "realism")
@@ -62,6 +65,15 @@ def candidate(base: Strength, params: dict[str, Any]) -> tuple[Strength, dict[st
     return cfg, weights
 
 
+def given(base: Strength) -> dict[str, Any]:
+    """The trial parameters of the family as given: equal weights (every op at its base value) and
+    its `train_every` (the nearest of `EVERY_CHOICES`; ties: the smaller)."""
+    params: dict[str, Any] = {f"w_{op}": 1.0 for op in base.base}
+    if _needs_every(base):
+        params["train_every"] = min(EVERY_CHOICES, key=lambda e: (abs(e - base.train_every), e))
+    return params
+
+
 def _distributions(base: Strength) -> dict[str, Any]:
     from optuna.distributions import CategoricalDistribution, FloatDistribution
 
@@ -75,7 +87,7 @@ def _fingerprint(base: Strength, real_ids: Sequence[str], *, seed: int, steps: i
     """What a search's trials depend on (not how many there are: a longer search goes on from a
     shorter one's)."""
     doc = {"ops": base.base, "family": base.family, "train_every": base.train_every, "real": sorted(real_ids),
-           "seed": seed, "steps": steps, "grid": [float(g) for g in grid], "version": 1}
+           "seed": seed, "steps": steps, "grid": [float(g) for g in grid], "version": 2}
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -144,6 +156,8 @@ def realism_search(label: str, base: Strength, bench: Any, real_clips: Sequence[
         else:
             say(f"calibrate: {label}: realism search resumes after {len(done)} finished trial(s) ({state})")
     study = optuna.create_study(direction="minimize")
+    if not done:  # trial 0: the family as given
+        study.enqueue_trial(given(base))
     for rec in done:
         study.add_trial(optuna.trial.create_trial(params=rec["params"], distributions=dists, value=rec["value"]))
     rows = list(done)
