@@ -119,3 +119,21 @@ def test_a_model_config_file_is_keyed_by_its_contents(tmp_path: Path) -> None:
     cfg.write_text("[model]\nwidth = 16\n", encoding="utf-8")
     again = {j.ref.name: j.ref.key for j in _plan(tmp_path, text) if j.ref.stage == "training"}
     assert runs.keys() == again.keys() and all(runs[k] != again[k] for k in runs)
+
+
+def test_a_new_kernel_version_of_an_op_rekeys_only_the_training_sets_that_use_it(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An op whose bytes changed (shatter, now in Rust) carries its implementation's version in
+    the key of the training sets that use it: a cached study rebuilds those and what reads them,
+    never the morphological set beside them."""
+    from morphgs.ablation.stages import trainsets
+
+    text = 'preset = "smoke"\n[conditions]\ntrain = ["morphological", "shatter~2"]\n'
+    before = _plan(tmp_path, text)
+    monkeypatch.setitem(trainsets.KERNELS, "shatter", trainsets.KERNELS["shatter"] + 1)
+    after = _plan(tmp_path, text)
+    changed = {f"{a.ref.stage}/{a.ref.name}" for a, b in zip(after, before) if a.ref.key != b.ref.key}
+    sets = {n for n in changed if n.startswith("trainsets/")}
+    assert sets and all("shatter" in n for n in sets), changed
+    assert not any(n.startswith("trainsets/") and "morphological" in n for n in changed)
+    assert any(n.startswith("training/") for n in changed)  # and what reads them

@@ -95,7 +95,7 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
         r = regimes[str(cond.regime)] if cond.kind == "target" else None
         spec = TS.condition_spec(cond.name, blur_sigma=float(S["conditions"]["blur_sigma"]),
                                  regime=r.params if r else None, sparse=S["sparse"])
-        keyed = Keyed(spec, spec.as_dict())
+        keyed = Keyed(spec, TS.key_of(spec))
         # 1b. a fit-based condition fits each training scene in its own job (they spread over the
         # pool or the cluster); the training set links them in and renders the pairs
         fits = [Out(add("pairfits", f"{cond.slug}-{s}", scene_dir=Out(cap[s], s), spec=keyed,

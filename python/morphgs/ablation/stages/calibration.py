@@ -18,7 +18,8 @@ from typing import Any
 
 __all__ = ["CONFIG", "IGNORE", "RESUMABLE", "SUMMARY", "VERSION", "make", "summary"]
 
-VERSION = 2  # 2: the CNN two-sample test (realism) in calibration.json and summary.json; objective
+VERSION = 3  # 2: the CNN two-sample test (realism) in calibration.json and summary.json; objective
+# 3: the realism search's first trial is the family as given; shatter's bytes (its Rust kernel)
 IGNORE: tuple[str, ...] = ()
 RESUMABLE = False
 CONFIG = "config.json"

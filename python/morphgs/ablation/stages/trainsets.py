@@ -20,7 +20,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["IGNORE", "RESUMABLE", "VERSION", "calibrated_spec", "condition_spec", "link_fits", "make", "severity"]
+__all__ = ["IGNORE", "KERNELS", "RESUMABLE", "VERSION", "calibrated_spec", "condition_spec", "key_of", "link_fits", "make",
+           "severity"]
 
 VERSION = 1
 IGNORE: tuple[str, ...] = ()
@@ -35,6 +36,19 @@ def condition_spec(name: str, *, blur_sigma: float, regime: dict[str, int] | Non
         return parse_config(name, blur_sigma=blur_sigma)
     fit = {"init": {"random_points": int(sparse["random_points"])}, "mcmc": {"cap_max": int(sparse["cap_max"])}}
     return ConfigSpec(name, "sparse", {**regime, "steps": int(sparse["steps"]), "fit": fit})
+
+
+#: Ops whose bytes changed since studies were first cached, and their implementation's version: a
+#: training set that uses one carries it in its key (so only those rebuild). shatter 2: the Rust kernel.
+KERNELS: dict[str, int] = {"shatter": 2}
+
+
+def key_of(spec: Any) -> dict[str, Any]:
+    """The cache key document of a curate ConfigSpec: its dict, plus the version of each op in
+    `KERNELS` it uses."""
+    doc = spec.as_dict()
+    used = {op: v for op, v in KERNELS.items() if op in (doc.get("ops") or {})}
+    return {**doc, "kernels": used} if used else doc
 
 
 def calibrated_spec(name: str, calibration_dir: str | Path) -> Any:
