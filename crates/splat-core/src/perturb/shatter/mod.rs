@@ -282,19 +282,6 @@ pub fn fragments(
     let p = f64::from(share(value));
     let q = p.min(BUDGET * removed.max(1) as f64 / (PER_PIXEL as f64 * n_valid as f64));
     let key = op_key(seed, OP_SHATTER);
-    // the spawning pixels of each view, in order (the same uniform at every value: a larger q
-    // spawns at a superset)
-    let spawn: Vec<Vec<u32>> = (0..t_n)
-        .map(|t| {
-            (0..px)
-                .filter(|&i| {
-                    let g = t * px + i;
-                    valid(g) && f64::from(Stream::new(key, PIXEL_STREAM | g as u64).uniform()) < q
-                })
-                .map(|i| i as u32)
-                .collect()
-        })
-        .collect();
     // opacity: the fragments over a pixel (PER_PIXEL q of them, each covering about
     // 2 pi FOOTPRINT_PX^2 pixels) stack up to its alpha
     let cover =
@@ -312,28 +299,33 @@ pub fn fragments(
         params,
         key,
     };
-    let jobs: Vec<(u32, u8, u32)> = spawn
-        .iter()
-        .enumerate()
-        .flat_map(|(t, pix)| {
-            (0..PER_PIXEL).flat_map(move |k| pix.iter().map(move |&i| (t as u32, k as u8, i)))
-        })
-        .collect();
-    let frags: Vec<Frag> = jobs
-        .par_iter()
-        .map_init(Vec::new, |seen, &(t, k, i)| {
-            ctx.fragment(t as usize, k as usize, i as usize, seen)
-        })
-        .flatten_iter()
-        .collect();
+    // one view at a time (the scratch lists stay one view's size): its spawning pixels in order
+    // (the same uniform at every value: a larger q spawns at a superset), then its fragments in
+    // (slot, pixel) order, computed in parallel
     let mut out = Fragments::default();
-    for f in frags {
-        out.means.push(f.mean);
-        out.log_scales.push(f.log_scale);
-        out.opacity_logits.push(f.opacity_logit);
-        out.sh0.push(f.sh0);
-        out.sh1.push(f.sh1);
-        out.view.push(f.view);
+    for t in 0..t_n {
+        let pix: Vec<u32> = (0..px)
+            .filter(|&i| {
+                let g = t * px + i;
+                valid(g) && f64::from(Stream::new(key, PIXEL_STREAM | g as u64).uniform()) < q
+            })
+            .map(|i| i as u32)
+            .collect();
+        let frags: Vec<Frag> = (0..PER_PIXEL * pix.len())
+            .into_par_iter()
+            .map_init(Vec::new, |seen, j| {
+                ctx.fragment(t, j / pix.len(), pix[j % pix.len()] as usize, seen)
+            })
+            .flatten_iter()
+            .collect();
+        for f in frags {
+            out.means.push(f.mean);
+            out.log_scales.push(f.log_scale);
+            out.opacity_logits.push(f.opacity_logit);
+            out.sh0.push(f.sh0);
+            out.sh1.push(f.sh1);
+            out.view.push(f.view);
+        }
     }
     Ok(out)
 }
