@@ -82,8 +82,7 @@ def fragments(value: float, images: np.ndarray, depth: np.ndarray, alpha: np.nda
     """
     from morphgs._core import _shatter
 
-    f32 = lambda a: np.ascontiguousarray(a, np.float32)  # noqa: E731
-    f64 = lambda a: np.ascontiguousarray(a, np.float64)  # noqa: E731
-    return _shatter(float(value), f32(images), f32(depth), f32(alpha), f64(world_to_camera), f64(K), int(removed),
-                    seed=int(seed), ridge=float(ridge), max_error=MAX_ERROR if max_error is None else float(max_error),
-                    drop=bool(drop))
+    rgb, dep, alp = (np.ascontiguousarray(a, np.float32) for a in (images, depth, alpha))
+    w2c, k = (np.ascontiguousarray(a, np.float64) for a in (world_to_camera, K))
+    return _shatter(float(value), rgb, dep, alp, w2c, k, int(removed), seed=int(seed), ridge=float(ridge),
+                    max_error=MAX_ERROR if max_error is None else float(max_error), drop=bool(drop))
