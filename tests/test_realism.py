@@ -73,6 +73,14 @@ def test_the_classifier_tells_another_family_apart_but_not_the_same_family_at_ot
     assert np.isnan(floor_test(rt[:1], rh[:1])["auc"])
     with pytest.raises(ValueError, match="need both real"):
         classifier_test(rt, rh)
+    # an ensemble of networks per fold (--realism-repeats): the same verdicts, said, deterministic
+    far3 = classifier_test(rt + ot, rh + oh, steps=120, repeats=3)
+    near3 = classifier_test(rt + st, rh + sh, steps=120, repeats=3)
+    assert far3["repeats"] == 3 and "repeats" not in far
+    assert far3["auc"] > 0.9 and near3["auc"] < 0.75, (far3, near3)
+    assert classifier_test(rt + st, rh + sh, steps=120, repeats=3)["auc"] == near3["auc"]
+    with pytest.raises(ValueError, match="repeats must be >= 1"):
+        classifier_test(rt + st, rh + sh, steps=120, repeats=0)
 
 
 def _stand_in(root: Path) -> Path:
@@ -156,6 +164,12 @@ def test_an_interrupted_search_resumes_to_the_same_trials(stand_in: tuple[Path, 
     _calibrate(real, part, family, 2, 20)
     assert state.with_suffix(".jsonl.stale").is_file()
     assert len(state.read_text().splitlines()) == 3  # the fingerprint line and two trials
+    # an ensemble objective is another setting too; its trials record it
+    state.with_suffix(".jsonl.stale").unlink()
+    ens = _calibrate(real, part, family, 1, 20, "--realism-repeats", "2")
+    assert state.with_suffix(".jsonl.stale").is_file() and len(state.read_text().splitlines()) == 2
+    assert ens["results"][0]["mix_search"]["classifier_repeats"] == 2
+    assert ens["results"][0]["realism"]["classifier"]["repeats"] == 2
 
 
 def test_bad_options_are_one_line(stand_in: tuple[Path, Path], tmp_path: Path,
@@ -165,6 +179,7 @@ def test_bad_options_are_one_line(stand_in: tuple[Path, Path], tmp_path: Path,
     for args, msg in ((["--trials", "0"], "--trials must be >= 1"),
                       (["--realism-steps", "0", "--objective", "realism"], "--objective realism needs the classifier"),
                       (["--realism-steps", "-1"], "--realism-steps must be >= 0"),
+                      (["--realism-repeats", "0"], "--realism-repeats must be >= 1"),
                       (["--objective", "realism", "--family", "holes"], "--objective realism: no --family has two")):
         fam = [] if "--family" in args else ["--family", str(family)]
         assert main(["calibrate", "--real", str(real), "--out", out, *fam, *args]) == 2

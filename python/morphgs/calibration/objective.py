@@ -83,11 +83,14 @@ def _distributions(base: Strength) -> dict[str, Any]:
     return d
 
 
-def _fingerprint(base: Strength, real_ids: Sequence[str], *, seed: int, steps: int, grid: Sequence[float]) -> str:
+def _fingerprint(base: Strength, real_ids: Sequence[str], *, seed: int, steps: int, grid: Sequence[float],
+                 repeats: int = 1) -> str:
     """What a search's trials depend on (not how many there are: a longer search goes on from a
-    shorter one's)."""
+    shorter one's). `repeats` enters only when > 1, so single-network searches keep their state."""
     doc = {"ops": base.base, "family": base.family, "train_every": base.train_every, "real": sorted(real_ids),
            "seed": seed, "steps": steps, "grid": [float(g) for g in grid], "version": 2}
+    if repeats > 1:
+        doc["repeats"] = repeats
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -123,7 +126,7 @@ def _append(path: Path, record: dict[str, Any]) -> None:
 
 def realism_search(label: str, base: Strength, bench: Any, real_clips: Sequence[Clip], real_psnr: np.ndarray,
                    pair_of_frame: np.ndarray, *, real_ids: Sequence[str], grid: Sequence[float], trials: int = TRIALS,
-                   seed: int = 0, steps: int = 120, state: Path | None = None,
+                   seed: int = 0, steps: int = 120, repeats: int = 1, state: Path | None = None,
                    say: Callable[[str], None] | None = None) -> tuple[Strength, dict[str, Any]]:
     """The realism search (module doc) on the calibration pairs: (chosen config, report).
 
@@ -133,7 +136,8 @@ def realism_search(label: str, base: Strength, bench: Any, real_clips: Sequence[
         real_psnr, pair_of_frame: their per-frame PSNR and each frame's pair index.
         real_ids: the real pairs' ids (the state file's fingerprint). grid: the strength scan's grid
             (one point per octave of it is scanned). trials: candidates in all (finished ones in
-            `state` count). steps: the classifier's training steps per fold.
+            `state` count). steps: the classifier's training steps per fold. repeats: its networks per
+            fold, logits averaged (a steadier objective at `repeats` times the classifier's cost).
         state: the JSON-lines state file (None: nothing written, nothing resumed).
 
     Raises:
@@ -147,7 +151,7 @@ def realism_search(label: str, base: Strength, bench: Any, real_clips: Sequence[
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     coarse = list(grid)[::2] if len(grid) >= 6 else list(grid)
     dists = _distributions(base)
-    fp = _fingerprint(base, real_ids, seed=seed, steps=steps, grid=coarse)
+    fp = _fingerprint(base, real_ids, seed=seed, steps=steps, grid=coarse, repeats=repeats)
     done = _read_state(state, fp) if state is not None else []
     if state is not None:
         state.parent.mkdir(parents=True, exist_ok=True)
@@ -175,7 +179,7 @@ def realism_search(label: str, base: Strength, bench: Any, real_clips: Sequence[
         if res.reachable:
             synth = [Clip(bench.corrupted(cfg.at(s), k), bench.clean[k], real_clips[k].scene, 1)
                      for k, s in enumerate(res.pair_strengths)]
-            test = classifier_test(list(real_clips) + synth, seed=seed, steps=steps, n_boot=0)
+            test = classifier_test(list(real_clips) + synth, seed=seed, steps=steps, n_boot=0, repeats=repeats)
             value, auc = float(test["auc"]), float(test["auc"])
         else:
             auc = float("nan")
@@ -196,5 +200,6 @@ def realism_search(label: str, base: Strength, bench: Any, real_clips: Sequence[
     cfg, _ = candidate(base, rows[best]["params"])
     # calibration.json is the same bytes on every run: the trials' timings stay in the state file
     info = {"objective": "realism", "trials": [{k: v for k, v in r.items() if k != "seconds"} for r in rows], "chosen": best, "grid": coarse, "classifier_steps": steps,
+            **({"classifier_repeats": repeats} if repeats > 1 else {}),
             "seed": seed, "sampler": "optuna TPE (multivariate), seeded per trial"}
     return cfg, info

@@ -165,6 +165,7 @@ class Options:
     trials: int = TRIALS
     realism_steps: int = STEPS
     search_steps: int = STEPS // 2
+    repeats: int = 1
     seed: int = 0
     state_dir: Path | None = None
 
@@ -172,8 +173,9 @@ class Options:
 def calibrate_pairs(groups: Mapping[str, Sequence[RealPair]], scenes: Mapping[str, Any],
                     families: Sequence[tuple[str, Strength | Blur2d]], *, grid: Sequence[float] = DEFAULT_GRID,
                     lpips: bool = False, search_mix: bool = False, mix_steps: int = 3, objective: str = "psnr",
-                    trials: int = TRIALS, realism_steps: int = STEPS, search_steps: int = STEPS // 2, seed: int = 0,
-                    state_dir: str | Path | None = None, say: Callable[[str], None] | None = None) -> Calibration:
+                    trials: int = TRIALS, realism_steps: int = STEPS, search_steps: int = STEPS // 2, repeats: int = 1,
+                    seed: int = 0, state_dir: str | Path | None = None,
+                    say: Callable[[str], None] | None = None) -> Calibration:
     """Calibrate each family's strength distribution to each regime's real pairs; writes nothing
     but the realism search's state files (under `state_dir`, when given).
 
@@ -190,19 +192,24 @@ def calibrate_pairs(groups: Mapping[str, Sequence[RealPair]], scenes: Mapping[st
             trained `search_steps` steps per fold, its state files under `state_dir`).
         realism_steps: training steps of the CNN two-sample test reported for every family on the
             held-out scenes, with its real-vs-real floor per regime (0: not run).
+        repeats: networks per fold of every classifier (the test, its floor and the search's),
+            their logits averaged (`realism.classifier_test`): steadier AUCs at `repeats` times
+            the classifier's cost.
         seed: the classifiers' and the search's seed.
         say: progress messages (none when None).
 
     Raises:
         CalibrationError: no real pairs, pairs of mismatched sizes, a pair's scene not in `scenes`,
-            an unknown objective.
+            an unknown objective, repeats < 1.
     """
     say = say or (lambda m: None)
     if objective not in OBJECTIVES:
         raise CalibrationError(f"--objective {objective}: unknown; valid objectives: {', '.join(OBJECTIVES)}")
+    if repeats < 1:
+        raise CalibrationError(f"--realism-repeats must be >= 1, got {repeats}")
     opts = Options(grid=grid, lpips=lpips, search_mix=search_mix, mix_steps=mix_steps, objective=objective,
-                   trials=trials, realism_steps=realism_steps, search_steps=search_steps, seed=seed,
-                   state_dir=Path(state_dir) if state_dir is not None else None)
+                   trials=trials, realism_steps=realism_steps, search_steps=search_steps, repeats=repeats,
+                   seed=seed, state_dir=Path(state_dir) if state_dir is not None else None)
     sizes = {p.clean.shape[1:3] for ps in groups.values() for p in ps}
     if not sizes:
         raise CalibrationError("no real pairs to calibrate against")
@@ -220,7 +227,7 @@ def calibrate_pairs(groups: Mapping[str, Sequence[RealPair]], scenes: Mapping[st
         if realism_steps > 0:
             t0 = time.perf_counter()
             floor = floor_test(calib_side.clips(), held_side.clips() if held_side else None, seed=seed,
-                               steps=realism_steps)
+                               steps=realism_steps, repeats=repeats)
             say(f"calibrate: {regime}: real-vs-real classifier floor AUC {floor['auc']:.3f} "
                 f"[{time.perf_counter() - t0:.1f} s]")
         for label, base in families:
@@ -287,7 +294,8 @@ def _calibrate_one(label: str, base: Strength | Blur2d, regime: str, calib: _Sid
             state = (opts.state_dir / f"{slug(regime)}--{slug(label)}.jsonl") if opts.state_dir is not None else None
             base, mix_info = realism_search(label, base, bench, calib.clips(), real_psnr, pair_of_frame,
                                             real_ids=[p.pair_id for p in pairs], grid=grid, trials=opts.trials,
-                                            seed=opts.seed, steps=opts.search_steps, state=state, say=say)
+                                            seed=opts.seed, steps=opts.search_steps, repeats=opts.repeats,
+                                            state=state, say=say)
         elif opts.search_mix:
             base, mix_info = _search_mix(label, base, calib, real_psnr, pair_of_frame, steps=opts.mix_steps,
                                          grid=grid, lpips=lpips, say=say)
@@ -361,10 +369,10 @@ def _realism(base: Strength | Blur2d, config: Mapping[str, Any], calib: _Side, h
 
     if held is not None:
         test = classifier_test(calib.clips() + synth_clips(calib), held.clips() + synth_clips(held, synth_held),
-                               seed=opts.seed, steps=opts.realism_steps)
+                               seed=opts.seed, steps=opts.realism_steps, repeats=opts.repeats)
     else:
         test = classifier_test(calib.clips() + synth_clips(calib, synth_held), seed=opts.seed,
-                               steps=opts.realism_steps)
+                               steps=opts.realism_steps, repeats=opts.repeats)
     lo, hi = test["ci"][0], (floor or {}).get("ci", [float("nan")] * 2)[1]
     same = bool(math.isfinite(lo) and math.isfinite(hi) and lo <= hi)
     say(f"calibrate: {label} vs {regime}: classifier AUC {test['auc']:.3f} [{test['ci'][0]:.3f}, {test['ci'][1]:.3f}]"

@@ -36,7 +36,7 @@ import numpy as np
 
 from morphgs.calibration.goodness import auc, bootstrap_auc
 
-__all__ = ["CROP", "STEPS", "Clip", "classifier_test", "floor_test", "realism_test"]
+__all__ = ["CROP", "REPEAT_STRIDE", "STEPS", "Clip", "classifier_test", "floor_test", "realism_test"]
 
 #: Side of the training crops, in pixels (smaller frames are used whole).
 CROP = 48
@@ -44,6 +44,8 @@ CROP = 48
 STEPS = 240
 #: Crops per training batch (half real, half synthetic).
 BATCH = 32
+#: Seed offset between the networks of one fold when `repeats` > 1.
+REPEAT_STRIDE = 7919
 
 
 @dataclass(frozen=True)
@@ -130,20 +132,25 @@ def _score(net: Any, frames: np.ndarray) -> np.ndarray:
 
 
 def classifier_test(train: Sequence[Clip], test: Sequence[Clip] | None = None, *, seed: int = 0,
-                    steps: int = STEPS, n_boot: int = 200) -> dict[str, Any]:
+                    steps: int = STEPS, n_boot: int = 200, repeats: int = 1) -> dict[str, Any]:
     """The CNN two-sample test (module doc): trained on `train`, scored on `test`; with no `test`,
-    `train` is cross-fitted in two folds by alternate clip of each label.
+    `train` is cross-fitted in two folds by alternate clip of each label. `repeats` > 1 trains that
+    many networks per fold (seeds `seed + fold + REPEAT_STRIDE * j`, the first the single
+    network's) and scores each frame by their mean logit: an ensemble, steadier from seed to seed
+    than one network (docs/calibration.md, "Realism").
 
     Returns {"auc", "ci", "bootstrap": "scenes" | "pairs", "frames": {"real", "synthetic"},
-    "held_out": bool, "steps"}.
+    "held_out": bool, "steps"} (and "repeats" when > 1).
 
     Raises:
-        ValueError: a side without both labels, or clips of different frame sizes.
+        ValueError: a side without both labels, clips of different frame sizes, or repeats < 1.
     """
     try:
         import torch  # noqa: F401
     except ImportError as e:  # pragma: no cover - metrics extra missing
         raise ImportError("the realism classifier needs torch: pip install 'morphgs[metrics]'") from e
+    if repeats < 1:
+        raise ValueError(f"the classifier's repeats must be >= 1, got {repeats}")
     clips = list(train) + list(test or [])
     if len({c.clean.shape[1:3] for c in clips}) != 1:
         raise ValueError(f"the classifier's clips differ in frame size: {sorted({c.clean.shape[1:3] for c in clips})}")
@@ -167,9 +174,14 @@ def classifier_test(train: Sequence[Clip], test: Sequence[Clip] | None = None, *
     scores, labels, units = [], [], []
     with _one_thread():
         for k, (tr, te) in enumerate(folds):
-            net = _train([frames[i] for i in tr], [clips[i].label for i in tr], seed=seed + k, steps=steps)
+            nets = [_train([frames[i] for i in tr], [clips[i].label for i in tr], seed=seed + k + REPEAT_STRIDE * j,
+                           steps=steps) for j in range(repeats)]
             for i in te:
-                s = _score(net, frames[i])
+                s = _score(nets[0], frames[i])
+                for net in nets[1:]:
+                    s = s + _score(net, frames[i])
+                if repeats > 1:
+                    s = s / repeats
                 scores.append(s)
                 labels.append(np.full(len(s), clips[i].label))
                 units.append(np.full(len(s), i))
@@ -180,10 +192,13 @@ def classifier_test(train: Sequence[Clip], test: Sequence[Clip] | None = None, *
         scene_of = {i: clips[i].scene for _, te in folds for i in te}
         un = np.array([scene_of[int(u)] for u in un])
     value = auc(sc, lb)
-    return {"auc": value, "ci": bootstrap_auc(sc, lb, un, n_boot=n_boot, seed=seed),
-            "bootstrap": "scenes" if len(scenes) > 1 else "pairs",
-            "frames": {"real": int(np.sum(lb == 0)), "synthetic": int(np.sum(lb == 1))},
-            "held_out": bool(test), "steps": int(steps)}
+    out = {"auc": value, "ci": bootstrap_auc(sc, lb, un, n_boot=n_boot, seed=seed),
+           "bootstrap": "scenes" if len(scenes) > 1 else "pairs",
+           "frames": {"real": int(np.sum(lb == 0)), "synthetic": int(np.sum(lb == 1))},
+           "held_out": bool(test), "steps": int(steps)}
+    if repeats > 1:
+        out["repeats"] = int(repeats)
+    return out
 
 
 def _halves(clips: Sequence[Clip], seed: int) -> list[Clip]:
@@ -199,7 +214,7 @@ def _halves(clips: Sequence[Clip], seed: int) -> list[Clip]:
 
 
 def floor_test(train_real: Sequence[Clip], test_real: Sequence[Clip] | None = None, *, seed: int = 0,
-               steps: int = STEPS, n_boot: int = 200) -> dict[str, Any]:
+               steps: int = STEPS, n_boot: int = 200, repeats: int = 1) -> dict[str, Any]:
     """The real-vs-real floor: `classifier_test` between two halves of the real clips (`_halves`). NaN (and a reason) when a side has too few clips to split."""
     tr = _halves(train_real, seed)
     te = _halves(test_real, seed + 1) if test_real else None
@@ -209,16 +224,18 @@ def floor_test(train_real: Sequence[Clip], test_real: Sequence[Clip] | None = No
         return {"auc": float("nan"), "ci": [float("nan"), float("nan")], "bootstrap": "none",
                 "reason": "too few real pairs per scene to split into two halves", "held_out": bool(te),
                 "steps": int(steps)}
-    return classifier_test(tr, te, seed=seed, steps=steps, n_boot=n_boot)
+    return classifier_test(tr, te, seed=seed, steps=steps, n_boot=n_boot, repeats=repeats)
 
 
 def realism_test(train_real: Sequence[Clip], train_synth: Sequence[Clip], test_real: Sequence[Clip] | None = None,
                  test_synth: Sequence[Clip] | None = None, *, seed: int = 0, steps: int = STEPS,
-                 floor: bool = True) -> dict[str, Any]:
+                 floor: bool = True, repeats: int = 1) -> dict[str, Any]:
     """Synthetic against real (`classifier_test`) and, with `floor`, the real-vs-real floor
-    (`floor_test`) on the same scenes: {"classifier": ..., "floor": ...}."""
+    (`floor_test`) on the same scenes, each with `repeats` networks per fold: {"classifier": ...,
+    "floor": ...}."""
     test = (list(test_real) + list(test_synth)) if test_real and test_synth else None
-    out = {"classifier": classifier_test(list(train_real) + list(train_synth), test, seed=seed, steps=steps)}
+    out = {"classifier": classifier_test(list(train_real) + list(train_synth), test, seed=seed, steps=steps,
+                                         repeats=repeats)}
     if floor:
-        out["floor"] = floor_test(train_real, test_real if test else None, seed=seed, steps=steps)
+        out["floor"] = floor_test(train_real, test_real if test else None, seed=seed, steps=steps, repeats=repeats)
     return out

@@ -188,6 +188,7 @@ def calibrate(
     objective: str = "psnr",
     trials: int = TRIALS,
     realism_steps: int = STEPS,
+    realism_repeats: int = 1,
 ) -> dict[str, Any]:
     """Calibrate each family's strength distribution to each regime's real pairs (docs/calibration.md).
 
@@ -217,6 +218,8 @@ def calibrate(
             out/realism/, so a rerun resumes). trials: the realism search's candidates.
         realism_steps: the CNN two-sample test's training steps (0: not run; the search trains
             half as many per candidate).
+        realism_repeats: networks per fold of every classifier, logits averaged (steadier AUCs
+            at that many times the classifier's cost).
 
     Returns:
         The calibration.json content.
@@ -254,6 +257,8 @@ def calibrate(
             raise CalibrationError(f"--trials must be >= 1, got {trials}")
         if realism_steps < 0:
             raise CalibrationError(f"--realism-steps must be >= 0, got {realism_steps}")
+        if realism_repeats < 1:
+            raise CalibrationError(f"--realism-repeats must be >= 1, got {realism_repeats}")
         if objective == "realism" and realism_steps == 0:
             raise CalibrationError("--objective realism needs the classifier: --realism-steps must be >= 1")
         if objective == "realism":
@@ -295,7 +300,7 @@ def calibrate(
         calibration = calibrate_pairs(groups, load_scenes(sources, groups), bases, grid=grid, lpips=lpips,
                                       search_mix=search_mix, mix_steps=mix_steps, objective=objective,
                                       trials=trials, realism_steps=realism_steps,
-                                      search_steps=max(realism_steps // 2, 1), seed=seed,
+                                      search_steps=max(realism_steps // 2, 1), repeats=realism_repeats, seed=seed,
                                       state_dir=out_dir / "realism", say=say)
         doc = document(calibration, scenes=[s.describe() for s in sources], real=None if real is None else str(real),
                        pairs_per_scene=pairs_per_scene, seed=seed, fit_steps=fit_steps)

@@ -54,6 +54,9 @@ def register(sub: Any) -> None:
     p.add_argument("--realism-steps", type=int, default=240,
                    help="training steps of the CNN two-sample test reported for every family on the held-out "
                         "scenes (0 skips it); the realism search trains half as many per candidate (240)")
+    p.add_argument("--realism-repeats", type=int, default=1,
+                   help="networks per fold of every classifier (the reported test, its floor and the realism "
+                        "search's), their logits averaged: steadier AUCs at N times the classifier's cost (1)")
     p.add_argument("--mix-steps", type=int, default=3,
                    help="resolution of --search-mix's grid: weights in multiples of 1/N (3)")
     p.add_argument("--real", default=None, metavar="DIR",
@@ -90,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
                         plots=not args.no_plots, wait=args.wait, builtin_scenes=args.sample_scenes,
                         builtin_fit_steps=args.sample_fit_steps, search_mix=args.search_mix,
                         mix_steps=args.mix_steps, objective=args.objective, trials=args.trials,
-                        realism_steps=args.realism_steps)
+                        realism_steps=args.realism_steps, realism_repeats=args.realism_repeats)
     except (CalibrationError, ValueError) as e:
         print(f"morphgs calibrate: error: {e}", file=sys.stderr)
         return 2
