@@ -382,3 +382,23 @@ def test_the_clean_fit_shrinks_photos_to_the_study_size_whatever_their_orientati
     assert downscale_for((1280, 720), (128, 72)) == 10
     assert downscale_for((720, 1280), (128, 72)) == 10  # a portrait capture in a landscape study
     assert downscale_for((1920, 1440), (128, 96)) == 15 and downscale_for((100, 60), (128, 96)) == 1
+
+
+def test_the_cka_probe_of_a_capture_of_portrait_and_landscape_photos_is_one_size(tmp_path: Path) -> None:
+    # a phone capture mixes orientations (each photo keeps its own in the study's capture): the
+    # probe is the first run of consecutive views of the most common size, read before training
+    from morphgs._core import _write_png
+    from morphgs.ablation.stages.training import _probe_clip
+
+    rng = np.random.default_rng(0)
+    (tmp_path / "images").mkdir()
+    sizes = [(96, 72)] * 2 + [(72, 96)] * 3 + [(96, 72)] * 9  # (W, H): landscape, portrait, landscape
+    views = []
+    for i, (w, h) in enumerate(sizes):
+        views.append(rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
+        _write_png(tmp_path / "images" / f"view_{i:05d}.png", views[-1])
+    probe = _probe_clip(tmp_path, 8, (64, 64))
+    assert probe.shape == (8, 64, 64, 3)
+    np.testing.assert_array_equal(probe[0], views[5][4:68, 16:80])  # views 5..12: the first 8 in a row
+    # a crop larger than the views: the whole view; too few in a row: the first of that size
+    assert _probe_clip(tmp_path, 10, (128, 128)).shape == (10, 72, 96, 3)

@@ -45,10 +45,20 @@ def overrides_for(training: dict[str, Any], model_overrides: dict[str, Any], see
 
 
 def _probe_clip(probe_dir: Path, frames: int, crop: tuple[int, int]) -> np.ndarray:
+    """The CKA probe: `frames` views of the capture `probe_dir` (its first run of consecutive
+    views of its most common size: a capture of portrait and landscape photos keeps each photo's
+    own orientation, and a clip must share one), centre-cropped to `crop` (H, W) or less."""
+    from collections import Counter
+
     from morphgs import media
 
-    clip = media.read_clip(probe_dir / "images", count=frames)
-    h, w = crop
+    views = [media.read_image(f) for f in media.frame_paths(probe_dir / "images")]
+    size = Counter(v.shape[:2] for v in views).most_common(1)[0][0]
+    same = [v.shape[:2] == size for v in views]
+    start = next((i for i in range(len(views) - frames + 1) if all(same[i:i + frames])), None)
+    picked = views[start:start + frames] if start is not None else [v for v, s in zip(views, same) if s][:frames]
+    clip = np.stack(picked)
+    h, w = min(crop[0], size[0]), min(crop[1], size[1])
     y0, x0 = (clip.shape[1] - h) // 2, (clip.shape[2] - w) // 2
     return np.ascontiguousarray(clip[:, y0:y0 + h, x0:x0 + w])
 
@@ -102,6 +112,8 @@ def make(work: Path, *, data: str, model: str, model_config: str, overrides: dic
     from morphgs.training.checkpoint import latest_checkpoint
 
     torch_threads(threads)
+    d = overrides["data"]
+    probe = _probe_clip(Path(probe_dir), int(d["frames"]), tuple(d["size"]))  # type: ignore[arg-type]
     run = work / "run"
     resume = run.is_dir() and latest_checkpoint(run) is not None
     if run.exists() and not resume:  # killed before its first checkpoint: start over
@@ -119,7 +131,5 @@ def make(work: Path, *, data: str, model: str, model_config: str, overrides: dic
         raise KeyboardInterrupt(f"training stopped early at step {result.steps} ({result.preempted or 'time limit'})")
     (work / "train.json").write_text(json.dumps({"steps": result.steps, "resumed": resume}, indent=1) + "\n",
                                      encoding="utf-8")
-    d = overrides["data"]
-    probe = _probe_clip(Path(probe_dir), int(d["frames"]), tuple(d["size"]))  # type: ignore[arg-type]
     curve = cka_curve(run, probe, max_rows=probe_rows)
     (work / "cka.json").write_text(json.dumps(curve, indent=1, sort_keys=True) + "\n", encoding="utf-8")
