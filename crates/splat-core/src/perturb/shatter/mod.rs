@@ -21,7 +21,8 @@
 //!   holds it, as a fit makes its splats match every training view they can (a ridge on band 1
 //!   keeps it small where the views disagree);
 //! - a fragment the views cannot agree on (a colour error above `max_error` RMS in one of them,
-//!   or a footprint sigma above [`MAX_FOOTPRINT_PX`] in another view) is dropped, as a fit makes
+//!   or a footprint sigma above [`MAX_FOOTPRINT_PX`] in another view its footprint reaches: 3
+//!   sigma, the centre inside the image or not) is dropped, as a fit makes
 //!   what it cannot reconcile transparent (or, with `drop` off, put back onto the surface with
 //!   its pixel's colour).
 //!
@@ -435,11 +436,19 @@ impl Ctx<'_> {
             }
             let u = cam.fx * c[0] / z + cam.cx;
             let v = cam.fy * c[1] / z + cam.cy;
-            if !(u >= 0.0 && u < self.w as f64 && v >= 0.0 && v < self.h as f64) {
+            // its footprint reaches the image (3 sigma) even where its centre is outside: a
+            // fragment close to another camera covers that view (and must stay small there)
+            let sigma = radius * cam.focal / z;
+            let (wf, hf, reach) = (self.w as f64, self.h as f64, 3.0 * sigma);
+            if !(u >= -reach && u < wf + reach && v >= -reach && v < hf + reach) {
                 continue;
             }
-            spread = spread.max(radius * cam.focal / z);
-            let target = self.rgb(t, v as usize * self.w + u as usize);
+            spread = spread.max(sigma);
+            if !(u >= 0.0 && u < wf && v >= 0.0 && v < hf) {
+                continue;
+            }
+            let pix = v as usize * self.w + u as usize;
+            let target = self.rgb(t, pix);
             seen.push((cam.basis(p), target.map(|x| x - 0.5)));
         }
         // normal equations: OWN_WEIGHT b b^T for its own pixel, b b^T for every other view

@@ -205,6 +205,75 @@ fn fragments_the_views_cannot_agree_on_are_dropped_or_put_back_on_the_surface() 
 }
 
 #[test]
+fn no_kept_fragment_is_wider_than_the_limit_in_a_view_its_footprint_reaches() {
+    // view 0 five units from a plane z = 5; view 1 one unit from it and to the side, so the
+    // fragments of view 0 pass close to view 1, some with their centre just outside its image
+    let (w, h, f) = (32u32, 24u32, 30.0);
+    let at = |x: f64, z: f64| {
+        let m = [
+            [1.0, 0.0, 0.0, -x],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, -z],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        Camera::new(f, f, 16.0, 12.0, w, h, m)
+    };
+    let cams = vec![at(0.0, 0.0), at(0.9, 4.0)];
+    let (mut rgb, mut depth) = (Vec::new(), Vec::new());
+    for (cx, cz) in [(0.0, 0.0), (0.9, 4.0)] {
+        for y in 0..h {
+            for x in 0..w {
+                let d = 5.0 - cz;
+                let wx = (f64::from(x) + 0.5 - 16.0) / f * d + cx;
+                rgb.extend([(0.5 + 0.1 * wx.sin()) as f32, 0.5, 0.4]);
+                depth.push(d as f32);
+            }
+        }
+    }
+    let alpha = vec![1.0f32; depth.len()];
+    let views = Views {
+        rgb: &rgb,
+        depth: &depth,
+        alpha: &alpha,
+    };
+    let params = ShatterParams {
+        value: 6.0,
+        max_error: 1.0, // colours never disagree here: only the footprint decides
+        ..Default::default()
+    };
+    let frags = fragments(&params, &cams, views, 100_000, 11).expect("fragments");
+    let mut near_the_border = 0;
+    for (i, m) in frags.means.iter().enumerate() {
+        let r = f64::from(frags.log_scales[i]).exp();
+        for (t, cam) in cams.iter().enumerate() {
+            if frags.view[i] as usize == t {
+                continue;
+            }
+            let (x, z) = (
+                f64::from(m[0]) - [0.0, 0.9][t],
+                f64::from(m[2]) - [0.0, 4.0][t],
+            );
+            let y = f64::from(m[1]);
+            if z <= 1e-6 {
+                continue;
+            }
+            let (u, v, sigma) = (f * x / z + 16.0, f * y / z + 12.0, r * cam.fx / z);
+            let reach = 3.0 * sigma;
+            let reaches = u >= -reach && u < 32.0 + reach && v >= -reach && v < 24.0 + reach;
+            assert!(
+                !reaches || sigma <= MAX_FOOTPRINT_PX + 1e-6,
+                "fragment {i}: {sigma} px in view {t}"
+            );
+            near_the_border += usize::from(reaches && !(0.0..32.0).contains(&u));
+        }
+    }
+    assert!(
+        near_the_border > 0,
+        "no fragment reached view 1 from outside its image"
+    );
+}
+
+#[test]
 fn bad_parameters_and_maps_are_named() {
     let (cams, rgb, depth, alpha) = plane(2);
     let views = Views {
