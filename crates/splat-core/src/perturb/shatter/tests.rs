@@ -221,7 +221,7 @@ fn no_kept_fragment_is_wider_than_the_limit_in_a_view_its_footprint_reaches() {
     let cams = vec![at(0.0, 0.0), at(0.9, 4.0)];
     let (mut rgb, mut depth) = (Vec::new(), Vec::new());
     for (cx, cz) in [(0.0, 0.0), (0.9, 4.0)] {
-        for y in 0..h {
+        for _ in 0..h {
             for x in 0..w {
                 let d = 5.0 - cz;
                 let wx = (f64::from(x) + 0.5 - 16.0) / f * d + cx;
