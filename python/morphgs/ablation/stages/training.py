@@ -113,7 +113,8 @@ def make(work: Path, *, data: str, model: str, model_config: str, overrides: dic
 
     torch_threads(threads)
     d = overrides["data"]
-    probe = _probe_clip(Path(probe_dir), int(d["frames"]), tuple(d["size"]))  # type: ignore[arg-type]
+    crop_h, crop_w = (int(v) for v in d["size"])
+    probe = _probe_clip(Path(probe_dir), int(d["frames"]), (crop_h, crop_w))
     run = work / "run"
     resume = run.is_dir() and latest_checkpoint(run) is not None
     if run.exists() and not resume:  # killed before its first checkpoint: start over
