@@ -345,10 +345,40 @@ def test_curate_pairs_at_the_photos_have_the_photos_as_their_clean_side(tmp_path
              "--config", "morphological", "--pairs-per-scene", "2", "--test-fraction", "0", "--no-progress",
              cwd=tmp_path)
     assert r.returncode != 0 and "made with other settings" in r.stderr, r.stderr
-    # photos of another aspect than the pair size: the failure names the scene, the photo and a size
+
+
+def test_photos_of_another_aspect_are_covered_and_cropped_with_their_cameras(tmp_path: Path) -> None:
+    """A pair size of another aspect than the photos (48x48 photos in 64x48 pairs, as 4:3 or
+    portrait photos in a 16:9 study): each photo is scaled to cover the pair and centre-cropped,
+    pixels square, and its camera moves with it: the clean scene rendered at the pair's cameras is
+    the cropped photo (a camera without the crop's shift is not)."""
+    import morphgs
+    from morphgs import media
+    from morphgs.camera import Camera, Cameras
+    from PIL import Image
+
+    _scene_folder(tmp_path / "cap")
     r = _cli("curate", "cap", "--out", "data2", "--frames", "8", "--size", "64x48", "--trajectory", "photos",
              "--config", "morphological", "--test-fraction", "0", "--no-progress", cwd=tmp_path)
-    assert r.returncode != 0 and "not of the pair size 64x48's aspect" in r.stderr and "64x64" in r.stderr, r.stderr
+    assert r.returncode == 0, r.stderr
+    rec = json.loads((tmp_path / "data2" / "manifest.jsonl").read_text().splitlines()[0])
+    d = tmp_path / "data2"
+    clean = media.read_clip(d / rec["paths"]["clean"])
+    assert clean.shape == (8, 48, 64, 3)
+    first = media.read_image(tmp_path / "cap" / "images" / "frame_00000.png")
+    covered = np.asarray(Image.fromarray(first).resize((64, 64), Image.Resampling.LANCZOS))
+    assert np.array_equal(clean[0], covered[8:56])  # 48x48 -> 64x64, the middle 48 rows
+    cams = Cameras.from_dict(json.loads((d / rec["paths"]["cameras"]).read_text()))
+    scene = morphgs.load(tmp_path / "cap" / "scene.ply")
+
+    def psnr(cs: list[Camera]) -> float:
+        img = morphgs.render(scene, Cameras.from_list(cs)).to_uint8().astype(np.float64)
+        return float(10 * np.log10(255.0**2 / np.mean((img - clean.astype(np.float64)) ** 2)))
+
+    good = psnr(list(cams))
+    unshifted = psnr([Camera(c.fx, c.fy, c.cx, c.cy + 8, c.width, c.height, c.world_to_camera, c.near, c.far)
+                      for c in cams])
+    assert good > 28.0 and good > unshifted + 6.0, (good, unshifted)
 
 
 def test_ablate_with_photos_as_the_training_pairs_clean_side(tmp_path: Path) -> None:

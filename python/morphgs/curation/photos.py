@@ -4,6 +4,11 @@ through the cameras when the photos have none: `trajectory.camera_sequence`), at
 cameras; the clean side is the photos themselves, the corrupted side the corrupted scene
 rendered at those cameras. Clean frames are then real pixels, and a pair's residual holds both
 the corruption and the scene's own error against the photo (docs/curation.md).
+
+A pair has one size; a photo of another aspect (a 4:3 photo in a 16:9 pair, a portrait phone frame
+in a landscape pair, a capture of both orientations) is scaled to cover it and centre-cropped, its
+camera with it (`cover_crop`), so pixels stay square and the photo and its camera agree, as
+`trajectory.resize_camera` treats a camera of the other orientation.
 """
 
 from __future__ import annotations
@@ -12,9 +17,26 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["photo_run"]
+__all__ = ["cover_crop", "photo_run"]
 
 ASPECT_TOLERANCE = 0.02  # photos within 2 % of the pair's aspect are resized to it exactly
+
+
+def cover_crop(img: np.ndarray, cam: Any, width: int, height: int) -> tuple[np.ndarray, Any]:
+    """A photo (H, W, 3) and its camera at `width` x `height`: resized (Lanczos) to the smallest
+    size of the photo's aspect that covers the target, then the centre cropped out; the camera is
+    resized to that same integer size and its principal point moved by the crop's offset, so every
+    world point lands on the same photo content as before."""
+    from PIL import Image
+
+    pw, ph = cam.width, cam.height
+    s = max(width / pw, height / ph)
+    rw, rh = max(width, round(pw * s)), max(height, round(ph * s))
+    ox, oy = (rw - width) // 2, (rh - height) // 2
+    big = np.asarray(Image.fromarray(img).resize((rw, rh), Image.Resampling.LANCZOS))
+    c = cam.resized(rw, rh)
+    out = type(cam)(c.fx, c.fy, c.cx - ox, c.cy - oy, width, height, c.world_to_camera, c.near, c.far)
+    return np.ascontiguousarray(big[oy:oy + height, ox:ox + width]), out
 
 
 def photo_run(source: Any, recorded: Any, index: int, frames: int, resolution: tuple[int, int],
@@ -24,9 +46,11 @@ def photo_run(source: Any, recorded: Any, index: int, frames: int, resolution: t
     photos along the camera sequence; photos and cameras at `resolution` (W, H). `recorded`: the
     scene's recorded cameras (None: it has none).
 
+    Photos within 2 % of the pair's aspect are resized to it; others are covered and
+    centre-cropped (`cover_crop`).
+
     Raises:
-        ValueError: a scene without photos, fewer photos than `frames`, or photos of another
-            aspect than `resolution` (naming the scene, both sizes and a size to use).
+        ValueError: a scene without photos, or fewer photos than `frames`.
     """
     from PIL import Image
 
@@ -50,11 +74,9 @@ def photo_run(source: Any, recorded: Any, index: int, frames: int, resolution: t
     out = []
     for k, (im, cam) in enumerate(zip(imgs, cams)):
         pw, ph = cam.width, cam.height
-        if (pw, ph) != (w, h):
-            if abs((pw / ph) / (w / h) - 1) > ASPECT_TOLERANCE:
-                raise ValueError(f"scene {source.id}: photo {posed.paths[run[k]].name} is {pw}x{ph}, not of the pair "
-                                 f"size {w}x{h}'s aspect: pass a resolution of the photos' aspect, e.g. "
-                                 f"{w}x{max(1, round(w * ph / pw))}")
+        if abs((pw / ph) / (w / h) - 1) > ASPECT_TOLERANCE:
+            im, cam = cover_crop(im, cam, w, h)
+        elif (pw, ph) != (w, h):
             im = np.asarray(Image.fromarray(im).resize((w, h), Image.Resampling.LANCZOS))
             cam = cam.resized(w, h)
         out.append(im)
