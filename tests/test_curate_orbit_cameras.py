@@ -97,8 +97,8 @@ def test_a_pair_size_of_another_aspect_than_the_capture_warns_with_a_size_to_use
 
     _capture(tmp_path / "cap")  # 64x48 cameras (aspect 1.33)
     out = tmp_path / "out"
-    with pytest.warns(morphgs.MorphgsWarning, match=r"stretch pixels 1\.50x; pass a size of the capture's aspect, "
-                                                    r"e\.g\. --size 64x48"):
+    with pytest.warns(morphgs.MorphgsWarning, match=r"centre-cropped to it, keeping 67 % of the view; pass a size "
+                                                    r"of the capture's aspect to keep it whole, e\.g\. --size 64x48"):
         rc = main(["curate", str(tmp_path / "cap"), "--out", str(out), "-k", "1", "--frames", "2",
                    "--size", "96x48", "--no-progress", "--test-fraction", "0"])
     assert rc == 0

@@ -111,15 +111,16 @@ def test_mixed_portrait_and_landscape_cameras(scene, tmp_path: Path) -> None:  #
     root = _sizes_capture(tmp_path / "phone", scene, sizes, binary=False)
     res = fit(root, tmp_path / "run", config=small_config(20), progress=False)
     assert res.steps == 20 and res.heldout_psnr is not None
-    # a render path at one size: portrait cameras are scaled uniformly and centre-cropped, not
-    # stretched (square pixels, the centre of the photo stays the centre of the frame)
-    with pytest.warns(morphgs.MorphgsWarning, match=r"64x48 .* stretch pixels 1\.33x.* --size 72x54"):
-        cams = trajectory.from_colmap(root, resolution=(96, 54))  # the landscape 4:3 ones are stretched, and said
+    # a render path at one size of another aspect (16:9): every camera is scaled uniformly and
+    # centre-cropped, not stretched (square pixels, the centre of the photo stays the centre of the
+    # frame); the landscape 4:3 ones are said, with a size that keeps the whole view
+    with pytest.warns(morphgs.MorphgsWarning, match=r"64x48 .* keeping 75 % of the view.* --size 72x54"):
+        cams = trajectory.from_colmap(root, resolution=(96, 54))
     views = trajectory.read_colmap_views(root)
     for c, v in zip(cams, views):
         assert (c.width, c.height) == (96, 54)
-        if v.camera.width < v.camera.height:
-            assert c.fx == pytest.approx(c.fy) and c.fx == pytest.approx(v.camera.fx * 96 / 48)
+        assert c.fx == pytest.approx(c.fy)
+        assert c.fx == pytest.approx(v.camera.fx * (96 / 48 if v.camera.width < v.camera.height else 96 / 64))
         np.testing.assert_allclose(c.project([c.center + c.camera_to_world[:3, 2]]), [[48.0, 27.0]], atol=1e-9)
 
 

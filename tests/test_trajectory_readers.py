@@ -44,11 +44,15 @@ def test_transforms_json_resize_scales_focal_and_principal_point(tmp_path: Path)
         "fl_x": 100, "fl_y": 120, "cx": 40, "cy": 30, "w": 80, "h": 60,
         "frames": [{"file_path": "a.png", "transform_matrix": C2W_GL}],
     })
-    with pytest.warns(morphgs.MorphgsWarning, match=r"stretch pixels 1\.33x"):  # 4:3 at 16:9: still done, but said
+    cams = from_transforms_json(p, resolution=(160, 120))  # the same aspect: both axes x2
+    c = cams[0]
+    assert (c.fx, c.fy, c.cx, c.cy, c.width, c.height) == (200, 240, 80, 60, 160, 120)
+    # 4:3 at 16:9: scaled x2 to cover, 15 rows cropped off the top and the bottom, and said
+    with pytest.warns(morphgs.MorphgsWarning, match=r"centre-cropped to it, keeping 75 % of the view"):
         cams = from_transforms_json(p, resolution=(160, 90))
     c = cams[0]
-    assert (c.fx, c.fy, c.cx, c.cy, c.width, c.height) == (200, 180, 80, 45, 160, 90)
-    np.testing.assert_allclose(c.project(POINT), [[80 + 200 / 5, 45 - 180 * 0.5 / 5]], atol=1e-9)
+    assert (c.fx, c.fy, c.cx, c.cy, c.width, c.height) == (200, 240, 80, 45, 160, 90)
+    np.testing.assert_allclose(c.project(POINT), [[80 + 200 / 5, 45 - 240 * 0.5 / 5]], atol=1e-9)
 
 
 def test_transforms_json_per_frame_intrinsics_override_shared_and_frames_sorted(tmp_path: Path) -> None:

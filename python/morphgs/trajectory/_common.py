@@ -19,43 +19,49 @@ class CaptureError(MorphgsError):
     MorphgsError."""
 
 
-def resize_camera(cam: Camera, width: int, height: int) -> Camera:
-    """`cam` rendering at `width` x `height`.
+STRETCH_WARN = 1.05  # aspect ratios within 5 % are resized per axis (DL3DV's 16:9 at 832x480 is 2.6 %)
 
-    A camera of the target's orientation (both landscape, or both portrait; square counts as
-    either): fx, cx scale by W'/W and fy, cy by H'/H (`Camera.resized`, exact for the same
-    aspect ratio, a slight stretch otherwise, as before). A camera of the other orientation (a
-    portrait phone frame in a landscape path): one uniform scale s = max(W'/W, H'/H) so the new
+
+def _aspect_gap(cam: Camera, width: int, height: int) -> float:
+    """How far `cam`'s aspect ratio is from `width` x `height`'s, as a factor >= 1."""
+    r = (cam.width / cam.height) / (width / height)
+    return max(r, 1.0 / r)
+
+
+def resize_camera(cam: Camera, width: int, height: int) -> Camera:
+    """`cam` rendering at `width` x `height`, pixels kept square.
+
+    A camera within 5 % of the target's aspect ratio: fx, cx scale by W'/W and fy, cy by H'/H
+    (`Camera.resized`, exact for the same aspect). Any other (a 4:3 photo in a 16:9 path, a
+    portrait phone frame in a landscape one): one uniform scale s = max(W'/W, H'/H) so the new
     frame is covered, and a centred crop (the principal point shifts by half the overhang), so
-    pixels stay square and nothing lies on its side stretched.
+    nothing is stretched and the centre of the view stays the centre of the frame.
     """
-    if cam.width == cam.height or width == height or (cam.width > cam.height) == (width > height):
+    if _aspect_gap(cam, width, height) <= STRETCH_WARN:
         return cam.resized(width, height)
     s = max(width / cam.width, height / cam.height)
     return Camera(cam.fx * s, cam.fy * s, cam.cx * s - (cam.width * s - width) / 2,
                   cam.cy * s - (cam.height * s - height) / 2, width, height, cam.world_to_camera, cam.near, cam.far)
 
 
-STRETCH_WARN = 1.05
-
-
 def warn_stretch(cams: Sequence[Camera], width: int, height: int, source: str) -> None:
-    """Warn (MorphgsWarning, naming `source`) when `resize_camera` stretches pixels of `cams` at
-    `width` x `height` by more than 5 % (a capture whose aspect ratio is not the pair size's, in
-    the same orientation), with a size of the capture's aspect to pass instead."""
+    """Warn (MorphgsWarning, naming `source`) when `resize_camera` crops cameras of `cams` of the
+    target's orientation at `width` x `height` (a capture whose aspect ratio is more than 5 % from
+    the size's), with how much of the view is kept and a size of the capture's aspect that keeps
+    it whole. (Cameras of the other orientation are cropped without a word: no size suits both.)"""
     worst, cam = 1.0, None
     for c in cams:
         if c.width == c.height or width == height or (c.width > c.height) == (width > height):
-            r = (c.width / c.height) / (width / height)
-            r = max(r, 1.0 / r)
+            r = _aspect_gap(c, width, height)
             if r > worst:
                 worst, cam = r, c
     if cam is None or worst <= STRETCH_WARN:
         return
     w2 = max(2, int(round(height * cam.width / cam.height / 2.0)) * 2)
     warnings.warn(f"{source}: cameras of {cam.width}x{cam.height} (aspect {cam.width / cam.height:.3g}) rendered at "
-                  f"{width}x{height} (aspect {width / height:.3g}) stretch pixels {worst:.2f}x; pass a size of the "
-                  f"capture's aspect, e.g. --size {w2}x{height}", MorphgsWarning, stacklevel=3)
+                  f"{width}x{height} (aspect {width / height:.3g}) are centre-cropped to it, keeping {100 / worst:.0f} % "
+                  f"of the view; pass a size of the capture's aspect to keep it whole, e.g. --size {w2}x{height}",
+                  MorphgsWarning, stacklevel=3)
 
 
 def check_resolution(resolution: Sequence[int] | None) -> tuple[int, int] | None:

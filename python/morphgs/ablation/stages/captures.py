@@ -22,7 +22,7 @@ import numpy as np
 
 __all__ = ["IGNORE", "RESUMABLE", "VERSION", "load_cameras", "load_capture", "load_scene", "make"]
 
-VERSION = 1
+VERSION = 2  # 2: cameras of another aspect than the study size are centre-cropped, not stretched
 IGNORE: tuple[str, ...] = ()
 RESUMABLE = False
 
