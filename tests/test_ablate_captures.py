@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -113,26 +115,42 @@ def test_a_capture_of_photos_is_fitted_then_studied_and_a_rerun_computes_nothing
 def test_sigkill_at_ten_random_moments_then_reruns_give_the_uninterrupted_bytes(captured: Path) -> None:
     """The chaos test: the study and its workers killed (SIGKILL to the process group) at 10
     seeded random moments, rerun after each; then run to the end: the results equal the
-    uninterrupted run's, byte for byte."""
-    out = captured / "chaos"
+    uninterrupted run's, byte for byte.
+
+    A moment is a point of the study's progress and a delay: kill round j once the study has
+    finished e_j of its jobs in all (e_j: 10 distinct draws, sorted, spread over the study), a
+    random fraction of a second later, so kills land inside jobs and between them. Tied to the
+    run's own progress, not to the wall time of the uninterrupted run, so a busier or quieter
+    machine still gets its kills mid-study."""
     runs = [json.loads(x) for x in (captured / "out" / "runs.jsonl").read_text().splitlines()]
-    whole = float(runs[0]["seconds"]) + 3.0  # the uninterrupted run's wall time, and the start-up
+    total = sum(c["computed"] for c in runs[0]["counts"].values())
     rng = np.random.default_rng(35)
+    events = np.sort(rng.choice(total - 1, 10, replace=False))
     killed = 0
-    for moment in rng.uniform(0.5, max(2.0, 0.6 * whole), 10):
+    for event, delay in zip(events, rng.uniform(0.0, 0.5, 10)):
         proc = subprocess.Popen([sys.executable, "-m", "morphgs", "ablate", "--study", "study.toml", "--out", "chaos",
-                                 "-j", "2"], cwd=captured, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                start_new_session=True)
-        try:
-            proc.wait(timeout=float(moment))
-        except subprocess.TimeoutExpired:
+                                 "-j", "2"], cwd=captured, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                text=True, start_new_session=True)
+        assert proc.stderr is not None
+        before, done = total, -1
+        for line in proc.stderr:  # "ablate: n job(s) to make", "  [i/n] stage/job: computed in s" per job
+            if m := re.match(r"ablate: (\d+) job\(s\) to make", line):
+                before = total - int(m[1])
+                done = before
+            elif m := re.match(r"\s*\[(\d+)/\d+\] ", line):
+                done = before + int(m[1])
+            if done >= event:
+                break
+        time.sleep(float(delay))
+        if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=60)
             killed += 1
-    assert killed >= 5  # most moments fell mid-study
+        proc.stderr.close()
+        proc.wait(timeout=60)
+    assert killed >= 8  # every moment is before the last job: all but a run outpacing its delay are killed
     r = _cli("ablate", "--study", "study.toml", "--out", "chaos", cwd=captured)
     assert r.returncode == 0, r.stderr
-    _same_results(captured / "out", out)
+    _same_results(captured / "out", captured / "chaos")
 
 
 def test_the_capture_study_on_a_local_ray_cluster_gives_the_same_bytes(captured: Path) -> None:
