@@ -160,6 +160,19 @@ def test_the_capture_study_on_a_local_ray_cluster_gives_the_same_bytes(captured:
     _same_results(captured / "out", captured / "ray")
 
 
+def test_a_capture_of_another_aspect_than_the_study_is_named_once(tmp_path: Path) -> None:
+    """A 4:3 capture in a square study: its frames are centre-cropped, and the user reads that once,
+    from the check of the inputs, not again from each worker job that reads it or the study's copy."""
+    make_dataset(tmp_path / "wide", views=18, size=(64, 48), gaussians=1500, seed=3)
+    make_dataset(tmp_path / "square", views=18, size=SMALL, gaussians=1500, seed=4)
+    _study(tmp_path, ["wide", "square"])
+    r = _cli("ablate", "--study", "study.toml", "--out", "out", "-j", "2", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    crops = [ln for ln in r.stderr.splitlines() if "centre-cropped" in ln]
+    assert len(crops) == 1, r.stderr
+    assert crops[0].startswith("morphgs ablate: warning: ") and "wide" in crops[0] and "keeping 75 %" in crops[0]
+
+
 def test_a_capture_that_cannot_serve_is_one_line_before_any_work(tmp_path: Path) -> None:
     names = _captures(tmp_path, views=18)
     # a camera whose photo is missing

@@ -44,6 +44,10 @@ def resize_camera(cam: Camera, width: int, height: int) -> Camera:
                   cam.cy * s - (cam.height * s - height) / 2, width, height, cam.world_to_camera, cam.near, cam.far)
 
 
+# a regular expression matching warn_stretch's message (for warnings.filterwarnings)
+CROP_WARNING = r".*are centre-cropped to it, keeping "
+
+
 def warn_stretch(cams: Sequence[Camera], width: int, height: int, source: str) -> None:
     """Warn (MorphgsWarning, naming `source`) when `resize_camera` crops cameras of `cams` of the
     target's orientation at `width` x `height` (a capture whose aspect ratio is more than 5 % from
