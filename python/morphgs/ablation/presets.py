@@ -134,7 +134,7 @@ _PAPER: dict[str, Any] = {
 # the 4:3 aspect most phone and DSLR captures have (16:9 video is cropped, a portrait capture
 # turned); the regimes are N2, N3 and N5 training views per capture, the same sparsity whatever a
 # capture's photo count (a stride would give a 29-photo capture 2 views and a 302-photo one 19): on
-# twelve public captures their inputs sat at 16.5, 17.6 and 17.9 dB (the paper's: 12.9-17.1; S8
+# four public test captures their inputs sat at 16.5, 17.6 and 17.9 dB (the paper's: 12.9-17.1; S8
 # 20.0, S16 16.3; docs/ablation.md "Where the regimes land"), the sparsest the captures allow; the
 # clean fits (5,000 steps, ~1.5 min each at this size) and the sparse fits (3,000 steps, where the
 # held-out loss of the built-in rooms' S8 fits has flattened) are the measured part of the budget,
