@@ -46,10 +46,11 @@ def _study(root: Path, inputs: list[str], extra: str = "") -> Path:
 
 @pytest.fixture(scope="module")
 def captured(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A folder with three captures of photos, study.toml, and the uninterrupted study in out/."""
+    """A folder with three captures of photos, study.toml, and the uninterrupted study in out/ (one
+    worker: the chaos and Ray runs, two workers each, must give its bytes)."""
     root = tmp_path_factory.mktemp("captures")
     _study(root, _captures(root))
-    r = _cli("ablate", "--study", "study.toml", "--out", "out", "-j", "2", cwd=root)
+    r = _cli("ablate", "--study", "study.toml", "--out", "out", "-j", "1", cwd=root)
     assert r.returncode == 0, r.stderr
     return root
 
