@@ -31,7 +31,7 @@ from morphgs.ablation import cache
 from morphgs.ablation.jobs import Job
 from morphgs.ablation.study import Study, StudyError, flatten, to_toml
 from morphgs.reliability.checksums import CHECKSUMS
-from morphgs.trajectory import CROP_WARNING
+from morphgs.trajectory import CropWarning
 
 __all__ = ["SETTINGS_FILE", "check_study_folder", "run_jobs", "run_study"]
 
@@ -143,7 +143,7 @@ def make(task: Task) -> tuple[str, float, float | None]:
     with warnings.catch_warnings():
         # the study said it once per capture while checking its inputs; a job (of the capture or of
         # the study's own copy of it, at the study size) would say it again
-        warnings.filterwarnings("ignore", message=CROP_WARNING)
+        warnings.simplefilter("ignore", CropWarning)
         _, status, secs = cache.run_stage(ref, inputs, lambda w: mod.make(w, **kwargs), resumable=resumable)
     cpu = _cpu_seconds() - cpu0 if status == "computed" else None
     return status, secs, cpu

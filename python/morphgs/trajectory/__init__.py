@@ -8,7 +8,7 @@ generators make paths (`smooth_path` through keyframes, `orbit`/`ellipse`, `spir
 
 from __future__ import annotations
 
-from morphgs.trajectory._common import CROP_WARNING, CaptureError, resize_camera, warn_stretch
+from morphgs.trajectory._common import CaptureError, CropWarning, resize_camera, warn_stretch
 from morphgs.trajectory.checks import camera_from_c2w, check_intrinsics, check_quaternion, check_rotation
 from morphgs.trajectory.colmap import ColmapView, find_colmap_model, from_colmap, read_colmap_views
 from morphgs.trajectory.generators import (
@@ -32,9 +32,9 @@ from morphgs.trajectory.nerfstudio import (
 from morphgs.trajectory.smooth import camera_sequence, clips, smooth_path
 
 __all__ = [
-    "CROP_WARNING",
     "FILE_UP",
     "CaptureError",
+    "CropWarning",
     "ColmapView",
     "TransformsFrame",
     "around_cameras",

@@ -44,12 +44,13 @@ def resize_camera(cam: Camera, width: int, height: int) -> Camera:
                   cam.cy * s - (cam.height * s - height) / 2, width, height, cam.world_to_camera, cam.near, cam.far)
 
 
-# a regular expression matching warn_stretch's message (for warnings.filterwarnings)
-CROP_WARNING = r".*are centre-cropped to it, keeping "
+class CropWarning(MorphgsWarning):
+    """`warn_stretch`'s warning: cameras centre-cropped to another aspect (a MorphgsWarning, so
+    the command line shows it as one; its own class so a caller that has said it can filter it)."""
 
 
 def warn_stretch(cams: Sequence[Camera], width: int, height: int, source: str) -> None:
-    """Warn (MorphgsWarning, naming `source`) when `resize_camera` crops cameras of `cams` of the
+    """Warn (CropWarning, naming `source`) when `resize_camera` crops cameras of `cams` of the
     target's orientation at `width` x `height` (a capture whose aspect ratio is more than 5 % from
     the size's), with how much of the view is kept and a size of the capture's aspect that keeps
     it whole. (Cameras of the other orientation are cropped without a word: no size suits both.)"""
@@ -65,7 +66,7 @@ def warn_stretch(cams: Sequence[Camera], width: int, height: int, source: str) -
     warnings.warn(f"{source}: cameras of {cam.width}x{cam.height} (aspect {cam.width / cam.height:.3g}) rendered at "
                   f"{width}x{height} (aspect {width / height:.3g}) are centre-cropped to it, keeping {100 / worst:.0f} % "
                   f"of the view; pass a size of the capture's aspect to keep it whole, e.g. --size {w2}x{height}",
-                  MorphgsWarning, stacklevel=3)
+                  CropWarning, stacklevel=3)
 
 
 def check_resolution(resolution: Sequence[int] | None) -> tuple[int, int] | None:
