@@ -143,3 +143,22 @@ def test_held_out_lpips_is_logged_and_leaves_the_fit_alone(dataset: Path, tmp_pa
     assert on.heldout_lpips == pytest.approx(float(np.mean(ref)), abs=2e-3)
     assert json.loads((on.run_dir / "fit.json").read_text())["heldout_lpips"] == on.heldout_lpips
     assert off.heldout_lpips is None and all(r["lpips"] == "" for r in _rows(off.run_dir / "eval.csv"))
+
+
+def test_the_dry_run_estimates_gaussian_count_follows_a_real_mcmc_fit(dataset: Path, tmp_path: Path) -> None:
+    """`morphgs ablate --dry-run` prices a fit by its mean Gaussian count under the MCMC growth
+    schedule (`estimate.mean_gaussians`); that count is the one a real fit logs, step by step
+    (loss.csv's `gaussians`), both while it grows and once it is at its cap."""
+    from morphgs.ablation.estimate import mean_gaussians
+
+    for cap in (3400, 6000):  # reached at step 150 / not reached in 250 steps
+        cfg = small_config(250, "mcmc", mcmc={"refine_start": 50, "refine_every": 50, "cap_max": cap})
+        res = fit(dataset, tmp_path / f"c{cap}", config=cfg, init="random", progress=False)
+        counts = [int(r["gaussians"]) for r in _rows(res.run_dir / "loss.csv")]
+        assert len(counts) == 250 and counts[0] == 3000 and max(counts) == min(cap, max(counts))
+        est = mean_gaussians(3000, cap, 250, refine_start=50, refine_every=50, refine_stop=25_000)
+        assert est == pytest.approx(np.mean(counts), rel=1e-3)
+    # the schedule's bounds: growth at the steps strictly between refine_start and refine_stop
+    assert mean_gaussians(3000, 6000, 250, refine_start=50, refine_every=50, refine_stop=101) == pytest.approx(
+        (100 * 3000 + 150 * 3150) / 250)
+    assert mean_gaussians(3000, 6000, 250, refine_start=50, refine_every=50, refine_stop=100) == 3000

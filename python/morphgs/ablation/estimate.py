@@ -1,10 +1,13 @@
 """`--dry-run`'s cost estimate: seconds per stage from the plan's sizes and per-unit costs.
 
-The unit costs are measured figures of the `smoke` preset on a quiet 2-core machine (see
-docs/ablation.md) scaled linearly in pixels, frames, steps and Gaussians, so they are an
-estimate: fits and rendering grow somewhat less than linearly in pixels, training less than
-linearly in steps at small sizes. The sandbox/controlnet refiners are GPU models; their
-training line is a GPU estimate (seconds per step on one data-centre GPU), labelled as such.
+The unit costs were measured on a quiet 2-core AMD EPYC (Zen 5, `lscpu` family 26) running the toy
+preset with `-j 2` (docs/ablation.md, "What `--dry-run` is calibrated on"); the same study took 2-3x
+longer on the Zen 3 and Zen 4 machines of earlier sessions, so read the estimate as a lower bound
+on a slower or shared CPU. Renders, training and metrics scale linearly in pixels, frames and steps;
+fits (sparse, clean, the re-fits) by their pixels and by their mean Gaussian count under the MCMC
+growth schedule (`mean_gaussians`), which sets their cost at the study sizes. The
+sandbox/controlnet refiners are GPU models; their training line is a GPU estimate (seconds per step
+on one data-centre GPU), labelled as such.
 """
 
 from __future__ import annotations
@@ -13,21 +16,65 @@ from typing import Any
 
 from morphgs.ablation.study import Study
 
-__all__ = ["UNIT", "estimate"]
+__all__ = ["UNIT", "estimate", "fit_seconds", "mean_gaussians"]
 
 UNIT = {
-    # measured on the 2-core machine (shared, not quiet) with a cut-down toy study: 4 built-in
-    # scenes of 30k Gaussians at 128x128, 100-step fits, 30 training steps (docs/ablation.md)
-    "render": 1.2e-11,      # s per (pixel x Gaussian) of a render incl. writing (captures: 0.5 s per 96 views)
-    "fit": 6.0e-7,          # s per (pixel x step) of a sparse fit (1.0 s per 100 steps at 128x128)
-    "refit": 1.3e-6,        # s per (pixel x step) of a re-fit with its scoring (2.1 s per 100 steps at 128x128)
-    "train_tiny": 3.0e-6,   # s per (pixel x frame x step) of the default tiny refiner incl. CKA probes
-    "refine": 1.1e-6,       # s per (pixel x frame) of refine + write
-    "metrics2d": 1.2e-6,    # s per (pixel x frame): PSNR, SSIM, LPIPS, E_flow (DIS)
+    # per job, in seconds of the 2-core machine (a job's single-thread seconds / 2 under -j 2):
+    # toy preset, 128x128, 30k-Gaussian rooms; docs/ablation.md
+    "render": 4.5e-12,      # s per (pixel x Gaussian) of a render incl. writing (captures: 0.18 s per 96 views)
+    # a fit's step costs a pixel term and a Gaussian term; at the study sizes the Gaussians set it
+    # (a 3,000-step toy fit: 4.5 ms a step at 20k Gaussians, 14 ms at its 60k cap, one thread)
+    "fit": 2.5e-8,          # s per (pixel x step) of a fit (sparse, clean or re-fit)
+    "fit_gauss": 1.2e-7,    # s per (Gaussian x step) of a fit (the mean count of `mean_gaussians`)
+    "score3d": 0.05,        # s per re-fit besides the fit: rendering and scoring it
+    "train_tiny": 9.0e-7,   # s per (pixel x frame x step) of the default tiny refiner incl. CKA probes
+    "refine": 3.2e-7,       # s per (pixel x frame) of refine + write
+    "metrics2d": 4.0e-7,    # s per (pixel x frame): PSNR, SSIM, LPIPS, E_flow (DIS)
     "calibrate": 1.5,       # s per calibration stage besides its renders (statistics, goodness of fit, plots;
                             # the smoke preset's calibration takes 1.5 s in all)
     "gpu_step": 1.0,        # s per training step of the sandbox/controlnet refiners on one GPU (a guess)
 }
+
+
+def mean_gaussians(start: int, cap: int, steps: int, *, refine_start: int | None = None,
+                   refine_every: int | None = None, refine_stop: int | None = None) -> float:
+    """The mean Gaussian count over a fit's `steps` under the MCMC strategy's growth (+5 % at
+    every `refine_every`-th step after `refine_start` and before `refine_stop`, at most `cap`; morphgs.fit's
+    defaults where not given), starting from `start` (the random or SfM initial points)."""
+    from morphgs.fit.config import MCMCConfig
+
+    m = MCMCConfig()
+    start_at = m.refine_start if refine_start is None else refine_start
+    every = m.refine_every if refine_every is None else refine_every
+    stop = m.refine_stop if refine_stop is None else refine_stop
+    n, total, last = float(min(start, cap)), 0.0, 0
+    first = (start_at // every + 1) * every  # the steps that grow: start < t < stop, t % every == 0
+    for t in range(first, min(steps + 1, stop), every):
+        total += n * (t - last)
+        last, n = t, min(float(cap), float(int(1.05 * n)))
+        if n >= cap:
+            break
+    return (total + n * (steps - last)) / max(steps, 1)
+
+
+def fit_seconds(steps: int, px: int, fit: dict[str, Any]) -> float:
+    """Estimated seconds of a fit of `steps` at `px` pixels with a settings table's
+    `random_points` and `cap_max` (captures with SfM points start from theirs; counted as the
+    random points)."""
+    g = mean_gaussians(int(fit["random_points"]), int(fit["cap_max"]), steps)
+    return steps * (px * UNIT["fit"] + g * UNIT["fit_gauss"])
+
+
+def _fit_settings(params: dict[str, Any]) -> dict[str, int]:
+    """A real-fit condition's initial points and cap: its "fit" overrides (a target carries the
+    study's `[sparse]` ones), else curate's `sparse` fit preset's."""
+    from morphgs.fit import FitConfig
+
+    base = FitConfig.preset("sparse")
+    fit = params.get("fit") or {}
+    init, mcmc = fit.get("init") or {}, fit.get("mcmc") or {}
+    return {"random_points": int(init.get("random_points", base.init.random_points)),
+            "cap_max": int(mcmc.get("cap_max", base.mcmc.cap_max))}
 
 
 def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
@@ -49,7 +96,7 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
             continue
         st = j.ref.stage
         if st == "cleanfits":  # the photos shrunk to 1-2x the study size a side: ~2x its pixels
-            s = S["clean"]["steps"] * 2 * px * UNIT["fit"]
+            s = fit_seconds(S["clean"]["steps"], 2 * px, S["clean"])
         elif st == "captures":
             s = S["capture"]["views"] * px * gauss * UNIT["render"]
         elif st in ("trainsets", "pairfits"):
@@ -62,7 +109,7 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
                 steps = fit_steps(spec.params)
                 if spec.kind == "underfit":
                     steps = stop_step(spec.params["fraction"], steps)
-                s += scenes * steps * px * UNIT["fit"]
+                s += scenes * fit_seconds(steps, px, _fit_settings(spec.params))
         elif st == "calibration":
             # the strength scan and bisection (grid + ~10 points) plus op shares and the goodness of
             # fit render every calibration pair (half the training scenes' pairs) ~len(grid) + 15
@@ -76,13 +123,13 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
             else:
                 s = S["training"]["steps"] * UNIT["gpu_step"]
         elif st == "testsets":
-            s = S["sparse"]["steps"] * px * UNIT["fit"] + per_scene * frames * px * gauss * 2 * UNIT["render"]
+            s = fit_seconds(S["sparse"]["steps"], px, S["sparse"]) + per_scene * frames * px * gauss * 2 * UNIT["render"]
         elif st == "refine":
             s = per_scene * frames * px * UNIT["refine"]
         elif st == "metrics2d":
             s = per_scene * frames * px * UNIT["metrics2d"]
         elif st == "metrics3d":
-            s = per_scene * S["refit"]["steps"] * px * UNIT["refit"]
+            s = per_scene * (fit_seconds(S["refit"]["steps"], px, S["refit"]) + UNIT["score3d"])
         else:
             s = 1.0
         out[st] = out.get(st, 0.0) + s

@@ -68,8 +68,9 @@ def _plan_text(study: Any, out: Path, workers: int, backend: str = "local", clus
         total += s
         gpu = " (GPU)" if st == "training" and study["model"]["name"] != "tiny" else ""
         lines.append(f"{st:<12} {len(js):>5} {todo:>7}   {_dur(s)}{gpu}")
-    lines.append(f"total estimate: {_dur(total)} with -j {workers} (unit costs measured on a 2-core CPU, scaled "
-                 "linearly in pixels, frames, steps and Gaussians: an estimate; docs/ablation.md)")
+    lines.append(f"total estimate: {_dur(total)} with -j {workers} (unit costs of a quiet 2-core Zen 5, scaled "
+                 "in pixels, frames, steps and fitted Gaussians: an estimate, 2-3x short on a slower or shared CPU; "
+                 "docs/ablation.md)")
     if backend == "ray":
         import os
 
