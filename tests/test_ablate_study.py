@@ -114,6 +114,8 @@ def test_the_paper_scale_planned_for_a_ray_cluster(tmp_path: Path) -> None:
     ('[model]\nname = "sandbox"\n[model.overrides.model]\nsd15 = "/nonexistent/sd15"\nmotion_adapter = "/x"\n',
      r"model's folders are missing: model\.sd15: /nonexistent/sd15: no such folder"),
     ('[training]\nstepz = 3\n', r"training\.stepz: unknown key"),
+    ('[sparse]\ncap_max = 0\n', r"sparse\.cap_max must be >= 1, got 0"),  # refused before any fit
+    ('[refit]\nrandom_points = -5\n', r"refit\.random_points must be >= 1, got -5"),
 ])
 def test_bad_study_files_get_one_line_naming_the_file_and_the_problem(tmp_path: Path, text: str, match: str) -> None:
     f = _study(tmp_path, 'preset = "smoke"\n' + text)

@@ -194,6 +194,10 @@ def _validate(s: dict[str, Any], source: str) -> None:
     for sec in ("training", "sparse", "clean", "refit"):
         if s[sec]["steps"] < 1:
             raise StudyError(f"{_where(source, sec + '.steps')} must be >= 1")
+    for sec in ("sparse", "clean", "refit"):  # the fits' initial points and MCMC cap
+        for key in ("random_points", "cap_max"):
+            if s[sec][key] < 1:
+                raise StudyError(f"{_where(source, f'{sec}.{key}')} must be >= 1, got {s[sec][key]}")
     if s["training"]["probe_every"] < 1:
         raise StudyError(f"{_where(source, 'training.probe_every')} must be >= 1")
     from morphgs.models.registry import list_models
