@@ -122,6 +122,25 @@ def test_dry_run_counts_and_estimates_the_calibration_stage(study_file: Path, tm
     assert not (tmp_path / "dry").exists()
 
 
+def test_the_estimate_prices_a_realism_calibration_by_its_search(tmp_path: Path) -> None:
+    """A realistic:FAMILY condition searches the op mix first (TRIALS candidates, each a strength
+    match and a classifier): its calibration is estimated at that many times a PSNR calibration's
+    share, not as one."""
+    from morphgs.ablation import load_study
+    from morphgs.ablation.estimate import UNIT, estimate
+    from morphgs.ablation.recipe import build_plan
+    from morphgs.calibration.objective import TRIALS
+
+    def calibration(cond: str) -> float:
+        f = tmp_path / "e.toml"
+        f.write_text(f'preset = "smoke"\n[conditions]\ntrain = ["{cond}"]\n', encoding="utf-8")
+        study = load_study(f)
+        return estimate(study, build_plan(study, tmp_path / "s"))["calibration"]
+
+    psnr, realism = calibration("calibrated:radiometric"), calibration("realistic:radiometric")
+    assert realism == pytest.approx(psnr * (1 + TRIALS * UNIT["realism_trial"]))
+
+
 def test_an_unknown_calibrated_family_is_one_line_naming_conditions_train(tmp_path: Path) -> None:
     f = tmp_path / "bad.toml"
     f.write_text('preset = "smoke"\n[conditions]\ntrain = ["calibrated:morphologic"]\n', encoding="utf-8")

@@ -32,6 +32,8 @@ UNIT = {
     "metrics2d": 4.0e-7,    # s per (pixel x frame): PSNR, SSIM, LPIPS, E_flow (DIS)
     "calibrate": 1.5,       # s per calibration stage besides its renders (statistics, goodness of fit, plots;
                             # the smoke preset's calibration takes 1.5 s in all)
+    "realism_trial": 0.39,  # a realism search's candidate (a strength match and a cross-fitted CNN), as a share
+                            # of the PSNR calibration (toy: 240-271 s a search of 16 against 23 s, one thread)
     "gpu_step": 1.0,        # s per training step of the sandbox/controlnet refiners on one GPU (a guess)
 }
 
@@ -116,6 +118,10 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
             # times; x2 for perturbing, quantising and the statistics
             n = len(j.kwargs["scene_dirs"]) * S["conditions"]["pairs_per_scene"] / 2
             s = UNIT["calibrate"] + 2 * (len(j.kwargs["grid"]) + 15) * n * frames * px * gauss * UNIT["render"]
+            if j.kwargs.get("objective") == "realism":  # the op-mix search first: TRIALS candidates
+                from morphgs.calibration.objective import TRIALS
+
+                s *= 1 + TRIALS * UNIT["realism_trial"]
         elif st == "training":
             ch, cw = S["training"]["crop"]
             if S["model"]["name"] == "tiny":
