@@ -68,15 +68,13 @@ def fit_seconds(steps: int, px: int, fit: dict[str, Any]) -> float:
 
 
 def _fit_settings(params: dict[str, Any]) -> dict[str, int]:
-    """A real-fit condition's initial points and cap: its "fit" overrides (a target carries the
-    study's `[sparse]` ones), else curate's `sparse` fit preset's."""
-    from morphgs.fit import FitConfig
+    """A real-fit condition's initial points and cap, from the FitConfig curate fits it with
+    (`curation.fits.fit_config`: the `sparse` preset and the condition's "fit" overrides; a target
+    carries the study's `[sparse]` ones)."""
+    from morphgs.curation.fits import fit_config
 
-    base = FitConfig.preset("sparse")
-    fit = params.get("fit") or {}
-    init, mcmc = fit.get("init") or {}, fit.get("mcmc") or {}
-    return {"random_points": int(init.get("random_points", base.init.random_points)),
-            "cap_max": int(mcmc.get("cap_max", base.mcmc.cap_max))}
+    cfg = fit_config(params, "the estimate", 0)
+    return {"random_points": int(cfg.init.random_points), "cap_max": int(cfg.mcmc.cap_max)}
 
 
 def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
@@ -84,6 +82,7 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
     GPU models in GPU seconds)."""
     from morphgs.ablation import cache
     from morphgs.ablation.jobs import resolve
+    from morphgs.calibration.objective import TRIALS
     from morphgs.curation.plan import FIT_KINDS, fit_steps, stop_step
 
     S = study.settings
@@ -119,8 +118,6 @@ def estimate(study: Study, jobs: list[Any]) -> dict[str, float]:
             n = len(j.kwargs["scene_dirs"]) * S["conditions"]["pairs_per_scene"] / 2
             s = UNIT["calibrate"] + 2 * (len(j.kwargs["grid"]) + 15) * n * frames * px * gauss * UNIT["render"]
             if j.kwargs.get("objective") == "realism":  # the op-mix search first: TRIALS candidates
-                from morphgs.calibration.objective import TRIALS
-
                 s *= 1 + TRIALS * UNIT["realism_trial"]
         elif st == "training":
             ch, cw = S["training"]["crop"]
