@@ -8,6 +8,7 @@ one line naming conditions.train."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import subprocess
@@ -23,10 +24,13 @@ pytest.importorskip("matplotlib")
 ENV = {**os.environ, "MORPHGS_NUM_THREADS": "2"}
 STUDY = """preset = "smoke"
 [conditions]
-train = ["morphological", "calibrated:morphological"]
+train = ["morphological", "calibrated:morphological", "calibrated:fams/holes-dilate.json"]
 targets = false
 """
 CAL = "calibrated:morphological-S8"
+#: a family file's ops and proportions (`calibrate --family FILE.json`), given relative to the study
+FAMILY = {"family": "morphological", "ops": {"holes": 0.1, "dilate": 0.3}}
+FAM_LABEL = "calibrated:holes-dilate-S8"
 
 
 def _run(*args: str) -> subprocess.CompletedProcess[str]:
@@ -48,6 +52,8 @@ def _last_run(study: Path) -> dict:
 def study_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
     p = tmp_path_factory.mktemp("calstudy") / "study.toml"
     p.write_text(STUDY, encoding="utf-8")
+    (p.parent / "fams").mkdir()
+    (p.parent / "fams" / "holes-dilate.json").write_text(json.dumps(FAMILY), encoding="utf-8")
     return p
 
 
@@ -61,15 +67,16 @@ def cal(study_file: Path) -> Path:
 def test_a_calibrated_condition_runs_end_to_end_and_is_closer_to_the_target_severity(cal: Path) -> None:
     counts = _last_run(cal)["counts"]
     # trainsets: morphological, target-S8 (built for the calibration only: targets = false) and the
-    # calibrated set; trainings: morphological and the calibrated condition, 2 seeds each
-    assert counts["calibration"] == {"computed": 1, "reused": 0}
-    assert counts["trainsets"] == {"computed": 3, "reused": 0}
-    assert counts["training"] == {"computed": 4, "reused": 0}
+    # two calibrated sets; trainings: morphological and the calibrated conditions, 2 seeds each
+    assert counts["calibration"] == {"computed": 2, "reused": 0}
+    assert counts["trainsets"] == {"computed": 4, "reused": 0}
+    assert counts["training"] == {"computed": 6, "reused": 0}
     res = json.loads((cal / "results.json").read_text())
+    fam = f"calibrated:{cal.parent / 'fams' / 'holes-dilate.json'}-S8"  # the file, resolved from the study's folder
     rows = {(r["condition"], r["seed"]) for r in res["records"] if r["seed"] is not None}
-    assert rows == {(c, s) for c in ("morphological", CAL) for s in (0, 1)}
+    assert rows == {(c, s) for c in ("morphological", CAL, fam) for s in (0, 1)}
     sev = res["severity"]
-    assert set(sev) == {"morphological", "target-S8", CAL}
+    assert set(sev) == {"morphological", "target-S8", CAL, fam}
     # the point of the calibration: its pairs are as corrupted as the real sparse-view pairs, the
     # default-strength family's are not (smoke: about 21 dB against 11 dB)
     assert abs(sev[CAL] - sev["target-S8"]) < 0.5 * abs(sev["morphological"] - sev["target-S8"]), sev
@@ -93,6 +100,16 @@ def test_a_calibrated_condition_runs_end_to_end_and_is_closer_to_the_target_seve
     assert f"- {CAL}: morphological calibrated against target-S8's real pairs" in table
     assert "S8: each calibrated condition − its family at the default strength" in table
     assert f"| {CAL} | " in table.split("its family at the default strength")[1]
+    # the family file's condition: calibrated with the file's ops in its proportions, labelled by
+    # the file's name in the table and the folders
+    (fdir,) = (cal / "calibration").glob("calibrated_holes-dilate-S8-*")
+    fconfig = json.loads((fdir / "config.json").read_text())
+    assert fconfig["kind"] == "strength" and set(fconfig["ops"]) == {"holes", "dilate"}, fconfig
+    assert fconfig["ops"]["dilate"] / fconfig["ops"]["holes"] == pytest.approx(3.0)
+    c = res["calibration"][fam]
+    assert c["family"] == "holes-dilate" and c["reachable"]
+    assert abs(sev[fam] - sev["target-S8"]) < 1.5, sev
+    assert f"| S8 | {FAM_LABEL} |" in table and f"- {FAM_LABEL}: holes-dilate calibrated against" in table
 
 
 def test_a_rerun_recomputes_nothing(cal: Path, study_file: Path) -> None:
@@ -108,17 +125,18 @@ def test_two_workers_give_the_same_bytes(cal: Path, study_file: Path, tmp_path: 
     _ablate("--study", str(study_file), "--out", str(out), "-j", "2")
     for f in ("results.json", "results.csv", "table.md"):
         assert (out / f).read_bytes() == (cal / f).read_bytes(), f
-    (a,) = (cal / "calibration").glob("*/config.json")
-    (b,) = (out / "calibration").glob("*/config.json")
-    assert a.read_bytes() == b.read_bytes()
+    mine = sorted((cal / "calibration").glob("*/config.json"))
+    theirs = sorted((out / "calibration").glob("*/config.json"))
+    assert len(mine) == 2 and [p.parent.name for p in mine] == [p.parent.name for p in theirs]
+    assert [p.read_bytes() for p in mine] == [p.read_bytes() for p in theirs]
 
 
 def test_dry_run_counts_and_estimates_the_calibration_stage(study_file: Path, tmp_path: Path) -> None:
     r = _ablate("--study", str(study_file), "--out", str(tmp_path / "dry"), "--dry-run")
     line = next(ln for ln in r.stdout.splitlines() if ln.startswith("calibration"))
     jobs, todo = line.split()[1:3]
-    assert (jobs, todo) == ("1", "1") and line.split()[3] != "0", line
-    assert f"conditions: morphological, {CAL};" in r.stdout
+    assert (jobs, todo) == ("2", "2") and line.split()[3] != "0", line
+    assert f"conditions: morphological, {CAL}, {FAM_LABEL};" in r.stdout
     assert not (tmp_path / "dry").exists()
 
 
@@ -201,3 +219,52 @@ def test_a_realistic_condition_searches_the_mix_and_hyphenated_families_parse(tm
     f.write_text('preset = "smoke"\n[conditions]\ntrain = ["realistic:sparse-liked"]\n', encoding="utf-8")
     r = _run("--study", str(f), "--out", str(tmp_path / "s"))
     assert r.returncode == 1 and "unknown condition 'realistic:sparse-liked'" in r.stderr
+
+
+def test_a_family_file_is_keyed_by_its_contents_and_bad_ones_are_one_line(tmp_path: Path) -> None:
+    """`calibrated:FILE.json` / `realistic:FILE.json` (a path relative to the study file): the
+    calibration is keyed by the file's bytes (an edit recomputes it and what reads it, nothing
+    upstream; a byte-identical copy elsewhere keeps its key), labelled by the file's stem; a
+    missing, unreadable or wrong file, or two files of one name, is one line naming the field."""
+    from morphgs.ablation import load_study
+    from morphgs.ablation.recipe import build_plan
+
+    (tmp_path / "fams").mkdir()
+    fam = tmp_path / "fams" / "mix.json"
+    fam.write_text(json.dumps(FAMILY), encoding="utf-8")
+
+    def plan(train: str, where: Path = tmp_path) -> dict[str, object]:
+        f = where / "p.toml"
+        f.write_text(f'preset = "smoke"\n[conditions]\ntrain = [{train}]\n', encoding="utf-8")
+        return {f"{j.ref.stage}/{j.ref.name}": j for j in build_plan(load_study(f), tmp_path / "s")}
+
+    base = plan('"calibrated:fams/mix.json", "realistic:fams/mix.json"')
+    psnr, real = base["calibration/calibrated_mix-S8"], base["calibration/realistic_mix-S8"]
+    assert psnr.inputs["family"] == real.inputs["family"] == {"file_sha256": hashlib.sha256(fam.read_bytes()).hexdigest()}
+    assert (psnr.inputs["objective"], real.inputs["objective"]) == ("psnr", "realism") and psnr.ref.key != real.ref.key
+    assert {"training/calibrated_mix-S8-s0", "training/realistic_mix-S8-s1"} <= set(base)
+    fam.write_text(json.dumps({**FAMILY, "ops": {"holes": 0.2, "dilate": 0.3}}), encoding="utf-8")
+    edited = plan('"calibrated:fams/mix.json", "realistic:fams/mix.json"')
+    assert edited["calibration/calibrated_mix-S8"].ref.key != psnr.ref.key
+    assert edited["training/calibrated_mix-S8-s0"].ref.key != base["training/calibrated_mix-S8-s0"].ref.key
+    assert edited["trainsets/target-S8"].ref.key == base["trainsets/target-S8"].ref.key
+    fam.write_text(json.dumps(FAMILY), encoding="utf-8")
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "elsewhere" / "mix.json").write_bytes(fam.read_bytes())
+    moved = plan('"calibrated:elsewhere/mix.json"')
+    assert moved["calibration/calibrated_mix-S8"].ref.key == psnr.ref.key
+
+    (tmp_path / "fams" / "bad.json").write_text(json.dumps({"family": "morphological", "ops": {"hole": 0.1}}),
+                                                 encoding="utf-8")
+    (tmp_path / "fams" / "torn.json").write_text('{"family": "morph', encoding="utf-8")
+    for train, says in (('"calibrated:fams/none.json"', "'calibrated:fams/none.json': no such family file"),
+                        ('"realistic:fams/bad.json"', "bad.json': unknown strength op(s) 'hole'"),
+                        ('"calibrated:fams/torn.json"', "torn.json': cannot read JSON"),
+                        ('"calibrated:fams/mix.json", "calibrated:elsewhere/mix.json"',
+                         "have the same label 'calibrated:mix' (JSON files are labelled by their name): rename one")):
+        f = tmp_path / "bad.toml"
+        f.write_text(f'preset = "smoke"\n[conditions]\ntrain = [{train}]\n', encoding="utf-8")
+        r = _run("--study", str(f), "--out", str(tmp_path / "s"), "--dry-run")
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 1 and len(lines) == 1, r.stderr
+        assert lines[0].startswith(f"morphgs ablate: error: {f}: conditions.train: ") and says in lines[0], lines[0]

@@ -188,3 +188,16 @@ def test_bad_options_are_one_line(stand_in: tuple[Path, Path], tmp_path: Path,
     with pytest.raises(SystemExit):
         main(["calibrate", "--real", str(real), "--out", out, "--objective", "beauty"])
     assert "invalid choice: 'beauty'" in capsys.readouterr().err
+
+
+def test_a_search_with_one_real_calibration_pair_says_what_to_give() -> None:
+    """The search cross-fits its classifier on the calibration pairs (each half needs a real one):
+    with one real pair it is a CalibrationError saying to give more pairs or scenes, not the
+    classifier's own ValueError from deep inside (what `morphgs ablate` on the smoke preset with a
+    `realistic:` condition printed before)."""
+    from morphgs.calibration.objective import realism_search
+    from morphgs.calibration.pairs import CalibrationError
+
+    (real,) = _clips(BASE, 0, seed=0)[:1]
+    with pytest.raises(CalibrationError, match=r"needs at least 2 of them, got 1 \(give more pairs per scene"):
+        realism_search("mix", BASE, None, [real], np.zeros(6), np.zeros(6, int), real_ids=["a"], grid=[1.0, 2.0])

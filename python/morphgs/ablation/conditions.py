@@ -6,6 +6,9 @@ config, a regime's target, a calibrated family) or of a control row, with its re
     calibrated:morphological-S20                    kind "calibrated", family morphological, regime S20
     realistic:sparse-like-S20                       kind "calibrated", objective "realism" (its op mix
                                                     searched for realism, `calibrate --objective realism`)
+    realistic:fams/shatter-led.json-S20             the same with a family file ({"family", "ops"}: the
+                                                    ops and their proportions, `calibrate --family`),
+                                                    labelled by its stem: realistic:shatter-led-S20
     input, identity, oracle                         kind "control" (not trained; do not compete)
 
 Names are what results.json, results.csv and table.md carry; everything else (the folder slug,
@@ -77,9 +80,20 @@ class Condition:
         return self.kind != "control"
 
     @property
+    def family_file(self) -> bool:
+        """A calibrated condition whose family is a JSON family file (not a built-in family name)."""
+        return self.family is not None and self.family.lower().endswith(".json")
+
+    @property
     def label(self) -> str:
-        """As the table shows it: a JSON config by its file stem (as curate labels it)."""
-        return Path(self.name).stem if self.kind == "config" and self.name.lower().endswith(".json") else self.name
+        """As the table shows it: a JSON config by its file stem (as curate labels it), a calibrated
+        condition of a family file by the file's stem."""
+        if self.kind == "config" and self.name.lower().endswith(".json"):
+            return Path(self.name).stem
+        if self.family_file:
+            prefix = REALISTIC if self.objective == "realism" else CALIBRATED
+            return f"{prefix}{Path(str(self.family)).stem}" + (f"-{self.regime}" if self.regime else "")
+        return self.name
 
     @property
     def slug(self) -> str:

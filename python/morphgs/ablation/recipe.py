@@ -13,7 +13,8 @@ stage, and a rerun remakes what a change touches, nothing else:
                                       its capture, the condition's curate config, pairs, frames
     trainsets/<condition>             captures of the train scenes, the condition's curate config, pairs, frames
                                       (and the condition's pairfits, linked in)
-    calibration/<condition>           trainsets/target-<regime>, the family, the strength grid
+    calibration/<condition>           trainsets/target-<regime>, the family (a family file by its hash),
+                                      the strength grid, the objective
     trainsets/<calibrated condition>  its calibration output, the captures, pairs, frames
     training/<condition>-s<seed>      the training set, the model (and its config file's hash), the run
                                       overrides (seed included), the probe capture
@@ -89,7 +90,9 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
     regimes = {r.label: r for r in study.regimes}
     calibrated = [c for c in study.conditions if c.kind == "calibrated"]
     curated = [c for c in study.conditions if c.kind != "calibrated"]
-    curated += [t for t in (Condition.target(str(c.regime)) for c in calibrated) if t not in curated]
+    for t in (Condition.target(str(c.regime)) for c in calibrated):  # once per regime, however many calibrate
+        if t not in curated:
+            curated.append(t)
     tsets: dict[str, Job] = {}
     for cond in curated:
         r = regimes[str(cond.regime)] if cond.kind == "target" else None
@@ -110,7 +113,7 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
     for cond in calibrated:
         target = tsets[Condition.target(str(cond.regime)).name]
         calib = add("calibration", cond.slug, scene_dirs=scene_dirs, real_dir=Out(target, "data"),
-                    family=cond.family, grid=list(CALIBRATION_GRID), objective=cond.objective,
+                    family=File(str(cond.family)) if cond.family_file else cond.family, grid=list(CALIBRATION_GRID), objective=cond.objective,
                     meta={"condition": cond.name})
         tsets[cond.name] = add("trainsets", cond.slug, spec=cond.slug, calibration_dir=Out(calib), fits=[],
                                meta={"condition": cond.name}, **common)

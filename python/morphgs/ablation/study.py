@@ -21,7 +21,7 @@ from typing import Any
 
 from morphgs._core import MorphgsError
 from morphgs.ablation import presets
-from morphgs.ablation.conditions import CALIBRATED, Condition
+from morphgs.ablation.conditions import CALIBRATED, REALISTIC, Condition
 
 __all__ = ["Regime", "Study", "StudyError", "flatten", "load_study", "to_toml"]
 
@@ -144,10 +144,23 @@ def _validate(s: dict[str, Any], source: str) -> None:
         if cond.kind == "calibrated":
             from morphgs.strength import FAMILIES
 
+            if cond.family_file and cond.regime is None:
+                from morphgs.calibration.pairs import CalibrationError
+                from morphgs.calibration.pipeline import parse_family
+
+                if not Path(str(cond.family)).is_file():
+                    raise StudyError(f"{_where(source, 'conditions.train')}: {c!r}: no such family file (a path "
+                                     "relative to the study file, or an absolute one)")
+                try:
+                    parse_family(str(cond.family))
+                except CalibrationError as e:
+                    raise StudyError(f"{_where(source, 'conditions.train')}: {c!r}: "
+                                     f"{str(e).removeprefix(f'--family {cond.family}: ')}") from None
+                continue
             if cond.family not in FAMILIES or cond.regime is not None:
                 raise StudyError(f"{_where(source, 'conditions.train')}: unknown condition {c!r} "
                                  f"(calibrated:FAMILY and realistic:FAMILY take one of the families "
-                                 f"{', '.join(FAMILIES)})")
+                                 f"{', '.join(FAMILIES)} or a JSON family file {{\"family\", \"ops\"}})")
             continue
         try:
             parse_config(c, blur_sigma=float(s["conditions"]["blur_sigma"]))
@@ -155,6 +168,12 @@ def _validate(s: dict[str, Any], source: str) -> None:
             raise StudyError(f"{_where(source, 'conditions.train')}: unknown condition {c!r} ({e})") from None
     if len(set(names)) != len(names):
         raise StudyError(f"{_where(source, 'conditions.train')}: a condition is listed twice: {names}")
+    slugs: dict[str, str] = {}
+    for c in names:  # JSON files are labelled (and foldered) by their stem: two of one stem would collide
+        other = slugs.setdefault(Condition.parse(c).slug, c)
+        if other != c:
+            raise StudyError(f"{_where(source, 'conditions.train')}: {other!r} and {c!r} have the same label "
+                             f"{Condition.parse(c).label!r} (JSON files are labelled by their name): rename one file")
     if s["conditions"]["clean"] not in ("render", "photo"):
         raise StudyError(f"{_where(source, 'conditions.clean')} must be 'render' or 'photo', got "
                          f"{s['conditions']['clean']!r}")
@@ -251,13 +270,21 @@ def load_study(path: str | os.PathLike[str] | None, *, preset: str | None = None
         root = Path(path).resolve().parent
         settings["scenes"]["inputs"] = [str(root / x) if not Path(x).is_absolute() else x
                                         for x in settings["scenes"]["inputs"]]
-        settings["conditions"]["train"] = [
-            str(root / c) if isinstance(c, str) and c.lower().endswith(".json") and not Path(c).is_absolute()
-            and (root / c).is_file() else c for c in settings["conditions"]["train"]]
+        settings["conditions"]["train"] = [_relative_to(root, c) for c in settings["conditions"]["train"]]
         if settings["model"]["config"] and not Path(settings["model"]["config"]).is_absolute():
             settings["model"]["config"] = str(root / settings["model"]["config"])
     _validate(settings, source)
     return Study(settings, source, name)
+
+
+def _relative_to(root: Path, name: Any) -> Any:
+    """A training condition with a JSON file (a curate config, or the family of `calibrated:` /
+    `realistic:`) given relative to the study file, as a path from `root` (when that file exists)."""
+    if not isinstance(name, str) or not name.lower().endswith(".json"):
+        return name
+    prefix = next((p for p in (CALIBRATED, REALISTIC) if name.startswith(p)), "")
+    rel = name[len(prefix):]
+    return prefix + str(root / rel) if not Path(rel).is_absolute() and (root / rel).is_file() else name
 
 
 def flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:

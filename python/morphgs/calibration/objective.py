@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from morphgs.calibration.mix import mixed
+from morphgs.calibration.pairs import CalibrationError
 from morphgs.calibration.realism import Clip, classifier_test
 from morphgs.calibration.search import search
 from morphgs.strength import SPARSE_OPS, Strength
@@ -142,7 +143,13 @@ def realism_search(label: str, base: Strength, bench: Any, real_clips: Sequence[
 
     Raises:
         ImportError: Optuna or torch missing.
+        CalibrationError: fewer than two real calibration pairs (the classifier is cross-fitted
+            on them: each half needs one).
     """
+    if len(real_clips) < 2:
+        raise CalibrationError(
+            f"{label}: the realism search cross-fits its classifier on the calibration scenes' real pairs and "
+            f"needs at least 2 of them, got {len(real_clips)} (give more pairs per scene: calibrate -k, a study's conditions.pairs_per_scene; or more scenes)")
     try:
         import optuna
     except ImportError as e:  # pragma: no cover - metrics extra missing

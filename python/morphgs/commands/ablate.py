@@ -55,7 +55,7 @@ def _plan_text(study: Any, out: Path, workers: int, backend: str = "local", clus
     lines = [f"study {study.source} (preset {study.preset}) -> {out}",
              f"scenes: {len(sc.train)} train, {len(sc.test)} test ({', '.join(sc.test[:6])}"
              f"{' ...' if len(sc.test) > 6 else ''})",
-             f"conditions: {', '.join(c.name for c in study.conditions)}; regimes: {', '.join(r.label for r in study.regimes)}; "
+             f"conditions: {', '.join(c.label for c in study.conditions)}; regimes: {', '.join(r.label for r in study.regimes)}; "
              f"seeds: {study.seeds}; model: {study['model']['name']}",
              "stage        jobs   to do   estimate"]
     total = 0.0

@@ -67,7 +67,8 @@ def gather(parts: Sequence[tuple[str, str, dict[str, Any]]]) -> dict[str, Any]:
 
 def calibration_note(condition: str, c: dict[str, Any]) -> str:
     """One line on a calibrated condition: what it was matched to and what it reached."""
-    reg = Condition.parse(condition).regime
+    cond = Condition.parse(condition)
+    reg = cond.regime
     if c["reachable"]:
         med = f"median strength {c['median_strength']:.3g} ({c['median_psnr_reached']:.2f} dB)"
     else:
@@ -78,7 +79,7 @@ def calibration_note(condition: str, c: dict[str, Any]) -> str:
         floor = c.get("floor_auc")
         fit += f"; classifier AUC {auc:.2f}" + (f" (real-vs-real floor {floor:.2f})"
                                                if isinstance(floor, (int, float)) and floor == floor else "")
-    return (f"{condition}: {c['family']} calibrated against target-{reg}'s real pairs "
+    return (f"{cond.label}: {c['family']} calibrated against target-{reg}'s real pairs "
             f"(median {c['real_median_psnr']:.2f} dB): {med}; strength p5/p50/p95 {c['strength_p05']:.3g} / {c['strength_p50']:.3g} / {c['strength_p95']:.3g}"
             f"{'' if c['monotone'] else '; severity not monotone in strength'}; held-out goodness of fit: {fit} "
             "(calibration/<condition>/calib/report.md).")
