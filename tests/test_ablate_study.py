@@ -389,3 +389,37 @@ def test_real_fit_sources_are_training_conditions_with_their_fit_in_the_estimate
     assert trainsets_estimate("underfit:0.5@2000") == pytest.approx(base)  # stopped at 1000 of 2000
     assert trainsets_estimate("underfit:0.25@2000") < base
 
+
+
+@pytest.mark.parametrize("every", [8, 20, 40, 80])
+@pytest.mark.parametrize("per_scene", [1, 2])
+def test_test_clips_are_novel_views_as_far_from_the_training_cameras_as_a_clip_allows(every: int,
+                                                                                      per_scene: int) -> None:
+    """A built-in room's 96-view capture orbit: the test clips never pass through a training view
+    (whose frame a sparse fit reproduces at ~50 dB, where a refiner can only lose); each is the
+    window of its part of the path farthest from the training cameras, and the same every time."""
+    from morphgs import trajectory
+    from morphgs.ablation.stages.captures import _orbit  # the rooms' own orbit, as a built-in capture has it
+    from morphgs.ablation.stages.testsets import clip_cameras, regime_views
+
+    capture = _orbit(type("Builtin", (), {"builtin": 0})(), None, 96, (64, 64), None)
+    views = regime_views(len(capture), {"every": every})
+    clips, starts = clip_cameras(capture, 16, per_scene, views)
+    assert len(clips) == len(starts) == per_scene and all(len(c) == 16 for c in clips)
+    assert clip_cameras(capture, 16, per_scene, views)[1] == starts
+    train = np.stack([capture[i].center for i in views])
+    spacing = np.linalg.norm(capture[1].center - capture[0].center)
+
+    def nearest(clip: object) -> float:
+        return float(min(np.linalg.norm(train - c.center, axis=1).min() for c in clip))
+
+    # no clip frame at a training view: at least one capture spacing away where the gap between
+    # training views leaves room for 16 frames (every 20, 40, 80), the most a clip can keep otherwise
+    room = every - 16
+    for clip in clips:
+        assert nearest(clip) >= (spacing * 0.99 if room >= 2 else 0.0)
+    path = trajectory.smooth_path(capture, 96)
+    windows = trajectory.clips(path, 16, stride=1)
+    parts = np.array_split(np.arange(len(windows)), per_scene)
+    for clip, start, part in zip(clips, starts, parts):
+        assert start in part and nearest(clip) == pytest.approx(max(nearest(windows[s]) for s in part))

@@ -6,8 +6,9 @@
   capture views are held out and scored 8 times along the fit (`testset.json`'s `convergence`:
   the held-out PSNR by step and its change over the last quarter; the report's notes give it per
   regime, so a fit length that leaves the fits rising shows).
-- The clips: a smooth path through the capture cameras (`trajectory.smooth_path`), cut into
-  clips of `frames`; `per_scene` of them spread evenly. Per clip: `corrupted/` (the sparse fit's
+- The clips: a smooth path through the capture cameras (`trajectory.smooth_path`); `per_scene`
+  windows of `frames` consecutive frames, one per equal run of the path, each the window farthest
+  from the regime's training cameras (novel views: `clip_cameras`). Per clip: `corrupted/` (the sparse fit's
   render), `clean/` (the clean scene's render), `clean_depth.npy` and `clean_alpha.npy`, and
   `cameras.json`.
 - A capture of real photos: the clips are runs of `frames` consecutive photos along the real camera
@@ -29,7 +30,8 @@ from morphgs.ablation.stages.common import fit_config
 __all__ = ["IGNORE", "RESUMABLE", "VERSION", "clip_cameras", "convergence", "fit_config", "make", "photo_clips",
            "regime_views"]
 
-VERSION = 3  # 2: clips of real photos along the capture; 3: the sparse fit's convergence (held-out views)
+VERSION = 4  # 2: clips of real photos along the capture; 3: the sparse fit's convergence (held-out views);
+# 4: rendered clips of novel views (the window farthest from the training cameras), their starts recorded
 IGNORE: tuple[str, ...] = ()
 RESUMABLE = True  # the sparse fit resumes from its checkpoint in fit/
 
@@ -41,14 +43,30 @@ def regime_views(n: int, params: dict[str, int]) -> list[int]:
     return split_views(n, params)[0]
 
 
-def clip_cameras(capture: Any, frames: int, per_scene: int) -> list[Any]:
-    """`per_scene` test clips of `frames` along the smooth capture path, spread evenly."""
+def clip_cameras(capture: Any, frames: int, per_scene: int, train_views: list[int]) -> tuple[list[Any], list[int]]:
+    """`per_scene` test clips of `frames` along the smooth capture path, of novel views: (clips,
+    their first path frames). The windows of `frames` consecutive path frames are cut into
+    `per_scene` equal runs; each run gives the window whose frame nearest to a training camera
+    (`train_views`, capture indices; by camera centre) is the farthest, the earliest on a tie.
+
+    A clip through a training view would score that frame at the fit's own reproduction (44-54
+    dB on the toy rooms against 11-14 dB between views), where a refiner can only lose: one such
+    frame moved a 16-frame clip's mean PSNR by 2-2.5 dB and made every refiner look worse than
+    its input (docs/ablation.md, "Test clips of novel views")."""
     from morphgs import trajectory
 
     path = trajectory.smooth_path(capture, max(len(capture), frames))
-    clips = trajectory.clips(path, frames)
-    pick = sorted({int(i) for i in np.round(np.linspace(0, len(clips) - 1, min(per_scene, len(clips))))})
-    return [clips[i] for i in pick]
+    windows = trajectory.clips(path, frames, stride=1)
+    if train_views:
+        train = np.stack([capture[i].center for i in train_views])
+        centers = np.stack([c.center for c in path])
+        near = np.min(np.linalg.norm(centers[:, None, :] - train[None, :, :], axis=-1), axis=1)
+        score = np.array([near[s:s + frames].min() for s in range(len(windows))])
+    else:
+        score = np.zeros(len(windows))
+    starts = [int(part[int(np.argmax(score[part]))])
+              for part in np.array_split(np.arange(len(windows)), min(per_scene, len(windows)))]
+    return [windows[s] for s in starts], starts
 
 
 CONVERGENCE_VIEWS = 16
@@ -127,7 +145,8 @@ def make(work: Path, *, capture_dir: str, regime: dict[str, int], sparse: dict[s
     if info["images"] == "images":  # real photos: the clips follow the capture, the photos are the clean frames
         runs = [(idx, imgs, cc) for idx, imgs, cc in photo_clips(folder, frames, per_scene)]
     else:
-        runs = [(None, None, cc) for cc in clip_cameras(cams, frames, per_scene)]
+        chosen, starts = clip_cameras(cams, frames, per_scene, views)
+        runs = [(None, None, cc) for cc in chosen]
     clips, clip_views = [], []
     for j, (idx, photos, cc) in enumerate(runs):
         d = work / "clips" / f"{j:02d}"
@@ -146,5 +165,7 @@ def make(work: Path, *, capture_dir: str, regime: dict[str, int], sparse: dict[s
             "clean": "photos" if info["images"] == "images" else "renders"}
     if info["images"] == "images":
         meta["clip_views"] = clip_views  # the capture views (photos) of each clip, in order
+    else:
+        meta["clip_starts"] = starts  # each clip's first frame on the smooth capture path
     (work / "testset.json").write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
 
