@@ -65,8 +65,8 @@ def test_dry_run_shows_the_plan_job_counts_and_a_cost_estimate(preset: str, tmp_
         assert "200 train, 50 test" in r.stdout and "model: sandbox" in r.stdout
         assert "a real run would stop here: model.sd15" in r.stdout
     if preset == "toy":
-        assert "6 train, 3 test" in r.stdout and "S20, S40, S80" in r.stdout
-        assert "blur2d, naive, spatial, radiometric, morphological, target-S20, target-S40, target-S80" in r.stdout
+        assert "6 train, 3 test" in r.stdout and "S18, S20, S24" in r.stdout
+        assert "blur2d, naive, spatial, radiometric, morphological, target-S18, target-S20, target-S24" in r.stdout
 
 
 def test_the_paper_scale_planned_for_a_ray_cluster(tmp_path: Path) -> None:
@@ -423,3 +423,21 @@ def test_test_clips_are_novel_views_as_far_from_the_training_cameras_as_a_clip_a
     parts = np.array_split(np.arange(len(windows)), per_scene)
     for clip, start, part in zip(clips, starts, parts):
         assert start in part and nearest(clip) == pytest.approx(max(nearest(windows[s]) for s in part))
+
+
+def test_novel_windows_keep_clear_of_training_cameras_and_hold_the_fewest_when_none_can() -> None:
+    """Photos along a line, one unit apart: 8-photo windows as far from the training photos as
+    the line allows; where every window holds a training photo (every 8th), one that holds a
+    single one, the earliest; with no training photos, each part's first window."""
+    from morphgs.ablation.stages.testsets import novel_windows
+
+    line = np.stack([np.arange(40.0), np.zeros(40), np.zeros(40)], axis=1)
+    # training photos 0, 20: the window midway in the 19-photo gap (6-13) and in the tail (26-33 and later: 32)
+    assert novel_windows(line, line[[0, 20]], 8, 1) == [32]
+    assert novel_windows(line, line[[0, 20, 39]], 8, 2) == [6, 26]
+    # every 8th is a training photo: each window holds one or two; the first holding one
+    assert novel_windows(line, line[::8], 8, 1) == [0]
+    held = novel_windows(line, line[::8], 9, 1)  # 9 photos always hold at least one, some two
+    assert held == [1]
+    assert novel_windows(line, line[:0], 8, 3) == [0, 11, 22]
+    assert novel_windows(line[:5], line[:1], 8, 1) == []

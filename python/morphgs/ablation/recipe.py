@@ -113,7 +113,8 @@ def build_plan(study: Study, root: Path, scenes: SceneSet | None = None) -> list
     for cond in calibrated:
         target = tsets[Condition.target(str(cond.regime)).name]
         calib = add("calibration", cond.slug, scene_dirs=scene_dirs, real_dir=Out(target, "data"),
-                    family=File(str(cond.family)) if cond.family_file else cond.family, grid=list(CALIBRATION_GRID), objective=cond.objective,
+                    family=File(str(cond.family)) if cond.family_file else cond.family,
+                    grid=list(CALIBRATION_GRID), objective=cond.objective,
                     meta={"condition": cond.name})
         tsets[cond.name] = add("trainsets", cond.slug, spec=cond.slug, calibration_dir=Out(calib), fits=[],
                                meta={"condition": cond.name}, **common)

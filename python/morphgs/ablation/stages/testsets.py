@@ -12,8 +12,8 @@
   render), `clean/` (the clean scene's render), `clean_depth.npy` and `clean_alpha.npy`, and
   `cameras.json`.
 - A capture of real photos: the clips are runs of `frames` consecutive photos along the real camera
-  sequence (video order, or a nearest-neighbour path when the photos have none: `trajectory.camera_sequence`)
-  and `clean/` holds the photos themselves, so the 2D metrics and the re-fit's held-out frames are
+  sequence (video order, or a nearest-neighbour path when the photos have none: `trajectory.camera_sequence`),
+  as far from the training photos as the sequence allows, and `clean/` holds the photos themselves, so the 2D metrics and the re-fit's held-out frames are
   scored against real pixels; the depth and alpha stay the clean fit's (the geometry's reference).
 """
 
@@ -27,11 +27,11 @@ import numpy as np
 
 from morphgs.ablation.stages.common import fit_config
 
-__all__ = ["IGNORE", "RESUMABLE", "VERSION", "clip_cameras", "convergence", "fit_config", "make", "photo_clips",
-           "regime_views"]
+__all__ = ["IGNORE", "RESUMABLE", "VERSION", "clip_cameras", "convergence", "fit_config", "make", "novel_windows",
+           "photo_clips", "regime_views"]
 
 VERSION = 4  # 2: clips of real photos along the capture; 3: the sparse fit's convergence (held-out views);
-# 4: rendered clips of novel views (the window farthest from the training cameras), their starts recorded
+# 4: clips of novel views (the windows farthest from the training cameras), a rendered clip's start recorded
 IGNORE: tuple[str, ...] = ()
 RESUMABLE = True  # the sparse fit resumes from its checkpoint in fit/
 
@@ -43,30 +43,42 @@ def regime_views(n: int, params: dict[str, int]) -> list[int]:
     return split_views(n, params)[0]
 
 
-def clip_cameras(capture: Any, frames: int, per_scene: int, train_views: list[int]) -> tuple[list[Any], list[int]]:
-    """`per_scene` test clips of `frames` along the smooth capture path, of novel views: (clips,
-    their first path frames). The windows of `frames` consecutive path frames are cut into
-    `per_scene` equal runs; each run gives the window whose frame nearest to a training camera
-    (`train_views`, capture indices; by camera centre) is the farthest, the earliest on a tie.
+def novel_windows(centers: np.ndarray, train: np.ndarray, frames: int, per_scene: int) -> list[int]:
+    """The first cameras of `per_scene` test clips of `frames` consecutive cameras along a path
+    (`centers`, in path order), of views as novel as the path allows: the windows are cut into
+    `per_scene` equal runs and each run gives the window whose camera nearest a training camera
+    (`train`, centres) is the farthest; on a tie (every window holds a training camera, as a
+    16-photo run does at S8) the one holding the fewest, then the earliest.
 
     A clip through a training view would score that frame at the fit's own reproduction (44-54
     dB on the toy rooms against 11-14 dB between views), where a refiner can only lose: one such
     frame moved a 16-frame clip's mean PSNR by 2-2.5 dB and made every refiner look worse than
     its input (docs/ablation.md, "Test clips of novel views")."""
+    n = len(centers) - frames + 1
+    if n < 1:
+        return []
+    if len(train):
+        near = np.min(np.linalg.norm(centers[:, None, :] - train[None, :, :], axis=-1), axis=1)
+    else:
+        near = np.full(len(centers), np.inf)
+    far = np.array([near[s:s + frames].min() for s in range(n)])
+    held = np.array([np.count_nonzero(near[s:s + frames] == 0.0) for s in range(n)])
+    out = []
+    for part in np.array_split(np.arange(n), min(per_scene, n)):
+        best = max(part, key=lambda s: (far[s], -held[s], -s))
+        out.append(int(best))
+    return out
+
+
+def clip_cameras(capture: Any, frames: int, per_scene: int, train_views: list[int]) -> tuple[list[Any], list[int]]:
+    """`per_scene` test clips of `frames` along the smooth capture path, of novel views
+    (`novel_windows` from the capture cameras `train_views`): (clips, their first path frames)."""
     from morphgs import trajectory
 
     path = trajectory.smooth_path(capture, max(len(capture), frames))
-    windows = trajectory.clips(path, frames, stride=1)
-    if train_views:
-        train = np.stack([capture[i].center for i in train_views])
-        centers = np.stack([c.center for c in path])
-        near = np.min(np.linalg.norm(centers[:, None, :] - train[None, :, :], axis=-1), axis=1)
-        score = np.array([near[s:s + frames].min() for s in range(len(windows))])
-    else:
-        score = np.zeros(len(windows))
-    starts = [int(part[int(np.argmax(score[part]))])
-              for part in np.array_split(np.arange(len(windows)), min(per_scene, len(windows)))]
-    return [windows[s] for s in starts], starts
+    train = np.stack([capture[i].center for i in train_views]) if train_views else np.zeros((0, 3))
+    starts = novel_windows(np.stack([c.center for c in path]), train, frames, per_scene)
+    return [path[s:s + frames] for s in starts], starts
 
 
 CONVERGENCE_VIEWS = 16
@@ -86,9 +98,11 @@ def convergence(eval_csv: Path, steps: int, heldout: list[int]) -> dict[str, Any
     return {"steps": steps, "heldout_views": heldout, "psnr_by_step": curve, "last_quarter_gain_db": gain}
 
 
-def photo_clips(folder: Path, frames: int, per_scene: int) -> list[tuple[list[int], list[np.ndarray], Any]]:
+def photo_clips(folder: Path, frames: int, per_scene: int,
+                train_views: list[int]) -> list[tuple[list[int], list[np.ndarray], Any]]:
     """Test clips along the real camera sequence of a capture whose views are photos: `per_scene`
-    runs of `frames` consecutive views (`trajectory.camera_sequence`), spread evenly; per clip (view indices,
+    runs of `frames` consecutive views (`trajectory.camera_sequence`) as far from the training
+    photos `train_views` as the sequence allows (`novel_windows`); per clip (view indices,
     photos, their cameras). Photos of another size than the capture's most common one (a pixel
     off, as undistorted photos are) are resized to it with their cameras, so a clip stacks."""
     from collections import Counter
@@ -101,12 +115,12 @@ def photo_clips(folder: Path, frames: int, per_scene: int) -> list[tuple[list[in
 
     posed = load_posed_images(folder)
     order = camera_sequence(np.stack([c.center for c in posed.cameras]))
-    starts = list(range(0, len(order) - frames + 1, frames))
-    pick = sorted({int(i) for i in np.round(np.linspace(0, len(starts) - 1, min(per_scene, len(starts))))})
+    centers = np.stack([c.center for c in posed.cameras])
+    train = centers[train_views] if train_views else np.zeros((0, 3))
     (w, h), _ = Counter((c.width, c.height) for c in posed.cameras).most_common(1)[0]
     out = []
-    for i in pick:
-        idx = order[starts[i]:starts[i] + frames]
+    for s in novel_windows(centers[order], train, frames, per_scene):
+        idx = order[s:s + frames]
         imgs, cams = posed.load(idx)
         for k, (im, cam) in enumerate(zip(imgs, cams)):
             if (cam.width, cam.height) != (w, h):
@@ -143,7 +157,7 @@ def make(work: Path, *, capture_dir: str, regime: dict[str, int], sparse: dict[s
     clean_scene = load_scene(cap)
     runs: list[tuple[list[int] | None, list[np.ndarray] | None, Any]]
     if info["images"] == "images":  # real photos: the clips follow the capture, the photos are the clean frames
-        runs = [(idx, imgs, cc) for idx, imgs, cc in photo_clips(folder, frames, per_scene)]
+        runs = [(idx, imgs, cc) for idx, imgs, cc in photo_clips(folder, frames, per_scene, views)]
     else:
         chosen, starts = clip_cameras(cams, frames, per_scene, views)
         runs = [(None, None, cc) for cc in chosen]
