@@ -225,7 +225,8 @@ def test_a_family_file_is_keyed_by_its_contents_and_bad_ones_are_one_line(tmp_pa
     """`calibrated:FILE.json` / `realistic:FILE.json` (a path relative to the study file): the
     calibration is keyed by the file's bytes (an edit recomputes it and what reads it, nothing
     upstream; a byte-identical copy elsewhere keeps its key), labelled by the file's stem; a
-    missing, unreadable or wrong file, or two files of one name, is one line naming the field."""
+    missing, unreadable or wrong file, two files of one name, or `realistic:` of a one-op family
+    (there is no mix to search), is one line naming the field."""
     from morphgs.ablation import load_study
     from morphgs.ablation.recipe import build_plan
 
@@ -257,7 +258,12 @@ def test_a_family_file_is_keyed_by_its_contents_and_bad_ones_are_one_line(tmp_pa
     (tmp_path / "fams" / "bad.json").write_text(json.dumps({"family": "morphological", "ops": {"hole": 0.1}}),
                                                  encoding="utf-8")
     (tmp_path / "fams" / "torn.json").write_text('{"family": "morph', encoding="utf-8")
-    for train, says in (('"calibrated:fams/none.json"', "'calibrated:fams/none.json': no such family file"),
+    (tmp_path / "fams" / "one.json").write_text(json.dumps({"family": "shatter", "ops": {"shatter": 1.0}}),
+                                                 encoding="utf-8")
+    for train, says in (('"realistic:shatter"', "realistic: searches the mix of a family's ops and shatter has 1 "
+                                                "(shatter); use calibrated:shatter"),
+                        ('"realistic:fams/one.json"', "one.json has 1 (shatter)"),
+('"calibrated:fams/none.json"', "'calibrated:fams/none.json': no such family file"),
                         ('"realistic:fams/bad.json"', "bad.json': unknown strength op(s) 'hole'"),
                         ('"calibrated:fams/torn.json"', "torn.json': cannot read JSON"),
                         ('"calibrated:fams/mix.json", "calibrated:elsewhere/mix.json"',

@@ -142,25 +142,7 @@ def _validate(s: dict[str, Any], source: str) -> None:
             raise StudyError(f"{_where(source, 'conditions.train')}: {c!r} is not a training set "
                              "(targets come from conditions.targets; input, identity and oracle are always shown)")
         if cond.kind == "calibrated":
-            from morphgs.strength import FAMILIES
-
-            if cond.family_file and cond.regime is None:
-                from morphgs.calibration.pairs import CalibrationError
-                from morphgs.calibration.pipeline import parse_family
-
-                if not Path(str(cond.family)).is_file():
-                    raise StudyError(f"{_where(source, 'conditions.train')}: {c!r}: no such family file (a path "
-                                     "relative to the study file, or an absolute one)")
-                try:
-                    parse_family(str(cond.family))
-                except CalibrationError as e:
-                    raise StudyError(f"{_where(source, 'conditions.train')}: {c!r}: "
-                                     f"{str(e).removeprefix(f'--family {cond.family}: ')}") from None
-                continue
-            if cond.family not in FAMILIES or cond.regime is not None:
-                raise StudyError(f"{_where(source, 'conditions.train')}: unknown condition {c!r} "
-                                 f"(calibrated:FAMILY and realistic:FAMILY take one of the families "
-                                 f"{', '.join(FAMILIES)} or a JSON family file {{\"family\", \"ops\"}})")
+            _check_family(cond, _where(source, "conditions.train"))
             continue
         try:
             parse_config(c, blur_sigma=float(s["conditions"]["blur_sigma"]))
@@ -275,6 +257,30 @@ def load_study(path: str | os.PathLike[str] | None, *, preset: str | None = None
             settings["model"]["config"] = str(root / settings["model"]["config"])
     _validate(settings, source)
     return Study(settings, source, name)
+
+
+def _check_family(cond: Condition, where: str) -> None:
+    """A `calibrated:` / `realistic:` condition's family: a built-in family name or a readable
+    JSON family file; `realistic:` searches an op mix, so its family needs two ops or more."""
+    from morphgs.calibration.pairs import CalibrationError
+    from morphgs.calibration.pipeline import parse_family
+    from morphgs.strength import FAMILIES
+
+    c = cond.name
+    if cond.regime is not None or not (cond.family_file or cond.family in FAMILIES):
+        raise StudyError(f"{where}: unknown condition {c!r} (calibrated:FAMILY and realistic:FAMILY take one of "
+                         f"the families {', '.join(FAMILIES)} or a JSON family file {{\"family\", \"ops\"}})")
+    family = str(cond.family)
+    if cond.family_file and not Path(family).is_file():
+        raise StudyError(f"{where}: {c!r}: no such family file (a path relative to the study file, or an absolute one)")
+    try:
+        _, base = parse_family(family)
+    except CalibrationError as e:
+        raise StudyError(f"{where}: {c!r}: {str(e).removeprefix(f'--family {family}: ')}") from None
+    ops = getattr(base, "base", {})
+    if cond.objective == "realism" and len(ops) < 2:
+        raise StudyError(f"{where}: {c!r}: realistic: searches the mix of a family's ops and {family} has "
+                         f"{len(ops)} ({', '.join(ops)}); use calibrated:{family}, or a family of two ops or more")
 
 
 def _relative_to(root: Path, name: Any) -> Any:
