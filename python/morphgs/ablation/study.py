@@ -21,7 +21,7 @@ from typing import Any
 
 from morphgs._core import MorphgsError
 from morphgs.ablation import presets
-from morphgs.ablation.conditions import CALIBRATED, REALISTIC, Condition
+from morphgs.ablation.conditions import Condition
 
 __all__ = ["Regime", "Study", "StudyError", "flatten", "load_study", "to_toml"]
 
@@ -288,8 +288,9 @@ def _relative_to(root: Path, name: Any) -> Any:
     `realistic:`) given relative to the study file, as a path from `root` (when that file exists)."""
     if not isinstance(name, str) or not name.lower().endswith(".json"):
         return name
-    prefix = next((p for p in (CALIBRATED, REALISTIC) if name.startswith(p)), "")
-    rel = name[len(prefix):]
+    cond = Condition.parse(name)
+    rel = str(cond.family) if cond.family_file else name
+    prefix = name[:len(name) - len(rel)]
     return prefix + str(root / rel) if not Path(rel).is_absolute() and (root / rel).is_file() else name
 
 

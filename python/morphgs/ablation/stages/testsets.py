@@ -8,13 +8,13 @@
   regime, so a fit length that leaves the fits rising shows).
 - The clips: a smooth path through the capture cameras (`trajectory.smooth_path`); `per_scene`
   windows of `frames` consecutive frames, one per equal run of the path, each the window farthest
-  from the regime's training cameras (novel views: `clip_cameras`). Per clip: `corrupted/` (the sparse fit's
-  render), `clean/` (the clean scene's render), `clean_depth.npy` and `clean_alpha.npy`, and
-  `cameras.json`.
+  from the regime's training cameras (novel views: `novel_windows`). Per clip: `corrupted/` (the
+  sparse fit's render), `clean/` (the clean scene's render), `clean_depth.npy` and
+  `clean_alpha.npy`, and `cameras.json`.
 - A capture of real photos: the clips are runs of `frames` consecutive photos along the real camera
   sequence (video order, or a nearest-neighbour path when the photos have none: `trajectory.camera_sequence`),
-  as far from the training photos as the sequence allows, and `clean/` holds the photos themselves, so the 2D metrics and the re-fit's held-out frames are
-  scored against real pixels; the depth and alpha stay the clean fit's (the geometry's reference).
+  as far from the training photos as the sequence allows, and `clean/` holds the photos themselves,
+  so the 2D metrics and the re-fit's held-out frames are scored against real pixels; the depth and alpha stay the clean fit's (the geometry's reference).
 """
 
 from __future__ import annotations
@@ -114,8 +114,8 @@ def photo_clips(folder: Path, frames: int, per_scene: int,
     from morphgs.trajectory import camera_sequence
 
     posed = load_posed_images(folder)
-    order = camera_sequence(np.stack([c.center for c in posed.cameras]))
     centers = np.stack([c.center for c in posed.cameras])
+    order = camera_sequence(centers)
     train = centers[train_views] if train_views else np.zeros((0, 3))
     (w, h), _ = Counter((c.width, c.height) for c in posed.cameras).most_common(1)[0]
     out = []
