@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import csv
+import signal
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -162,3 +164,77 @@ def test_the_dry_run_estimates_gaussian_count_follows_a_real_mcmc_fit(dataset: P
     assert mean_gaussians(3000, 6000, 250, refine_start=50, refine_every=50, refine_stop=101) == pytest.approx(
         (100 * 3000 + 150 * 3150) / 250)
     assert mean_gaussians(3000, 6000, 250, refine_start=50, refine_every=50, refine_stop=100) == 3000
+
+
+@pytest.fixture
+def ctrl_c_raises() -> Iterator[None]:
+    """SIGINT raising KeyboardInterrupt, as in a terminal (a background `make test &` ignores it)."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
+def test_a_ctrl_c_at_a_batch_of_step_rows_hands_the_batch_over_again_before_the_checkpoint(
+        tmp_path: Path, ctrl_c_raises: None) -> None:
+    # The race of a Ctrl-C landing as a batch of rows reaches Python: the callback raises before
+    # it wrote anything. The native loop must hand that batch over again before the checkpoint
+    # the stop writes, or the resumed run starts after rows nobody wrote.
+    from fit_helpers import orbit_cameras
+
+    from morphgs import _core, synthetic
+
+    scene = synthetic.scene(800, sh_degree=1, seed=0)
+    cams = orbit_cameras(6, (32, 24))
+    imgs = list(morphgs.render(scene, cams).to_uint8())
+    w2c = np.stack([c.world_to_camera for c in cams]).astype(np.float64)
+    K = np.stack([c.K for c in cams]).astype(np.float64)
+    cfg = FitConfig.from_dict(small_config(300)).native(1.0)
+    trainer = _core.Trainer(synthetic.scene(300, sh_degree=1, seed=1), imgs, w2c, K, config=cfg)
+    got: list[list[int]] = []
+    checkpoints: list[int] = []
+    interrupted: list[int] = []
+
+    def callback(kind: str, payload: object) -> None:
+        if kind == "steps":
+            steps = [r["step"] for r in payload]  # type: ignore[attr-defined]
+            if steps and steps[-1] >= 150 and not interrupted:
+                interrupted.append(steps[-1])
+                signal.raise_signal(signal.SIGINT)  # raises here, before the batch is taken
+            got.append(steps)
+        elif kind == "checkpoint":
+            checkpoints.append(payload["step"])  # type: ignore[index]
+
+    with pytest.raises(KeyboardInterrupt):
+        trainer.run(300, callback=callback, checkpoint=tmp_path / "ck.bin", checkpoint_every=100,
+                    progress_every=1e9)  # one batch per checkpoint: steps 1-100, 101-200
+    stop = trainer.step
+    assert interrupted == [200] and stop == 200 and checkpoints == [100, 200]
+    # every step up to the checkpoint was handed over and acknowledged once, in order
+    assert [s for batch in got for s in batch] == list(range(1, stop + 1))
+
+
+def test_a_ctrl_c_in_the_callback_leaves_each_row_once_and_the_run_resumes_to_the_same_rows(
+        dataset: Path, tmp_path: Path, ctrl_c_raises: None) -> None:
+    cfg = small_config(300, output={"eval_every": 300, "checkpoint_every": 100, "preview_every": 300,
+                                    "progress_every": 1e9})
+    straight = fit(dataset, tmp_path / "straight", config=cfg, init="points", progress=False)
+    seen: list[int] = []
+
+    def callback(kind: str, payload: object) -> None:
+        if kind == "steps":
+            seen.extend(r["step"] for r in payload)  # type: ignore[attr-defined]
+            if seen[-1:] == [200]:
+                signal.raise_signal(signal.SIGINT)  # after fit's logger wrote the batch
+
+    run = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        fit(dataset, run, config=cfg, init="points", progress=False, callback=callback)
+    # the batch came again (the native loop cannot know how much of it was written); no row twice
+    assert seen == list(range(1, 201))
+    assert [int(r["step"]) for r in _rows(run / "loss.csv")] == list(range(1, 201))
+    resumed = fit(dataset, run, config=cfg, init="points", progress=False)
+    assert resumed.ply.read_bytes() == straight.ply.read_bytes()
+    def losses(r: Path) -> list[tuple[str, ...]]:  # the numbers (not the timings)
+        return [(x["step"], x["view"], x["loss"], x["psnr"], x["gaussians"]) for x in _rows(r / "loss.csv")]
+
+    assert losses(run) == losses(tmp_path / "straight")

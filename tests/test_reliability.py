@@ -403,3 +403,27 @@ def test_every_failure_is_one_line_naming_the_file(cmd: str, args: list[str], na
     r = _run(cmd, *[a.format(**fill) for a in args])
     line = one_error_line(r.returncode, r.stderr, cmd)
     assert names.format(**fill) in line
+
+
+def test_signals_held_delivers_ctrl_c_and_sigterm_after_the_block_to_the_handlers_of_before() -> None:
+    from morphgs.reliability import Preempted, sigterm_raises, signals_held
+
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        done = []
+        with pytest.raises(KeyboardInterrupt):
+            with signals_held():
+                signal.raise_signal(signal.SIGINT)
+                done.append("rows written")  # the block ran to its end first
+        assert done == ["rows written"]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        with sigterm_raises():
+            with pytest.raises(Preempted):
+                with signals_held():
+                    signal.raise_signal(signal.SIGTERM)
+                    done.append("again")
+        assert done[-1] == "again"
+        with signals_held():  # nothing arrived: nothing raised
+            done.append("quiet")
+    finally:
+        signal.signal(signal.SIGINT, old)

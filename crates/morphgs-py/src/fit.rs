@@ -265,36 +265,48 @@ fn record_dict<'py>(py: Python<'py>, r: &StepRecord) -> PyResult<Bound<'py, PyDi
 }
 
 impl PyHooks {
-    /// Call the Python callback with (kind, payload); True (or an exception) stops the run.
-    fn call(&mut self, py: Python<'_>, kind: &str, payload: Bound<'_, PyAny>) -> Flow {
+    /// Call the Python callback with (kind, payload): Ok(Stop) when it returned True.
+    fn try_call(&self, py: Python<'_>, kind: &str, payload: Bound<'_, PyAny>) -> PyResult<Flow> {
         let Some(cb) = &self.callback else {
-            return Flow::Continue;
+            return Ok(Flow::Continue);
         };
-        match cb.bind(py).call1((kind, payload)) {
-            Ok(v) => {
-                if v.is_truthy().unwrap_or(false) {
-                    Flow::Stop
-                } else {
-                    Flow::Continue
-                }
-            }
-            Err(e) => {
-                self.error.get_or_insert(e);
-                Flow::Stop
-            }
-        }
+        let v = cb.bind(py).call1((kind, payload))?;
+        Ok(if v.is_truthy().unwrap_or(false) {
+            Flow::Stop
+        } else {
+            Flow::Continue
+        })
     }
 
+    /// Call the Python callback with (kind, payload); True (or an exception) stops the run.
+    fn call(&mut self, py: Python<'_>, kind: &str, payload: Bound<'_, PyAny>) -> Flow {
+        self.try_call(py, kind, payload).unwrap_or_else(|e| {
+            self.error.get_or_insert(e);
+            Flow::Stop
+        })
+    }
+
+    /// Hand the step records gathered since the last call to the callback. A batch the callback
+    /// raised on (a Ctrl-C that landed in it) is kept and handed over again with the next one,
+    /// at the latest at the checkpoint the stop writes: the callback cannot say how much of it
+    /// it wrote, so it skips the steps it already has (fit.run's logger does), and no row before
+    /// the checkpoint is lost.
     fn flush(&mut self, py: Python<'_>) -> Flow {
         if self.pending.is_empty() {
             return Flow::Continue;
         }
-        let recs: PyResult<Vec<Bound<'_, PyDict>>> =
-            self.pending.iter().map(|r| record_dict(py, r)).collect();
-        self.pending.clear();
         self.last = Instant::now();
-        match recs.and_then(|r| PyList::new(py, r)) {
-            Ok(list) => self.call(py, "steps", list.into_any()),
+        let list = self
+            .pending
+            .iter()
+            .map(|r| record_dict(py, r))
+            .collect::<PyResult<Vec<_>>>()
+            .and_then(|r| PyList::new(py, r));
+        match list.and_then(|l| self.try_call(py, "steps", l.into_any())) {
+            Ok(f) => {
+                self.pending.clear();
+                f
+            }
             Err(e) => {
                 self.error.get_or_insert(e);
                 Flow::Stop
@@ -513,7 +525,9 @@ impl PyTrainer {
     ///         dicts, batched every `progress_every` seconds and before every checkpoint and
     ///         evaluation), "eval_view" (step, view, psnr, ssim, rgb (H,W,3) float32),
     ///         "eval" (step, mean psnr, mean ssim) and "checkpoint" (step). A true return
-    ///         value stops the run (after a checkpoint).
+    ///         value stops the run (after a checkpoint). When the callback raises on a "steps"
+    ///         batch (a Ctrl-C landing in it), the batch comes again with the next one, before
+    ///         the checkpoint: skip the steps you already have.
     ///     eval_every: evaluate the held-out views every this many steps and at the end (0:
     ///         never).
     ///     checkpoint: checkpoint file, written atomically every `checkpoint_every` steps, at

@@ -41,7 +41,7 @@ from morphgs.camera import Camera
 from morphgs.fit.config import FitConfig
 from morphgs.fit.data import PosedImages, describe, load_posed_images
 from morphgs.fit.views import ViewSelection, select_views
-from morphgs.reliability import folder_lock
+from morphgs.reliability import folder_lock, signals_held
 
 __all__ = ["FitPastError", "FitResult", "FitRunError", "fit", "random_init_on_purpose", "scene_scale_of"]
 
@@ -225,11 +225,22 @@ class _Logger:
         self.eval_views = open(run / "eval_views.csv", "a", encoding="utf-8", newline="")
         self.last: dict[str, Any] = {}
         self.last_eval: dict[str, Any] = {}
+        self.written = 0  # the last step whose loss row is written (the file holds those before the start)
 
     def __call__(self, kind: str, payload: Any) -> Any:
+        with signals_held():  # a Ctrl-C raises once this event's rows are all written
+            payload = self._log(kind, payload)
+        if self.user is not None:
+            return self.user(kind, payload)
+        return None
+
+    def _log(self, kind: str, payload: Any) -> Any:
         if kind == "steps":
+            # a batch comes again when a Ctrl-C landed in its call (Trainer.run): skip what is written
+            payload = [r for r in payload if r["step"] > self.written]
             for r in payload:
                 self.loss.write(",".join(_fmt(r[c]) for c in LOSS_COLUMNS) + "\n")
+                self.written = r["step"]
                 for what in ("duplicated", "split", "pruned", "relocated", "added"):
                     if r[what] and self.verbose:
                         self.bar.write(f"step {r['step']}: {r['duplicated']} duplicated, {r['split']} split, "
@@ -271,9 +282,7 @@ class _Logger:
                                + (f", LPIPS {lp:.4f}" if lp is not None else ""))
         elif kind == "checkpoint":
             _keep_previous(self.run / "checkpoint.bin")
-        if self.user is not None:
-            return self.user(kind, payload)
-        return None
+        return payload
 
     def close(self) -> None:
         for f in (self.loss, self.eval, self.eval_views):

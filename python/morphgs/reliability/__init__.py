@@ -31,7 +31,7 @@ from morphgs.reliability.checksums import ChecksumError, verify_checksums, write
 from morphgs.reliability.errors import one_line, unwrap_worker_message
 from morphgs.reliability.lock import LOCK_PREFIX, FolderBusyError, FolderLock, add_wait_argument, folder_lock, is_lock_file, \
     locks_folder
-from morphgs.reliability.signals import Preempted, StopRequest, sigterm_raises
+from morphgs.reliability.signals import Preempted, StopRequest, sigterm_raises, signals_held
 
 __all__ = [
     "LOCK_PREFIX",

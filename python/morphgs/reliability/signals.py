@@ -13,6 +13,9 @@ to handle it:
   (`morphgs train` finishes the step, writes a checkpoint and returns); a second Ctrl-C raises
   KeyboardInterrupt at once.
 
+`signals_held()` holds both for a few writes that must land together (`morphgs fit`'s batch of
+loss rows) and delivers them when the block ends.
+
 Both restore the previous handlers on exit and do nothing outside the main thread.
 """
 
@@ -25,7 +28,7 @@ from contextlib import contextmanager
 from types import FrameType
 from typing import Any
 
-__all__ = ["Preempted", "StopRequest", "sigterm_raises"]
+__all__ = ["Preempted", "StopRequest", "sigterm_raises", "signals_held"]
 
 
 class Preempted(KeyboardInterrupt):
@@ -42,6 +45,30 @@ def _main_thread() -> bool:
 
 def _raise_preempted(signum: int, frame: FrameType | None) -> None:
     raise Preempted(signum)
+
+
+@contextmanager
+def signals_held() -> Iterator[None]:
+    """Within the block, SIGINT and SIGTERM wait: each one that arrives is delivered again, to the
+    handler of before, when the block ends (so Ctrl-C raises there). For a few writes that must
+    land together (a batch of CSV rows that a checkpoint counts on). Nothing outside the main
+    thread, nor for a signal that is ignored."""
+    if not _main_thread():
+        yield
+        return
+    caught: list[int] = []
+    old: dict[int, Any] = {}
+    try:
+        for s in (signal.SIGINT, signal.SIGTERM):
+            h = signal.getsignal(s)
+            if h is not None and h != signal.SIG_IGN:
+                old[s] = signal.signal(s, lambda signum, frame: caught.append(signum))
+        yield
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+        for n in dict.fromkeys(caught):
+            signal.raise_signal(n)
 
 
 @contextmanager
