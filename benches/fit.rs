@@ -2,12 +2,15 @@
 //! 648x420, benches/garden): the loss with its gradient (L1 + SSIM), one Adam step over every
 //! parameter of the garden-sized initial scene, and one whole training step (forward, loss,
 //! backward, Adam) of a fit initialised from the garden points (3-NN scales, opacity 0.1,
-//! SH degree 3 stored, degree 0 in use) against renders of the garden scene.
+//! SH degree 3 stored, degree 0 in use) against renders of the garden scene; and the MCMC
+//! strategy's per-step passes (position noise, regularisers) over the same Gaussians.
 //!
 //!     cargo bench -p splat-core --bench fit
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion, Throughput};
 use splat_core::camera::Camera;
+use splat_core::fit::config::McmcStrategy;
 use splat_core::fit::loss::LossWorkspace;
+use splat_core::fit::mcmc;
 use splat_core::fit::params::{AdamParams, Params, GROUPS};
 use splat_core::fit::{init, FitConfig, Trainer, View};
 use splat_core::raster::{render_into, RenderOptions};
@@ -112,6 +115,23 @@ fn bench_fit(c: &mut Criterion) {
     g.throughput(Throughput::Elements(1));
     g.bench_function(format!("train_step_{threads}threads"), |b| {
         b.iter(|| trainer.step_once().expect("step"))
+    });
+
+    // the MCMC strategy's work at every step over the 111,785 Gaussians: the position noise
+    // (outside its refine steps) and the regularisers' gradients
+    let mcmc = McmcStrategy::default();
+    let mut p = Params::from_view(&start.view());
+    let mut step = 1u32;
+    g.throughput(Throughput::Elements(start.len() as u64));
+    g.bench_function(format!("mcmc_noise_{threads}threads"), |b| {
+        b.iter(|| {
+            step += 2; // odd: never a refine step
+            mcmc::post_step(&mcmc, &mut p, step, 1.6e-4, 0)
+        })
+    });
+    let (mut go, mut gs) = (vec![0.0f32; start.len()], vec![0.0f32; 3 * start.len()]);
+    g.bench_function(format!("mcmc_regularisers_{threads}threads"), |b| {
+        b.iter(|| mcmc::add_regularisers(&mcmc, &p, &mut go, &mut gs))
     });
     g.finish();
 }

@@ -15,13 +15,16 @@
 //!   noise_lr), eps ~ N(0, I), Sigma the full 3x3 covariance R S S R^T.
 //!
 //! Multinomial draws and the noise come from the counter-based generator keyed by (seed, step,
-//! index), so the result does not depend on threads.
+//! index), so the result does not depend on threads. The noise and the regularisers run every
+//! step over every Gaussian: their kernels (`mcmc_kernels`) vectorise, with the same bits at every
+//! SIMD level.
 use rayon::prelude::*;
 
-use crate::rng::Stream;
+use crate::raster::Simd;
 
 use super::config::McmcStrategy;
-use super::densify::{logit, rotmat, sigmoid, RefineReport};
+use super::densify::{logit, sigmoid, RefineReport};
+use super::mcmc_kernels::{noise_chunk, opacity_reg_chunk, scale_reg_chunk};
 use super::params::{Params, OPACITY, SCALES};
 use super::rand::{key, multinomial, OP_ADD, OP_NOISE, OP_RELOCATE};
 
@@ -132,6 +135,7 @@ const NOISE_CHUNK: usize = 4096;
 /// Add the MCMC position noise (scaler = lr_means * noise_lr).
 fn inject_noise(p: &mut Params, scaler: f32, step: u32, seed: u64) {
     let k = key(seed, OP_NOISE, step as u64);
+    let level = Simd::Auto.resolve();
     let [means, quats, scales, opac, ..] = &mut p.groups;
     let (quats, scales, opac) = (&quats.value, &scales.value, &opac.value);
     means
@@ -139,31 +143,17 @@ fn inject_noise(p: &mut Params, scaler: f32, step: u32, seed: u64) {
         .par_chunks_mut(3 * NOISE_CHUNK)
         .enumerate()
         .for_each(|(c, chunk)| {
-            for (j, mu) in chunk.chunks_mut(3).enumerate() {
-                let i = c * NOISE_CHUNK + j;
-                let o = sigmoid(opac[i]);
-                let gate = 1.0 / (1.0 + (-100.0 * ((1.0 - o) - 0.995)).exp());
-                let f = gate * scaler;
-                if f == 0.0 {
-                    continue;
-                }
-                let eps: [f32; 3] = Stream::new(k, i as u64).normals();
-                let r = rotmat(&quats[i * 4..i * 4 + 4]);
-                let s2 = [
-                    (2.0 * scales[i * 3]).exp(),
-                    (2.0 * scales[i * 3 + 1]).exp(),
-                    (2.0 * scales[i * 3 + 2]).exp(),
-                ];
-                // Sigma e = R (S^2 (R^T e))
-                let e = [eps[0] * f, eps[1] * f, eps[2] * f];
-                let mut t = [0.0f32; 3];
-                for a in 0..3 {
-                    t[a] = (r[0][a] * e[0] + r[1][a] * e[1] + r[2][a] * e[2]) * s2[a];
-                }
-                for (a, m) in mu.iter_mut().enumerate() {
-                    *m += r[a][0] * t[0] + r[a][1] * t[1] + r[a][2] * t[2];
-                }
-            }
+            let (a, n) = (c * NOISE_CHUNK, chunk.len() / 3);
+            noise_chunk(
+                level,
+                chunk,
+                &quats[4 * a..4 * (a + n)],
+                &scales[3 * a..3 * (a + n)],
+                &opac[a..a + n],
+                scaler,
+                k,
+                a,
+            );
         });
 }
 
@@ -202,17 +192,14 @@ pub fn add_regularisers(
     let ls = &p.groups[SCALES].value;
     let co = ro / n as f32;
     let cs = rs / (3 * n) as f32;
+    let level = Simd::Auto.resolve();
     let so: f64 = g_logits
         .par_chunks_mut(NOISE_CHUNK)
         .zip(logits.par_chunks(NOISE_CHUNK))
         .map(|(g, l)| {
-            let mut s = 0.0f64;
-            for (g, &l) in g.iter_mut().zip(l) {
-                let o = sigmoid(l);
-                s += o as f64;
-                *g += co * o * (1.0 - o);
-            }
-            s
+            let mut o = vec![0.0f32; l.len()];
+            opacity_reg_chunk(level, g, l, &mut o, co);
+            o.iter().fold(0.0f64, |s, &o| s + o as f64)
         })
         .collect::<Vec<f64>>()
         .iter()
@@ -221,13 +208,9 @@ pub fn add_regularisers(
         .par_chunks_mut(3 * NOISE_CHUNK)
         .zip(ls.par_chunks(3 * NOISE_CHUNK))
         .map(|(g, l)| {
-            let mut s = 0.0f64;
-            for (g, &l) in g.iter_mut().zip(l) {
-                let e = l.exp();
-                s += e as f64;
-                *g += cs * e;
-            }
-            s
+            let mut e = vec![0.0f32; l.len()];
+            scale_reg_chunk(level, g, l, &mut e, cs);
+            e.iter().fold(0.0f64, |s, &e| s + e as f64)
         })
         .collect::<Vec<f64>>()
         .iter()

@@ -20,6 +20,7 @@ pub mod densify;
 pub mod init;
 pub mod loss;
 pub mod mcmc;
+mod mcmc_kernels;
 pub mod params;
 pub mod rand;
 pub mod run;
