@@ -23,11 +23,13 @@ UNIT = {
     # toy preset, 128x128, 30k-Gaussian rooms; docs/ablation.md
     "render": 4.5e-12,      # s per (pixel x Gaussian) of a render incl. writing (captures: 0.18 s per 96 views)
     # a fit's step costs a pixel term and a Gaussian term; at the study sizes the Gaussians set it
-    # (a 3,000-step toy fit: 4.5 ms a step at 20k Gaussians, 14 ms at its 60k cap, one thread)
+    # (a 3,000-step toy fit: 4.3 ms a step at 20k Gaussians, 12.4 ms over its last 1,000 steps as
+    # it grows from 40k to the 60k cap, one thread; 0.72x the Gaussian term of before the MCMC
+    # noise was vectorised, which took the toy study's fit stages to 0.73x their job-seconds)
     "fit": 2.5e-8,          # s per (pixel x step) of a fit (sparse, clean or re-fit)
-    "fit_gauss": 1.2e-7,    # s per (Gaussian x step) of a fit (the mean count of `mean_gaussians`)
+    "fit_gauss": 8.6e-8,    # s per (Gaussian x step) of a fit (the mean count of `mean_gaussians`)
     "score3d": 0.05,        # s per re-fit besides the fit: rendering and scoring it
-    "train_tiny": 9.0e-7,   # s per (pixel x frame x step) of the default tiny refiner incl. CKA probes
+    "train_tiny": 9.8e-7,   # s per (pixel x frame x step) of the default tiny refiner incl. CKA probes (toy: 38.8 s a run)
     "refine": 3.2e-7,       # s per (pixel x frame) of refine + write
     "metrics2d": 4.0e-7,    # s per (pixel x frame): PSNR, SSIM, LPIPS, E_flow (DIS)
     "calibrate": 1.5,       # s per calibration stage besides its renders (statistics, goodness of fit, plots;
