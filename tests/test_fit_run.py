@@ -7,6 +7,7 @@ import signal
 import json
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -194,15 +195,15 @@ def test_a_ctrl_c_at_a_batch_of_step_rows_hands_the_batch_over_again_before_the_
     checkpoints: list[int] = []
     interrupted: list[int] = []
 
-    def callback(kind: str, payload: object) -> None:
+    def callback(kind: str, payload: Any) -> None:
         if kind == "steps":
-            steps = [r["step"] for r in payload]  # type: ignore[attr-defined]
+            steps = [r["step"] for r in payload]
             if steps and steps[-1] >= 150 and not interrupted:
                 interrupted.append(steps[-1])
                 signal.raise_signal(signal.SIGINT)  # raises here, before the batch is taken
             got.append(steps)
         elif kind == "checkpoint":
-            checkpoints.append(payload["step"])  # type: ignore[index]
+            checkpoints.append(payload["step"])
 
     with pytest.raises(KeyboardInterrupt):
         trainer.run(300, callback=callback, checkpoint=tmp_path / "ck.bin", checkpoint_every=100,
@@ -220,9 +221,9 @@ def test_a_ctrl_c_in_the_callback_leaves_each_row_once_and_the_run_resumes_to_th
     straight = fit(dataset, tmp_path / "straight", config=cfg, init="points", progress=False)
     seen: list[int] = []
 
-    def callback(kind: str, payload: object) -> None:
+    def callback(kind: str, payload: Any) -> None:
         if kind == "steps":
-            seen.extend(r["step"] for r in payload)  # type: ignore[attr-defined]
+            seen.extend(r["step"] for r in payload)
             if seen[-1:] == [200]:
                 signal.raise_signal(signal.SIGINT)  # after fit's logger wrote the batch
 
