@@ -183,6 +183,29 @@ def test_two_accumulated_micro_batches_train_like_one_batch_of_two(two_pairs: Pa
         torch.testing.assert_close(a[k], b[k], rtol=1e-4, atol=1e-5)
 
 
+def test_fused_adamw_trains_like_the_per_tensor_update_and_falls_back_where_torch_has_none(
+        two_pairs: Path, tmp_path: Path) -> None:
+    """`[optim] fused` (the default) takes torch's fused AdamW: the same update in another
+    rounding, so three real steps land within float rounding of the per-tensor loop's weights;
+    a device torch has no fused kernel for falls back to the loop and says so."""
+    from morphgs.training.config import OptimConfig
+    from morphgs.training.loop import _adamw
+
+    weights = []
+    for fused in (True, False):
+        over = small_overrides(optim={"max_steps": 3, "fused": fused}, run={"checkpoint_every": 0})
+        result = train(two_pairs, out=tmp_path / f"fused-{fused}", overrides=over, progress=False)
+        weights.append(load_file(str(result.checkpoint / "trained.safetensors")))
+    assert any(not torch.equal(weights[0][k], weights[1][k]) for k in weights[0])  # it did run fused
+    for k in weights[0]:
+        torch.testing.assert_close(weights[0][k], weights[1][k], rtol=1e-5, atol=1e-6)
+    said: list[str] = []
+    p = torch.nn.Parameter(torch.zeros(4, device="meta"))
+    opt = _adamw([p], OptimConfig(), said.append)
+    assert not opt.defaults.get("fused") and len(said) == 1 and "per-tensor update" in said[0]
+    assert _adamw([torch.nn.Parameter(torch.zeros(4))], OptimConfig(), said.append).defaults["fused"]
+
+
 def test_live_pairs_train_and_validate_on_a_curated_test_split(data: Path, tmp_path: Path) -> None:
     scene = REPO / "tests" / "fixtures" / "marcelpadilla_spot_10k.splat"
     over = small_overrides(data={"live": True, "samples_per_epoch": 4, "live_threads": 1},

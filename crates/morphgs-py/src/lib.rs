@@ -12,6 +12,7 @@ mod perturb;
 mod pool;
 mod render;
 mod scene;
+mod ssim;
 
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -25,6 +26,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     fit::register(m)?;
     formats::register(m)?;
     perturb::register(m)?;
+    ssim::register(m)?;
     m.add_function(wrap_pyfunction!(num_threads, m)?)?;
     Ok(())
 }

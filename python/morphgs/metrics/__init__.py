@@ -45,7 +45,7 @@ from morphgs.metrics.geometry import (
     point_cloud_metrics_at,
     scene_points,
 )
-from morphgs.metrics.image import psnr, ssim
+from morphgs.metrics.image import psnr, ssim, ssim_3dgs
 from morphgs.metrics.perceptual import lpips, lpips_model
 
 __all__ = [
@@ -77,6 +77,7 @@ __all__ = [
     "psnr",
     "scene_points",
     "ssim",
+    "ssim_3dgs",
     "temporal_errors",
     "warp",
     "warping_error",

@@ -59,6 +59,7 @@ class OptimConfig:
     grad_clip: float = 1.0
     grad_accum: int = 1
     max_steps: int = 2000
+    fused: bool = True
 
     def __post_init__(self) -> None:
         if self.lr <= 0 or self.max_steps < 1 or self.grad_accum < 1:

@@ -156,8 +156,7 @@ def _run(accelerator: Any, resolved: ResolvedConfig, run_dir: Path, data_dir: Pa
     set_seed(cfg.seed, device_specific=True)  # then each process its own random stream (dropout)
 
     o = cfg.optim
-    optimizer = torch.optim.AdamW(refiner.param_groups(lr=o.lr, weight_decay=o.weight_decay), lr=o.lr,
-                                  betas=o.betas, eps=o.eps, weight_decay=o.weight_decay)
+    optimizer = _adamw(refiner.param_groups(lr=o.lr, weight_decay=o.weight_decay), o, say)
     scheduler = make_scheduler(optimizer, warmup=o.warmup, total_steps=o.max_steps, schedule=o.schedule)
     model_p, optimizer_p = accelerator.prepare(refiner, optimizer)
     state = TrainState()
@@ -259,6 +258,32 @@ def _run(accelerator: Any, resolved: ResolvedConfig, run_dir: Path, data_dir: Pa
     say(f"done: {state.step} steps in {result.seconds:.1f} s; checkpoint {result.checkpoint}")
     accelerator.wait_for_everyone()
     return result
+
+
+def _adamw(groups: Any, o: Any, say: Callable[[str], None]) -> Any:
+    """AdamW with `[optim]`'s settings; `fused` takes torch's one-kernel-per-tensor update (on a
+    CPU 1.7 ms a step for the tiny refiner's 2.8 M parameters against 8.2 ms for the per-tensor
+    loop, the same formula in another rounding: docs/training.md), falling back to the loop where
+    this torch has no fused kernel for the device."""
+    kw = dict(lr=o.lr, betas=o.betas, eps=o.eps, weight_decay=o.weight_decay)
+    if o.fused:
+        groups = list(groups)
+        params = [p for g in groups for p in (g["params"] if isinstance(g, dict) else [g])]
+        try:  # torch checks the devices when it builds the optimizer (< 2.4) or at its first step
+            from torch.utils._foreach_utils import _get_fused_kernels_supported_devices
+
+            devices = set(_get_fused_kernels_supported_devices())
+        except ImportError:
+            devices = {"cuda"}
+        bad = sorted({p.device.type for p in params if p.device.type not in devices or not p.is_floating_point()})
+        try:
+            if bad:
+                raise RuntimeError(f"no fused kernel for {', '.join(bad)} tensors")
+            return torch.optim.AdamW(groups, fused=True, **kw)
+        except (RuntimeError, ValueError, TypeError) as e:
+            say(f"no fused AdamW in torch {torch.__version__} here ({str(e).splitlines()[0][:120]}): "
+                "using the per-tensor update")
+    return torch.optim.AdamW(groups, **kw)
 
 
 def _next_batch(batches: Any) -> Any:
