@@ -29,7 +29,8 @@ UNIT = {
     "fit": 2.5e-8,          # s per (pixel x step) of a fit (sparse, clean or re-fit)
     "fit_gauss": 8.6e-8,    # s per (Gaussian x step) of a fit (the mean count of `mean_gaussians`)
     "score3d": 0.05,        # s per re-fit besides the fit: rendering and scoring it
-    "train_tiny": 9.8e-7,   # s per (pixel x frame x step) of the default tiny refiner incl. CKA probes (toy: 38.8 s a run)
+    "train_tiny": 7.5e-7,   # s per (pixel x frame x step) of the default tiny refiner incl. CKA probes (toy: 29.4 s a run;
+                            # 38.8 s before its SSIM term and AdamW ran natively, docs/training.md)
     "refine": 3.2e-7,       # s per (pixel x frame) of refine + write
     "metrics2d": 4.0e-7,    # s per (pixel x frame): PSNR, SSIM, LPIPS, E_flow (DIS)
     "calibrate": 1.5,       # s per calibration stage besides its renders (statistics, goodness of fit, plots;
