@@ -267,7 +267,8 @@ def _adamw(groups: Any, o: Any, say: Callable[[str], None]) -> Any:
     this torch has no fused kernel for the device."""
     kw = dict(lr=o.lr, betas=o.betas, eps=o.eps, weight_decay=o.weight_decay)
     if o.fused:
-        groups = list(groups)
+        # groups of lists (a group's params may be any iterable: read it once)
+        groups = [{**g, "params": list(g["params"])} if isinstance(g, dict) else g for g in groups]
         params = [p for g in groups for p in (g["params"] if isinstance(g, dict) else [g])]
         try:  # torch checks the devices when it builds the optimizer (< 2.4) or at its first step
             from torch.utils._foreach_utils import _get_fused_kernels_supported_devices
