@@ -39,7 +39,10 @@ def inria_ssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 def _frames() -> tuple[torch.Tensor, torch.Tensor]:
     """Four frames of a real render pair (the guitar scene, clean and perturbed), (N, 3, H, W)."""
     pair = guitar_pair()
-    chw = lambda a: torch.from_numpy(np.ascontiguousarray(np.clip(a, 0, 1), np.float32)).permute(0, 3, 1, 2)  # noqa: E731
+
+    def chw(a: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(np.clip(a, 0, 1), np.float32)).permute(0, 3, 1, 2)
+
     return chw(pair.corrupted.rgb[:4]), chw(pair.clean.rgb[:4])
 
 

@@ -13,6 +13,7 @@ Conventions (both metrics):
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -205,7 +206,7 @@ def ssim_3dgs(pred: Any, target: Any, *, reduction: str = "mean") -> Any:
     lead, (c, h, w) = tuple(p.shape[:-3]), tuple(p.shape[-3:])
     x, y = p.reshape(-1, c, h, w), t.reshape(-1, c, h, w)
     native = (x.device.type == "cpu" and x.dtype == torch.float32 and c == 3 and not y.requires_grad)
-    values = _Ssim3dgsNative.apply(x, y) if native else _ssim_3dgs_torch(x, y)
+    values = _native_ssim_function().apply(x, y) if native else _ssim_3dgs_torch(x, y)
     return A.reduce_torch(values.reshape(lead), reduction)
 
 
@@ -226,7 +227,10 @@ def _ssim_3dgs_torch(x: Any, y: Any) -> Any:
     return smap.mean(dim=(1, 2, 3))
 
 
+@functools.cache
 def _native_ssim_function() -> Any:
+    """The autograd Function over `_core._ssim_batch` (built on first use: torch is imported
+    only then)."""
     import torch
 
     from morphgs import _core
@@ -235,7 +239,7 @@ def _native_ssim_function() -> Any:
         """Per-image SSIM of (N, 3, H, W) float32 CPU tensors by `_core._ssim_batch`."""
 
         @staticmethod
-        def forward(ctx: Any, x: Any, y: Any) -> Any:  # type: ignore[override]
+        def forward(ctx: Any, x: Any, y: Any) -> Any:
             xn = x.detach().permute(0, 2, 3, 1).contiguous().numpy()
             yn = y.detach().permute(0, 2, 3, 1).contiguous().numpy()
             vals, grad = _core._ssim_batch(xn, yn, grad=x.requires_grad)
@@ -244,25 +248,11 @@ def _native_ssim_function() -> Any:
             return torch.from_numpy(vals).to(torch.float32)
 
         @staticmethod
-        def backward(ctx: Any, go: Any) -> Any:  # type: ignore[override]
+        def backward(ctx: Any, go: Any) -> Any:
             (grad,) = ctx.saved_tensors
             return (go.to(grad.dtype)[:, None, None, None] * grad).permute(0, 3, 1, 2), None
 
     return Ssim3dgsNative
-
-
-class _LazyNative:
-    """`_Ssim3dgsNative.apply` without importing torch when this module loads."""
-
-    fn: Any = None
-
-    def apply(self, x: Any, y: Any) -> Any:
-        if self.fn is None:
-            self.fn = _native_ssim_function()
-        return self.fn.apply(x, y)
-
-
-_Ssim3dgsNative = _LazyNative()
 
 
 def gaussian_window(dtype: Any = np.float32) -> np.ndarray:
