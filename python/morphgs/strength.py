@@ -58,14 +58,15 @@ __all__ = ["BASE", "BLUR_MAX_SIGMA", "CLASSIC_OPS", "FAMILIES", "OPS", "POPPING_
 #: The ops of the paper's families, in application order.
 CLASSIC_OPS: tuple[str, ...] = ("position", "color", "opacity", "keep", "log_scale", "rotation")
 #: The sparse-view ops (applied first, from the virtual training cameras).
-SPARSE_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "holes", "dilate", "floaters", "shatter", "popping")
+SPARSE_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "holes", "dilate", "floaters", "shatter", "popping",
+                                "haze")
 #: Every op of the strength parameterisation.
 OPS: tuple[str, ...] = CLASSIC_OPS + SPARSE_OPS
 #: The sparse-view ops of the one native pass `_artifacts` (shatter follows it, popping draws its
 #: caps after both).
 ARTIFACT_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "holes", "dilate", "floaters")
 #: The sparse-view ops that need training cameras (all but holes and dilate).
-CAMERA_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "floaters", "shatter", "popping")
+CAMERA_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "floaters", "shatter", "popping", "haze")
 #: The sparse-view ops whose value is a fraction, 1 - (1 - b) ** s at strength s.
 FRACTION_OPS: tuple[str, ...] = ("needles", "holes", "popping")
 #: The scene extras that carry the popping caps (axis x, y, z and cap height h; docs/artifacts.md):
@@ -80,11 +81,12 @@ TRAIN_EVERY = 8
 #: ray at one sigma), view_color 0.3 (SH units), needles 0.2 and holes 0.1 (fractions), dilate 0.3
 #: (a factor 1.35 on every scale), floaters 0.2 per thousand training pixels, shatter 1.0 (63 % of
 #: the Gaussians replaced by fragments at a log-depth spread of 0.3), popping 0.3 (the share of
-#: median-sized opaque Gaussians that pop).
+#: median-sized opaque Gaussians that pop), haze 1.0 (250 faint Gaussians per training view beside
+#: the cameras, `morphgs.haze`: the population measured in real sparse fits).
 BASE: dict[str, float] = {"position": 0.002, "color": 0.05, "opacity": 0.05, "keep": 0.5,
                           "log_scale": 0.5, "rotation": 0.5, "depth": 0.3, "view_color": 0.3, "needles": 0.2,
                           "holes": 0.1, "dilate": 0.3, "floaters": 0.2, "shatter": 1.0,
-                          "popping": 0.3}
+                          "popping": 0.3, "haze": 1.0}
 
 #: The families and their ops: the paper's four (unchanged), one per sparse-view op, and
 #: `sparse-like`, the sparse-view ops together.
@@ -97,7 +99,7 @@ FAMILIES: dict[str, tuple[str, ...]] = {
     "sparse-like": ("depth", "view_color", "needles", "holes", "floaters"),
 }
 #: Bounds of the effective values the kernel takes (larger strengths saturate there).
-_LIMITS = {"depth": 4.0, "dilate": 8.0, "floaters": 10.0, "shatter": 8.0}
+_LIMITS = {"depth": 4.0, "dilate": 8.0, "floaters": 10.0, "shatter": 8.0, "haze": 16.0}
 
 
 def _number(value: Any, what: str) -> float:
@@ -171,7 +173,7 @@ class Strength:
     @property
     def needs_cameras(self) -> bool:
         """Whether an enabled op needs the pair's cameras (depth, view_color, needles, floaters,
-        shatter, popping)."""
+        shatter, popping, haze)."""
         return any(op in self.base for op in CAMERA_OPS)
 
     def values(self) -> dict[str, float]:
@@ -236,7 +238,8 @@ class Strength:
 
         The sparse-view ops run first (`_artifacts`, ops 10-14; their training cameras are every
         `train_every`-th of `cameras`, the floaters coloured from clean renders of them), then
-        shatter (`morphgs.shatter`), then popping draws its caps on their output (`_popping`, op 15;
+        shatter (`morphgs.shatter`), then haze appends its Gaussians (`morphgs.haze`, kept by the
+        paper's pruning), then popping draws its caps on their output (`_popping`, op 15;
         the caps become the scene extras `POPPING_EXTRAS`), then the paper's ops in one pass (ops 1
         to 4, 7 and 8), the holes removed with the pruning (the caps follow their rows). The noise
         of input Gaussian i is a pure function of (seed, op, i) in each.
@@ -249,7 +252,7 @@ class Strength:
                 instead of every `train_every`-th of `cameras`.
 
         Returns the scene, or (scene, keep-mask) with return_mask=True (the mask has a row per
-        input Gaussian and, after them, per floater).
+        input Gaussian and, after them, per floater, fragment and haze Gaussian).
 
         Raises:
             ValueError: a sparse-view op that needs cameras without them (names the ops).
@@ -268,6 +271,8 @@ class Strength:
                                  "pair's cameras (cameras=...)")
             if any(k in v for k in (*ARTIFACT_OPS, "shatter")):
                 scene, keep = self._sparse_ops(scene, v, seed, cameras, train_cameras)
+            if v.get("haze", 0.0) > 0.0:
+                scene, keep = self._haze(scene, keep, v["haze"], seed, cameras, train_cameras)
             if v.get("popping", 0.0) > 0.0:
                 scene = self._popping(scene, v["popping"], seed, cameras, train_cameras)
         result: Any = _perturb(
@@ -276,6 +281,35 @@ class Strength:
             scale_noise=None, rotation_noise=None, log_scale_noise=v.get("log_scale"),
             rotation_angle=v.get("rotation"), seed=seed, return_mask=return_mask, keep=keep)
         return result
+
+    def _haze(self, scene: GaussianScene, keep: Any, value: float, seed: int, cameras: Any,
+              train_cameras: Any = None) -> tuple[GaussianScene, Any]:
+        """`scene` with the haze Gaussians (`morphgs.haze`) appended, and `keep` (None: keep
+        all) with a True row for each."""
+        from morphgs.haze import haze_gaussians
+
+        train = self._train_views(cameras, train_cameras)
+        if len(train) < 2:  # its distances are in units of the training cameras' spacing
+            given = ("the given train_cameras" if train_cameras is not None
+                     else f"every {self.train_every}th of the pair's {len(cameras)} cameras")
+            raise ValueError(f"haze needs at least 2 virtual training cameras, got {len(train)} ({given}): "
+                             "use a longer path or a smaller train_every")
+        h = haze_gaussians(value, train.world_to_camera, train.K, int(train.width), int(train.height), seed)
+        m = len(h["means"])
+        if m == 0:
+            return scene, keep
+        sh_rest = np.asarray(scene.sh_rest, np.float32)
+        extras = {k: np.concatenate([a, np.zeros((m, *a.shape[1:]), a.dtype)]) for k, a in scene.extras.items()}
+        joined = GaussianScene.from_arrays(
+            means=np.concatenate([scene.means, h["means"]]), quats=np.concatenate([scene.quats, h["quats"]]),
+            log_scales=np.concatenate([scene.log_scales, h["log_scales"]]),
+            opacity_logits=np.concatenate([scene.opacity_logits, h["opacity_logits"]]),
+            sh0=np.concatenate([scene.sh0, h["sh0"]]),
+            sh_rest=np.concatenate([sh_rest, np.zeros((m, *sh_rest.shape[1:]), np.float32)]),
+            extras=extras or None)
+        if keep is not None:
+            keep = np.ascontiguousarray(np.concatenate([np.asarray(keep, bool), np.ones(m, bool)]))
+        return joined, keep
 
     def _popping(self, scene: GaussianScene, fraction: float, seed: int, cameras: Any,
                  train_cameras: Any = None) -> GaussianScene:

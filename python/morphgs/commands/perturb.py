@@ -176,14 +176,14 @@ def run(args: argparse.Namespace) -> int:
     morphgs.save_ply(out, args.output)
     if args.mask:
         np.save(args.mask, mask)
-    kept = int(np.count_nonzero(mask[:len(scene)]))  # the mask's rows past the input's are floaters
+    kept = int(np.count_nonzero(mask[:len(scene)]))  # the mask's rows past the input's: added Gaussians
     summary = {"input": str(args.input), "output": str(args.output), "seed": args.seed, "gaussians_in": len(scene),
                "kept": kept, "pruned": len(scene) - kept, "spawned": len(mask) - len(scene), **extra}
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
     print(f"perturbed {args.input} -> {args.output}{label}, seed {args.seed}")
-    spawned = f", {summary['spawned']:,} floaters spawned" if summary["spawned"] else ""
+    spawned = f", {summary['spawned']:,} added (floaters, shatter fragments, haze)" if summary["spawned"] else ""
     print(f"  gaussians : {len(scene):,} in, {kept:,} kept, {len(scene) - kept:,} pruned{spawned}")
     print(f"  operations: {ops or 'none'}")
     if "popping" in summary:

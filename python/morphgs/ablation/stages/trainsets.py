@@ -65,7 +65,10 @@ def calibrated_spec(name: str, calibration_dir: str | Path) -> Any:
 
 
 def severity(data: Path) -> dict[str, float]:
-    """Mean and spread of the PSNR (dB) of a curated folder's pairs, corrupted vs clean."""
+    """Mean and spread of the PSNR (dB) of a curated folder's pairs, corrupted vs clean (a pair's:
+    the mean over its frames). A frame left exactly clean (a haze pair's frames far from its
+    Gaussians) counts as one 8-bit unit of error in one value, the least an 8-bit frame can
+    differ (95 dB at 128x128), not as +inf, which would make every mean infinite."""
     from morphgs import media
     from morphgs.curation import manifest
     from morphgs.metrics import psnr
@@ -74,7 +77,9 @@ def severity(data: Path) -> dict[str, float]:
     for rec in sorted(manifest.load(data).values(), key=lambda r: r["pair_id"]):
         clean = media.read_clip(data / rec["paths"]["clean"])
         bad = media.read_clip(data / rec["paths"]["corrupted"])
-        vals.append(float(psnr(bad, clean)))
+        frames = np.asarray(psnr(bad, clean, reduction="none"), np.float64)
+        least = 10 * np.log10(255.0**2 * clean[0].size)  # MSE of one unit in one of the frame's values
+        vals.append(float(np.minimum(frames, least).mean()))
     a = np.asarray(vals)
     return {"psnr_mean": float(a.mean()), "psnr_min": float(a.min()), "psnr_max": float(a.max()), "pairs": len(vals)}
 
