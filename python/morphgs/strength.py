@@ -238,8 +238,8 @@ class Strength:
 
         The sparse-view ops run first (`_artifacts`, ops 10-14; their training cameras are every
         `train_every`-th of `cameras`, the floaters coloured from clean renders of them), then
-        shatter (`morphgs.shatter`), then haze appends its Gaussians (`morphgs.haze`, kept by the
-        paper's pruning), then popping draws its caps on their output (`_popping`, op 15;
+        shatter (`morphgs.shatter`), then haze appends its Gaussians (`morphgs.haze`; the paper's
+        ops then treat them as any other), then popping draws its caps on their output (`_popping`, op 15;
         the caps become the scene extras `POPPING_EXTRAS`), then the paper's ops in one pass (ops 1
         to 4, 7 and 8), the holes removed with the pruning (the caps follow their rows). The noise
         of input Gaussian i is a pure function of (seed, op, i) in each.
