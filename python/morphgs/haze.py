@@ -13,7 +13,9 @@ Gaussians (about 5 %) within half a training-camera spacing D of the capture pat
 18.7-20.8 dB at S18 / S20, and the training views barely change. Their statistics, the same in
 every scene and regime: distance to the nearest training camera 0.33-0.53 D (quartiles), largest
 scale 0.04-0.08 D (median 0.05 D), anisotropy (largest / smallest scale) 3-80 (median 15),
-opacity 0.06-0.19 (median 0.10), colour bright and near grey (luminance 0.76, sd 0.2).
+opacity 0.06-0.19 (median 0.10), colour bright and near grey (luminance 0.76, sd 0.2). (A real
+capture's sparse fits, the committed `skull`'s, hold almost none of them: the population is the
+built-in rooms' failure, measured there; docs/artifacts.md.)
 
 `haze` adds such Gaussians to a clean scene, without a fit. At value v (strength x base), with
 V virtual training cameras (centres c_t) and D the median distance from each to its nearest:
