@@ -24,8 +24,9 @@ from morphgs import synthetic, trajectory
 from morphgs.haze import MAX_PX, PER_VIEW, R_HI, R_LO, haze_gaussians, spacing
 from morphgs.strength import Strength
 
-#: sha256 (first 32 hex digits) of `haze~1.5` and `shatter + haze` on `room()` (outputs and masks)
-PINNED = "d39093667a0283f7163ddef60367ddf5"
+#: sha256 (first 32 hex digits) of `haze~1.5` and `shatter + haze` on `room()` (outputs and masks;
+#: re-pinned when the Gaussians were flattened as the measured ones are, KERNELS["haze"] 2)
+PINNED = "d10c00a81b5c4199ad4a135083d29b03"
 
 
 def room() -> tuple[morphgs.GaussianScene, morphgs.Cameras]:
@@ -90,8 +91,11 @@ def test_the_gaussians_sit_beside_the_cameras_seen_small_by_the_others_with_the_
     opacity = 1 / (1 + np.exp(-h["opacity_logits"].astype(np.float64)))
     assert 0.08 < np.median(opacity) < 0.12 and opacity.min() >= 0.0099 and opacity.max() <= 0.9001
     assert 0.03 < np.median(smax) / D < 0.06  # the 30-pixel cap trims the widest
-    s = np.sort(np.exp(h["log_scales"].astype(np.float64)), axis=1)
-    assert np.all(s[:, 2] / s[:, 0] >= 3 * (1 - 1e-5)) and np.median(s[:, 2] / s[:, 0]) > 8
+    # flattened as the measured ones are: ln(largest / middle) and ln(middle / smallest) half-normal
+    # of sd 0.95 and 2.3 (medians 0.64 and 1.55)
+    ls = h["log_scales"].astype(np.float64)
+    assert np.all(ls[:, 0] >= ls[:, 1]) and np.all(ls[:, 1] >= ls[:, 2])
+    assert 0.5 < np.median(ls[:, 0] - ls[:, 1]) < 0.8 and 1.3 < np.median(ls[:, 1] - ls[:, 2]) < 1.8
     colour = 0.5 + 0.28209479177387814 * h["sh0"].astype(np.float64)
     assert 0.7 < np.median(colour) < 0.82
     # a strength of zero adds nothing; twice the strength, twice the Gaussians
