@@ -7,7 +7,7 @@ beside a training camera, outside its own view, are seen small and faint by the 
 views: nothing corrects them. A novel camera on the same path passes right by them and sees them
 tens of pixels wide: the milky haze and streaks that make most of a sparse fit's error between
 its training views. Measured on the toy study's nine real sparse fits (three rooms at S18 / S20 /
-S24, 60k Gaussians each; `benches/sparse_anatomy.py`-style, docs/artifacts.md): 2,500-3,000
+S24, 60k Gaussians each; `benches/haze_anatomy.py`, docs/artifacts.md): 2,500-3,000
 Gaussians (about 5 %) within half a training-camera spacing D of the capture path and wider than
 0.03 D hold most of the error: without them the novel-view clips go from 11.3-16.9 dB to
 18.7-20.8 dB at S18 / S20, and the training views barely change. Their statistics, the same in
@@ -15,9 +15,8 @@ every scene and regime: distance to the nearest training camera 0.33-0.53 D (qua
 scale 0.04-0.08 D (median 0.05 D), flattened more than stretched (ln(largest / middle scale)
 half-normal of sd 0.95, ln(middle / smallest) half-normal of sd 2.3, independent: soft sheets,
 not needles), opacity 0.06-0.19 (median 0.10), colour bright and near grey (luminance 0.76, sd
-0.2). (A real
-capture's sparse fits, the committed `skull`'s, hold almost none of them: the population is the
-built-in rooms' failure, measured there; docs/artifacts.md.)
+0.2). (A real capture's sparse fits, the committed `skull`'s, hold almost none of them: the
+population is the built-in rooms' failure, measured there; docs/artifacts.md.)
 
 `haze` adds such Gaussians to a clean scene, without a fit. At value v (strength x base), with
 V virtual training cameras (centres c_t) and D the median distance from each to its nearest:
@@ -35,10 +34,12 @@ V virtual training cameras (centres c_t) and D the median distance from each to 
 - opacity OPACITY x e^(0.85 z) (OPACITY 0.10), clipped to [0.01, 0.9]; colour 0.76 + 0.2 z +
   0.08 z_c per channel (z shared, z_c per channel), no view dependence (higher SH bands zero).
 
-Every draw comes from one NumPy generator seeded by (seed, 17): the same bytes for any thread
-count, CPU and scene (the draws depend only on the cameras, the seed and v). The op changes no
-Gaussian of the scene: it appends. (NumPy for now: the op is cheap, n x V arithmetic on a few
-thousand candidates; the Rust kernel holds the ops that touch every Gaussian.)
+Every draw comes from one NumPy generator seeded by (seed, 17), and the draws depend only on
+the cameras, the seed and v: the same bytes for any thread count and any scene (tests/test_haze.py
+pins them). Not yet for any CPU: NumPy's vectorised exp / log / reductions follow the CPU's SIMD
+level (measured with NPY_DISABLE_CPU_FEATURES: the pinned digest is the same with NumPy's AVX-512
+paths off, AVX2 on, and changes with AVX2 off too, SSE only), which the Rust kernel's ops do not;
+moving the op there is what pins it everywhere. The op changes no Gaussian of the scene: it appends.
 """
 
 from __future__ import annotations
