@@ -1,7 +1,8 @@
 """The `haze` op (issue 36; docs/artifacts.md "Haze"; `morphgs.haze`): the faint, large Gaussians
 a sparse fit leaves beside its cameras, appended to a clean scene.
 
-What a user relies on: the bytes are pinned and the same for 1, 2 and 8 threads; the Gaussians
+What a user relies on: the bytes are pinned and the same for 1, 2 and 8 threads and every SIMD
+level, and a larger strength keeps the same first Gaussians and adds more; the Gaussians
 sit where the measured ones do (beside a training camera, outside its view, seen small by two
 others) with the measured sizes and opacities; the scene's own Gaussians are untouched; the
 count follows the strength; `haze~S` composes with the other families in JSON and through curate;
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -25,8 +27,11 @@ from morphgs.haze import MAX_PX, PER_VIEW, R_HI, R_LO, haze_gaussians, spacing
 from morphgs.strength import Strength
 
 #: sha256 (first 32 hex digits) of `haze~1.5` and `shatter + haze` on `room()` (outputs and masks;
-#: re-pinned when the Gaussians were flattened as the measured ones are, KERNELS["haze"] 2)
-PINNED = "d10c00a81b5c4199ad4a135083d29b03"
+#: re-pinned when the Gaussians were flattened as the measured ones are, KERNELS["haze"] 2, and when
+#: the op moved from NumPy to the Rust kernel, 3)
+PINNED = "b5590a0f4893e2426408194cc8597cd3"
+#: sha256 (first 32 hex digits) of the kernel's own output for `room()`'s training cameras at 1.5
+KERNEL_PINNED = "746af31848173c4e6e2763b8d5f1f109"
 
 
 def room() -> tuple[morphgs.GaussianScene, morphgs.Cameras]:
@@ -56,6 +61,37 @@ def test_the_bytes_are_pinned_and_the_same_for_1_2_and_8_threads() -> None:
     got = digests_by_threads("test_haze")
     assert got[1] == got[2] == got[8], got
     assert got[1] == PINNED, f"the haze op's bytes changed: {got[1]} (pinned {PINNED})"
+
+
+def kernel_digest() -> str:
+    _, cams = room()
+    train = cams[::8]
+    h = haze_gaussians(1.5, train.world_to_camera, train.K, train.width, train.height, seed=20261129)
+    return hashlib.sha256(b"".join(np.ascontiguousarray(h[k]).tobytes() for k in sorted(h))).hexdigest()[:32]
+
+
+def test_the_kernel_gives_the_same_bytes_at_every_simd_level_and_a_larger_value_keeps_a_superset() -> None:
+    code = ("import sys; sys.path.insert(0, {tests!r}); from test_haze import kernel_digest; "
+            "print(kernel_digest())").format(tests=str(Path(__file__).parent))
+    got = {}
+    for simd in ("scalar", "avx2", None):
+        env = {k: v for k, v in os.environ.items() if k != "MORPHGS_SIMD"}
+        if simd:
+            env["MORPHGS_SIMD"] = simd
+        r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        got[simd] = r.stdout.strip()
+    assert set(got.values()) == {KERNEL_PINNED}, got
+    _, cams = room()
+    train = cams[::8]
+    one = haze_gaussians(1.0, train.world_to_camera, train.K, train.width, train.height, seed=5)
+    more = haze_gaussians(1.5, train.world_to_camera, train.K, train.width, train.height, seed=5)
+    n = len(one["means"])
+    assert len(more["means"]) == round(1.5 * n)
+    for k in one:
+        assert np.array_equal(more[k][:n], one[k]), k  # the same first Gaussians, and more
+    with pytest.raises(ValueError, match="at least 2 training cameras"):
+        haze_gaussians(1.0, train.world_to_camera[:1], train.K[:1], train.width, train.height, seed=5)
 
 
 def _project(cams: morphgs.Cameras, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -221,6 +221,15 @@ def _popping(
     height: int,
     seed: int,
 ) -> GaussianScene: ...
+def _haze(
+    world_to_camera: npt.NDArray[np.float64],
+    K: npt.NDArray[np.float64],
+    width: int,
+    height: int,
+    *,
+    value: float,
+    seed: int,
+) -> dict[str, npt.NDArray[np.float32]]: ...
 def _shatter_removal(n: int, *, value: float, seed: int) -> npt.NDArray[np.bool_]: ...
 def _shatter(
     value: float,

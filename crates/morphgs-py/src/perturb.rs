@@ -8,6 +8,7 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyTuple};
 use splat_core::perturb::artifacts::{self, ArtifactParams, TrainImages};
+use splat_core::perturb::haze;
 use splat_core::perturb::popping;
 use splat_core::perturb::shatter::{self, ShatterParams, Views};
 use splat_core::perturb::PerturbParams;
@@ -373,11 +374,58 @@ fn _shatter<'py>(
     Ok(d)
 }
 
+/// The haze op's Gaussians (`splat_core::perturb::haze`): faint, large Gaussians beside the
+/// training cameras, as a sparse fit leaves them (docs/artifacts.md, "Haze").
+///
+/// Prefer `morphgs.strength.Strength.apply` (op "haze").
+///
+/// Args:
+///     world_to_camera, K: the training cameras, (V,4,4) and (V,3,3) float64, V >= 2.
+///     width, height: their image size.
+///     value: the op's value v >= 0 (round(250 v V) Gaussians).
+///     seed: the seed of the counter-based generator.
+///
+/// Returns:
+///     A dict of float32 arrays means (N,3), quats (N,4) (w, x, y, z), log_scales (N,3) (largest
+///     first), opacity_logits (N,), sh0 (N,3); a larger value gives the same first rows and more.
+///
+/// Raises:
+///     ValueError: a bad value, fewer than two cameras or bad camera matrices (named).
+#[pyfunction]
+#[pyo3(signature = (world_to_camera, K, width, height, *, value, seed))]
+#[allow(non_snake_case)]
+fn _haze<'py>(
+    py: Python<'py>,
+    world_to_camera: PyReadonlyArray3<'py, f64>,
+    K: PyReadonlyArray3<'py, f64>,
+    width: u32,
+    height: u32,
+    value: f32,
+    seed: u64,
+) -> PyResult<Bound<'py, PyDict>> {
+    let cams = cameras_from(&world_to_camera, &K, width, height, 0.01, 1e10)?;
+    let h = detach(py, || haze::haze(&cams, value, seed))?;
+    let n = h.len();
+    let flat3 = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
+    let d = PyDict::new(py);
+    d.set_item("means", flat3(&h.means).into_pyarray(py).reshape([n, 3])?)?;
+    let quats: Vec<f32> = h.quats.iter().flatten().copied().collect();
+    d.set_item("quats", quats.into_pyarray(py).reshape([n, 4])?)?;
+    d.set_item(
+        "log_scales",
+        flat3(&h.log_scales).into_pyarray(py).reshape([n, 3])?,
+    )?;
+    d.set_item("opacity_logits", h.opacity_logits.into_pyarray(py))?;
+    d.set_item("sh0", flat3(&h.sh0).into_pyarray(py).reshape([n, 3])?)?;
+    Ok(d)
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_perturb, m)?)?;
     m.add_function(wrap_pyfunction!(_artifacts, m)?)?;
     m.add_function(wrap_pyfunction!(_popping, m)?)?;
     m.add_function(wrap_pyfunction!(_shatter_removal, m)?)?;
     m.add_function(wrap_pyfunction!(_shatter, m)?)?;
+    m.add_function(wrap_pyfunction!(_haze, m)?)?;
     Ok(())
 }

@@ -13,6 +13,7 @@
 use rayon::prelude::*;
 
 pub mod artifacts;
+pub mod haze;
 mod kernel;
 pub mod popping;
 pub mod shatter;
