@@ -4,6 +4,7 @@
 //! `cargo bench -p splat-core --bench perturb`.
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use splat_core::camera::Camera;
+use splat_core::perturb::haze::haze;
 use splat_core::perturb::shatter::{fragments, ShatterParams, Views};
 use splat_core::perturb::{perturb, PerturbParams};
 use splat_core::Scene;
@@ -100,5 +101,53 @@ fn bench_shatter(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench, bench_shatter);
+/// 12 cameras on a ring of radius 3 at height 1.6 looking at the origin (OpenCV axes), 128x96:
+/// a room's capture path, as the haze op meets it.
+fn ring_cameras() -> Vec<Camera> {
+    (0..12)
+        .map(|k| {
+            let a = f64::from(k) / 12.0 * std::f64::consts::TAU * 0.9;
+            let c = [3.0 * a.cos(), 3.0 * a.sin(), 1.6];
+            let norm = |v: [f64; 3]| {
+                let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+                v.map(|x| x / l)
+            };
+            let cross = |a: [f64; 3], b: [f64; 3]| {
+                [
+                    a[1] * b[2] - a[2] * b[1],
+                    a[2] * b[0] - a[0] * b[2],
+                    a[0] * b[1] - a[1] * b[0],
+                ]
+            };
+            let fwd = norm([-c[0], -c[1], -c[2]]);
+            let right = norm(cross(fwd, [0.0, 0.0, 1.0]));
+            let down = cross(fwd, right);
+            let mut m = [[0.0; 4]; 4];
+            for (r, row) in [right, down, fwd].into_iter().enumerate() {
+                m[r] = [
+                    row[0],
+                    row[1],
+                    row[2],
+                    -(row[0] * c[0] + row[1] * c[1] + row[2] * c[2]),
+                ];
+            }
+            m[3][3] = 1.0;
+            Camera::new(110.0, 110.0, 64.0, 48.0, 128, 96, m)
+        })
+        .collect()
+}
+
+fn bench_haze(c: &mut Criterion) {
+    let cams = ring_cameras();
+    let mut g = c.benchmark_group("haze_12x128x96");
+    g.sample_size(20);
+    for value in [1.0f32, 4.0] {
+        g.bench_function(format!("v{value}"), |b| {
+            b.iter(|| haze(&cams, value, 7).expect("valid cameras"))
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench, bench_shatter, bench_haze);
 criterion_main!(benches);
