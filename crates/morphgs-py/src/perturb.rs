@@ -259,6 +259,11 @@ fn _popping(
     scene.with_extras(py, names.into_iter().zip(caps).collect())
 }
 
+/// Rows of three floats as one flat vector (for an (N, 3) array).
+fn flat3(v: &[[f32; 3]]) -> Vec<f32> {
+    v.iter().flatten().copied().collect()
+}
+
 /// Which of `n` Gaussians the shatter op removes at `value` (`splat_core::perturb::shatter`).
 ///
 /// Prefer `morphgs.strength.Strength.apply` (op "shatter").
@@ -358,7 +363,6 @@ fn _shatter<'py>(
         shatter::fragments(&params, &cams, views, removed, seed)
     })?;
     let n = f.len();
-    let flat3 = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
     let d = PyDict::new(py);
     d.set_item("means", flat3(&f.means).into_pyarray(py).reshape([n, 3])?)?;
     let scales: Vec<f32> = f.log_scales.iter().flat_map(|&s| [s; 3]).collect();
@@ -406,7 +410,6 @@ fn _haze<'py>(
     let cams = cameras_from(&world_to_camera, &K, width, height, 0.01, 1e10)?;
     let h = detach(py, || haze::haze(&cams, value, seed))?;
     let n = h.len();
-    let flat3 = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
     let d = PyDict::new(py);
     d.set_item("means", flat3(&h.means).into_pyarray(py).reshape([n, 3])?)?;
     let quats: Vec<f32> = h.quats.iter().flatten().copied().collect();

@@ -104,7 +104,20 @@ struct Candidate {
     log_smax: f32,
 }
 
-fn candidate(key: u64, i: u64, cams: &[Camera], centres: &[[f64; 3]], d: f64) -> Option<Candidate> {
+/// What every candidate shares: the cameras, their centres, D and the logs the draws scale.
+struct Frame<'a> {
+    key: u64,
+    cams: &'a [Camera],
+    centres: &'a [[f64; 3]],
+    d: f64,
+    /// ln R_LO, ln R_HI and ln(SCALE x D)
+    ln_lo: f32,
+    ln_hi: f32,
+    ln_scale: f32,
+}
+
+fn candidate(f: &Frame<'_>, i: u64) -> Option<Candidate> {
+    let (key, cams, centres, d) = (f.key, f.cams, f.centres, f.d);
     let s = Stream::new(key, i);
     let nv = cams.len();
     // word 0: the camera (the top 32 bits scaled to 0..nv, exact)
@@ -117,15 +130,14 @@ fn candidate(key: u64, i: u64, cams: &[Camera], centres: &[[f64; 3]], d: f64) ->
     if norm == 0.0 {
         return None;
     }
-    let (lo, hi) = (fastmath::ln(R_LO), fastmath::ln(R_HI));
-    let r = d * fastmath::exp(lo + u * (hi - lo)) as f64;
+    let r = d * fastmath::exp(f.ln_lo + u * (f.ln_hi - f.ln_lo)) as f64;
     let c = centres[t];
     let p = [
         c[0] + n0 as f64 / norm * r,
         c[1] + n1 as f64 / norm * r,
         c[2] + n2 as f64 / norm * r,
     ];
-    let log_smax = fastmath::ln((d * SCALE) as f32) + SCALE_SD * n3;
+    let log_smax = f.ln_scale + SCALE_SD * n3;
     let smax = fastmath::exp(log_smax) as f64;
     let need = 2.min(nv - 1);
     let mut seen = 0;
@@ -176,6 +188,15 @@ pub fn haze(cams: &[Camera], value: f32, seed: u64) -> Result<Haze> {
         return Ok(out);
     }
     let key = op_key(seed, OP_HAZE);
+    let frame = Frame {
+        key,
+        cams,
+        centres: &centres,
+        d,
+        ln_lo: fastmath::ln(R_LO),
+        ln_hi: fastmath::ln(R_HI),
+        ln_scale: fastmath::ln((d * SCALE) as f32),
+    };
     let limit = n.saturating_mul(MAX_CANDIDATES_PER);
     let mut kept: Vec<(u64, Candidate)> = Vec::with_capacity(n);
     let mut start = 0usize;
@@ -183,7 +204,7 @@ pub fn haze(cams: &[Camera], value: f32, seed: u64) -> Result<Haze> {
         let end = (start + CHUNK).min(limit);
         let found: Vec<(u64, Candidate)> = (start..end)
             .into_par_iter()
-            .filter_map(|i| candidate(key, i as u64, cams, &centres, d).map(|c| (i as u64, c)))
+            .filter_map(|i| candidate(&frame, i as u64).map(|c| (i as u64, c)))
             .collect();
         kept.extend(found.into_iter().take(n - kept.len()));
         start = end;
