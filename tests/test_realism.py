@@ -64,6 +64,8 @@ def test_the_classifier_tells_another_family_apart_but_not_the_same_family_at_ot
     assert far["auc"] > 0.9, far
     assert near["auc"] < 0.75, near
     assert near["auc"] < far["auc"]
+    # the separation d' ranks them the same way and keeps growing past AUC 1.00
+    assert far["separation"] > 1.5 and near["separation"] < far["separation"], (far, near)
     # deterministic: the same clips and seed give the same AUC (torch on one thread while it runs)
     assert classifier_test(rt + st, rh + sh, steps=120)["auc"] == near["auc"]
     # cross-fitted when there is no held-out side; two scenes -> the bootstrap resamples scenes
@@ -201,3 +203,26 @@ def test_a_search_with_one_real_calibration_pair_says_what_to_give() -> None:
     (real,) = _clips(BASE, 0, seed=0)[:1]
     with pytest.raises(CalibrationError, match=r"needs at least 2 of them, got 1 \(give more pairs per scene"):
         realism_search("mix", BASE, None, [real], np.zeros(6), np.zeros(6, int), real_ids=["a"], grid=[1.0, 2.0])
+
+
+def test_the_search_objective_ranks_by_auc_then_by_separation() -> None:
+    """Two candidates the classifier tells apart every time (AUC 1.00) differ in how far apart it
+    puts them (d'); the search's objective prefers the nearer one, never above a candidate with a
+    lower AUC, and an unreachable candidate scores above every reachable one."""
+    from morphgs.calibration.goodness import auc, separation
+    from morphgs.calibration.objective import SEPARATION_CAP, TIE_WEIGHT, UNREACHABLE, objective_value
+
+    rng = np.random.default_rng(0)
+    labels = np.repeat([0, 1], 50)
+    real = rng.normal(0.0, 1.0, 50)
+    near, far = np.concatenate([real, 8.0 + real[::-1]]), np.concatenate([real, 40.0 + real[::-1]])
+    assert auc(near, labels) == auc(far, labels) == 1.0
+    assert 7.0 < separation(near, labels) < 9.5 and separation(far, labels) > 35
+    t_near = {"auc": 1.0, "separation": separation(near, labels)}
+    t_far = {"auc": 1.0, "separation": separation(far, labels)}
+    assert objective_value(t_near) < objective_value(t_far) == 1.0 + TIE_WEIGHT * SEPARATION_CAP
+    assert objective_value({"auc": 0.99, "separation": 1e9}) < objective_value({"auc": 1.0, "separation": 0.0}) + 0.001
+    assert objective_value({"auc": 0.5, "separation": -2.0}) == 0.5  # below zero counts as none
+    assert objective_value({"auc": 0.6, "separation": float("nan")}) == 0.6
+    assert UNREACHABLE > objective_value(t_far)
+    assert np.isnan(separation(np.array([1.0, 2.0, 3.0]), np.array([0, 0, 1])))

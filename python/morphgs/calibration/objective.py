@@ -7,8 +7,13 @@ cameras, `train_every` (the spacing of the virtual training views along the path
 is matched to the real pairs' PSNR as the strength search matches every family (pair by pair, a
 scan at one point per octave then bisection), its synthetic pairs are made at their matched
 strengths on the calibration scenes, and its score is the cross-fitted AUC of the CNN two-sample
-test (`realism.classifier_test`) between them and the real pairs. A candidate that cannot reach
-the real median PSNR scores 1 plus its shortfall in tens of dB, worse than any that can.
+test (`realism.classifier_test`) between them and the real pairs, plus `TIE_WEIGHT` times its
+separation d' (`goodness.separation` of the held-out logits, clipped to [0, `SEPARATION_CAP`]): at
+most 0.01, so the AUC decides wherever it differs, and where the classifier tells every candidate
+apart (AUC 1.00, the common case far from the real failure) the search still moves towards the
+ones it separates less, instead of wandering on a flat objective. A candidate that cannot reach
+the real median PSNR scores `UNREACHABLE` (1.02) plus its shortfall in tens of dB, worse than any
+that can.
 
 The first candidate is the family as given (every op at its base value, equal weights, and its own
 `train_every`, or the nearest choice), so the search never ends with a mix its objective scores
@@ -40,14 +45,29 @@ from morphgs.calibration.realism import Clip, classifier_test
 from morphgs.calibration.search import search
 from morphgs.strength import SPARSE_OPS, Strength
 
-__all__ = ["EVERY_CHOICES", "OBJECTIVES", "TRIALS", "candidate", "given", "realism_search"]
+__all__ = ["EVERY_CHOICES", "OBJECTIVES", "SEPARATION_CAP", "TIE_WEIGHT", "TRIALS", "UNREACHABLE", "candidate",
+           "given", "objective_value", "realism_search"]
 
 #: The objectives `morphgs calibrate --objective` accepts.
 OBJECTIVES: tuple[str, ...] = ("psnr", "realism")
 #: Trials of the realism search by default.
 TRIALS = 16
+#: Weight of the separation d' in the search's objective (the AUC's tie-break), and its clip.
+TIE_WEIGHT = 1e-3
+SEPARATION_CAP = 10.0
+#: The objective of a candidate that cannot reach the real pairs' PSNR (plus its shortfall / 10 dB):
+#: above any reachable one's (at most 1 + TIE_WEIGHT * SEPARATION_CAP).
+UNREACHABLE = 1.02
 #: The virtual training views' spacings the search may choose (path frames).
 EVERY_CHOICES: tuple[int, ...] = (4, 6, 8, 12, 16)
+
+
+def objective_value(test: dict[str, Any]) -> float:
+    """A reachable candidate's objective from its `classifier_test` result: AUC + TIE_WEIGHT x d'
+    clipped to [0, SEPARATION_CAP] (a NaN d' counts 0)."""
+    sep = float(test.get("separation", float("nan")))
+    sep = min(max(sep, 0.0), SEPARATION_CAP) if not math.isnan(sep) else 0.0
+    return float(test["auc"]) + TIE_WEIGHT * sep
 
 
 def _needs_every(base: Strength) -> bool:
@@ -89,7 +109,7 @@ def _fingerprint(base: Strength, real_ids: Sequence[str], *, seed: int, steps: i
     """What a search's trials depend on (not how many there are: a longer search goes on from a
     shorter one's). `repeats` enters only when > 1, so single-network searches keep their state."""
     doc = {"ops": base.base, "family": base.family, "train_every": base.train_every, "real": sorted(real_ids),
-           "seed": seed, "steps": steps, "grid": [float(g) for g in grid], "version": 2}
+           "seed": seed, "steps": steps, "grid": [float(g) for g in grid], "version": 3}
     if repeats > 1:
         doc["repeats"] = repeats
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
@@ -187,12 +207,12 @@ def realism_search(label: str, base: Strength, bench: Any, real_clips: Sequence[
             synth = [Clip(bench.corrupted(cfg.at(s), k), bench.clean[k], real_clips[k].scene, 1)
                      for k, s in enumerate(res.pair_strengths)]
             test = classifier_test(list(real_clips) + synth, seed=seed, steps=steps, n_boot=0, repeats=repeats)
-            value, auc = float(test["auc"]), float(test["auc"])
+            value, auc, sep = objective_value(test), float(test["auc"]), float(test["separation"])
         else:
-            auc = float("nan")
-            value = 1.0 + max(res.most_severe_psnr - res.target_median_psnr, 0.0) / 10.0
+            auc = sep = float("nan")
+            value = UNREACHABLE + max(res.most_severe_psnr - res.target_median_psnr, 0.0) / 10.0
         study.tell(trial, value)
-        rec = {"trial": n, "params": params, "value": value, "auc": auc, "weights": weights,
+        rec = {"trial": n, "params": params, "value": value, "auc": auc, "separation": sep, "weights": weights,
                "train_every": cfg.train_every, "reachable": res.reachable, "median_strength": res.median_strength,
                "median_psnr_reached": res.median_psnr_reached, "seconds": time.perf_counter() - t0}
         rows.append(rec)
@@ -201,7 +221,7 @@ def realism_search(label: str, base: Strength, bench: Any, real_clips: Sequence[
         say(f"calibrate: {label}: realism trial {n + 1}/{trials}: "
             + ", ".join(f"{k} {v:.2f}" for k, v in weights.items())
             + (f", train_every {cfg.train_every}" if "train_every" in params else "")
-            + (f": AUC {auc:.3f}" if math.isfinite(auc) else f": unreachable ({res.most_severe_psnr:.2f} dB)")
+            + (f": AUC {auc:.3f}, d' {sep:.2f}" if math.isfinite(auc) else f": unreachable ({res.most_severe_psnr:.2f} dB)")
             + f" [{rec['seconds']:.1f} s]")
     best = min(range(len(rows)), key=lambda i: (rows[i]["value"], i))
     cfg, _ = candidate(base, rows[best]["params"])

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from morphgs.calibration.goodness import auc, bootstrap_auc
+from morphgs.calibration.goodness import auc, bootstrap_auc, separation
 
 __all__ = ["CROP", "REPEAT_STRIDE", "STEPS", "Clip", "classifier_test", "floor_test", "realism_test"]
 
@@ -139,8 +139,10 @@ def classifier_test(train: Sequence[Clip], test: Sequence[Clip] | None = None, *
     network's) and scores each frame by their mean logit: an ensemble, steadier from seed to seed
     than one network (docs/calibration.md, "Realism").
 
-    Returns {"auc", "ci", "bootstrap": "scenes" | "pairs", "frames": {"real", "synthetic"},
-    "held_out": bool, "steps"} (and "repeats" when > 1).
+    Returns {"auc", "ci", "separation", "bootstrap": "scenes" | "pairs", "frames": {"real",
+    "synthetic"}, "held_out": bool, "steps"} (and "repeats" when > 1); "separation" is the tested
+    frames' logits' d' (`goodness.separation`), which still ranks families the AUC calls equal
+    when every frame is told apart.
 
     Raises:
         ValueError: a side without both labels, clips of different frame sizes, or repeats < 1.
@@ -192,7 +194,7 @@ def classifier_test(train: Sequence[Clip], test: Sequence[Clip] | None = None, *
         scene_of = {i: clips[i].scene for _, te in folds for i in te}
         un = np.array([scene_of[int(u)] for u in un])
     value = auc(sc, lb)
-    out = {"auc": value, "ci": bootstrap_auc(sc, lb, un, n_boot=n_boot, seed=seed),
+    out = {"auc": value, "ci": bootstrap_auc(sc, lb, un, n_boot=n_boot, seed=seed), "separation": separation(sc, lb),
            "bootstrap": "scenes" if len(scenes) > 1 else "pairs",
            "frames": {"real": int(np.sum(lb == 0)), "synthetic": int(np.sum(lb == 1))},
            "held_out": bool(test), "steps": int(steps)}

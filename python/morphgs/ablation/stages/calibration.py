@@ -18,9 +18,10 @@ from typing import Any
 
 __all__ = ["CONFIG", "IGNORE", "RESUMABLE", "SUMMARY", "VERSION", "make", "summary"]
 
-VERSION = 4  # 2: the CNN two-sample test (realism) in calibration.json and summary.json; objective
+VERSION = 5  # 2: the CNN two-sample test (realism) in calibration.json and summary.json; objective
 # 3: the realism search's first trial is the family as given; shatter's bytes (its Rust kernel)
 # 4: shatter's bytes (fragments reaching another view from outside its image dropped)
+# 5: the realism search's objective breaks AUC ties by the classifier's separation d'
 IGNORE: tuple[str, ...] = ()
 RESUMABLE = False
 CONFIG = "config.json"
