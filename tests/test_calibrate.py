@@ -228,6 +228,14 @@ def test_family_all_and_the_ranking_order() -> None:
                             result("radiometric", 0.95, 40.0, matched=True)])
     # matched first; then AUC; a tie in AUC goes to the smaller excess; a NaN AUC last
     assert [e["family"] for e in ranked["sparse:20"]] == ["radiometric", "spatial", "blur2d", "morphological", "naive"]
+    # with the CNN test, families it tells apart every time (AUC 1.00) go by its separation d'
+    # before the statistics' excess
+    def cnn(family: str, auc: float, sep: float, excess: float) -> dict:
+        return {**result(family, 0.5, excess), "realism": {"classifier": {"auc": auc, "separation": sep}}}
+
+    ranked = rank_families([cnn("shatter", 1.0, 6.0, 0.1), cnn("haze", 1.0, 2.5, 9.0), cnn("holes", 0.9, 9.0, 5.0)])
+    assert [(e["family"], e["separation"]) for e in ranked["sparse:20"]] == [("holes", 9.0), ("haze", 2.5),
+                                                                           ("shatter", 6.0)]
 
 
 def test_a_results_files_are_named_by_the_one_slug_rule() -> None:

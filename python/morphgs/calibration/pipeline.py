@@ -89,9 +89,10 @@ def split_scenes(pairs: Sequence[RealPair]) -> tuple[list[RealPair], list[RealPa
 def rank_families(results: Sequence[Mapping[str, Any]]) -> dict[str, list[dict[str, Any]]]:
     """Per regime, the families ordered from the most to the least like the real pairs on the
     held-out scenes: matched ones first, then by the classifier's AUC (0.5 = indistinguishable),
-    then by how far the furthest statistic lies beyond its real-vs-real floor, then by name (so
-    the order is the same on every run). Each entry: family, auc, furthest, furthest_excess,
-    matched. The AUC is the CNN two-sample test's (`realism`) where it ran, else the logistic
+    then by its separation d' (the CNN's; it ranks families the AUC calls equal, e.g. all at
+    1.00), then by how far the furthest statistic lies beyond its real-vs-real floor, then by
+    name (so the order is the same on every run). Each entry: family, auc, separation (None
+    without the CNN test), furthest, furthest_excess, matched. The AUC is the CNN two-sample test's (`realism`) where it ran, else the logistic
     regression's on the statistics (`goodness`); `auc_kind` says which."""
     by_regime: dict[str, list[dict[str, Any]]] = {}
     for r in results:
@@ -99,7 +100,8 @@ def rank_families(results: Sequence[Mapping[str, Any]]) -> dict[str, list[dict[s
         cnn = (r.get("realism") or {}).get("classifier")
         auc = cnn["auc"] if cnn else g["classifier"]["auc"]
         by_regime.setdefault(r["regime"], []).append({
-            "family": r["family"], "auc": auc, "auc_kind": "cnn" if cnn else "statistics", "furthest": g["furthest"],
+            "family": r["family"], "auc": auc, "auc_kind": "cnn" if cnn else "statistics",
+            "separation": cnn.get("separation") if cnn else None, "furthest": g["furthest"],
             "furthest_excess": g["furthest_excess"], "matched": bool(g["matched"])})
 
     def finite(v: Any) -> tuple[bool, float]:  # missing or NaN values sort last
@@ -107,7 +109,8 @@ def rank_families(results: Sequence[Mapping[str, Any]]) -> dict[str, list[dict[s
         return (not ok, float(v) if ok else 0.0)
 
     def key(e: dict[str, Any]) -> tuple[Any, ...]:
-        return (not e["matched"], *finite(e["auc"]), *finite(e["furthest_excess"]), e["family"])
+        return (not e["matched"], *finite(e["auc"]), *finite(e["separation"]), *finite(e["furthest_excess"]),
+                e["family"])
 
     return {k: sorted(v, key=key) for k, v in by_regime.items()}
 

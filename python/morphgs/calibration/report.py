@@ -157,14 +157,16 @@ def _realism_lines(doc: dict[str, Any]) -> list[str]:
              "synthetic pairs, scores the held-out scenes' frames (cross-fitted in two folds when there is one "
              "scene). AUC 0.5: it cannot tell synthetic from real; 1.0: it always can. 95% bootstrap interval over "
              "scenes (pairs with one scene). Floor: the same network asked to tell two halves of the real pairs "
-             "apart. \"indistinguishable\": the interval's lower end at or below the floor's upper end.", "",
-             "| family | regime | AUC [95% CI] | floor AUC [95% CI] | frames real / synthetic | indistinguishable |",
-             "|---|---|---|---|---|---|"]
+             "apart. \"indistinguishable\": the interval's lower end at or below the floor's upper end. d': the "
+             "network's separation of the two (synthetic minus real mean logit over their pooled standard "
+             "deviation; it still ranks families when every AUC is 1.00).", "",
+             "| family | regime | AUC [95% CI] | d' | floor AUC [95% CI] | frames real / synthetic | indistinguishable |",
+             "|---|---|---|---|---|---|---|"]
     for r in runs:
         c, f = r["realism"]["classifier"], r["realism"]["floor"] or {}
         fci = f.get("ci", [None, None])
         lines.append(f"| {r['family']} | {r['regime']} | {_f(c['auc'])} [{_f(c['ci'][0])}, {_f(c['ci'][1])}] | "
-                     f"{_f(f.get('auc'))} [{_f(fci[0])}, {_f(fci[1])}] | {c['frames']['real']} / "
+                     f"{_f(c.get('separation'))} | {_f(f.get('auc'))} [{_f(fci[0])}, {_f(fci[1])}] | {c['frames']['real']} / "
                      f"{c['frames']['synthetic']} | {'yes' if r['realism']['indistinguishable'] else 'no'} |")
     return lines + [""]
 
@@ -176,11 +178,11 @@ def _ranking_lines(doc: dict[str, Any]) -> list[str]:
     for regime, entries in doc.get("ranking", {}).items():
         if len(entries) < 2:
             continue
-        lines += [f"**Closest to the real {regime} pairs first** (matched ones, then by AUC, then by the "
+        lines += [f"**Closest to the real {regime} pairs first** (matched ones, then by AUC, then by d', then by the "
                   "furthest statistic's distance beyond its floor):", "",
-                  "| rank | family | AUC | furthest off (IQR beyond its floor) | matched |", "|---|---|---|---|---|"]
+                  "| rank | family | AUC | d' | furthest off (IQR beyond its floor) | matched |", "|---|---|---|---|---|---|"]
         for i, e in enumerate(entries, 1):
-            lines.append(f"| {i} | {e['family']} | {_f(e['auc'])} | `{e['furthest']}` ({_f(e['furthest_excess'])}) | "
+            lines.append(f"| {i} | {e['family']} | {_f(e['auc'])} | {_f(e.get('separation'))} | `{e['furthest']}` ({_f(e['furthest_excess'])}) | "
                          f"{'yes' if e['matched'] else 'no'} |")
         lines.append("")
     return lines

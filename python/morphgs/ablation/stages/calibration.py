@@ -35,7 +35,8 @@ def summary(result: dict[str, Any]) -> dict[str, Any]:
     g = result.get("goodness", {})
     realism = result.get("realism") or {}
     clf, floor = realism.get("classifier") or {}, realism.get("floor") or {}
-    return {"auc": clf.get("auc"), "auc_ci": clf.get("ci"), "floor_auc": floor.get("auc"),
+    return {"auc": clf.get("auc"), "auc_ci": clf.get("ci"), "separation": clf.get("separation"),
+            "floor_auc": floor.get("auc"),
             "indistinguishable": realism.get("indistinguishable"),"family": result["family"], "real_median_psnr": s["target_median_psnr"],
             "reachable": s["reachable"], "monotone": s["monotone"], "median_strength": s["median_strength"],
             "median_psnr_reached": s["median_psnr_reached"], "most_severe_psnr": s["most_severe_psnr"],
