@@ -106,7 +106,8 @@ def run(args: argparse.Namespace) -> int:
     for regime, entries in doc["ranking"].items():
         if len(entries) > 1:
             top = entries[0]
-            print(f"closest to the real {regime} pairs: {top['family']} (AUC {_num(top['auc'])}; furthest off "
+            sep = f", d' {_num(top['separation'])}" if top.get("separation") is not None else ""
+            print(f"closest to the real {regime} pairs: {top['family']} (AUC {_num(top['auc'])}{sep}; furthest off "
                   f"{top['furthest']}, {_num(top['furthest_excess'])} IQR beyond its floor); then "
                   + ", ".join(x["family"] for x in entries[1:]))
     return 0
