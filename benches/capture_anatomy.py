@@ -11,7 +11,8 @@ the photos and against the dense fit's renders; per group of the sparse fit's Ga
 training views see the centre, depth against the dense surface in the nearest training view that
 sees it, footprint there, opacity, and those hidden in every training view yet seen held out,
 found by autograd through `morphgs.torch.rasterization`), the held-out PSNR without the group;
-with the view-dependent colour (SH bands 1-3) removed; and the held-out residual's luminance sign,
+with the view-dependent colour (SH bands 1-3) removed; each fit's geometry with the other's
+colours (nearest centre: is the failure geometry or appearance?); and the held-out residual's luminance sign,
 its share on the object (dense alpha > 0.5) and at see-through pixels. Fits resume from --work.
 Reports; asserts nothing. Needs torch for the hidden-Gaussian row (skipped without it).
 """
@@ -160,6 +161,20 @@ def main() -> None:
     s = score(flat)
     print(f"| view-dependent colour (SH 1-3) removed | all | {s[0]:.2f} ({s[0] - base[0]:+.2f}) | "
           f"{s[1]:.2f} ({s[1] - base[1]:+.2f}) |")
+    # geometry or appearance: each fit's Gaussians with the other's colours (SH of the nearest
+    # Gaussian of the other fit, by centre)
+    from scipy.spatial import cKDTree
+
+    def recolour(geom: Any, colours: Any) -> Any:
+        _, idx = cKDTree(np.asarray(colours.means, np.float64)).query(np.asarray(geom.means, np.float64))
+        return morphgs.GaussianScene.from_arrays(means=geom.means, quats=geom.quats, log_scales=geom.log_scales,
+                                                 opacity_logits=geom.opacity_logits, sh0=np.asarray(colours.sh0)[idx],
+                                                 sh_rest=np.asarray(colours.sh_rest)[idx])
+
+    for name, sc in (("the sparse geometry, the dense fit's colours", recolour(sparse, dense)),
+                     ("the dense geometry, the sparse fit's colours", recolour(dense, sparse))):
+        s = score(sc)
+        print(f"| {name} | all | {s[0]:.2f} ({s[0] - base[0]:+.2f}) | {s[1]:.2f} ({s[1] - base[1]:+.2f}) |")
     rs = morphgs.render(sparse, hcams)
     r = np.asarray(rs.rgb, np.float64)
     alpha_d = np.asarray(rd.alpha).reshape(r.shape[:3])
