@@ -81,13 +81,13 @@ def blend_weights(scene: Any, cams: list[Any]) -> np.ndarray | None:
         return None
     vm = torch.tensor(np.stack([np.asarray(c.world_to_camera, np.float32) for c in cams]))
     ks = torch.tensor(np.stack([np.array([[c.fx, 0, c.cx], [0, c.fy, c.cy], [0, 0, 1]], np.float32) for c in cams]))
-    args = [torch.tensor(np.asarray(a, np.float32)) for a in (scene.means, scene.quats, scene.scales)]
+    means, quats, scales = (torch.tensor(np.asarray(a, np.float32)) for a in (scene.means, scene.quats, scene.scales))
     opac = torch.tensor(np.asarray(scene.opacities, np.float32).reshape(-1))
     col = torch.full((len(scene), 3), 0.5, requires_grad=True)
-    out = []
+    out: list[np.ndarray] = []
     for v, c in enumerate(cams):
         col.grad = None
-        img, _, _ = rasterization(*args, opac, col, vm[v:v + 1], ks[v:v + 1], c.width, c.height)
+        img, _, _ = rasterization(means, quats, scales, opac, col, vm[v:v + 1], ks[v:v + 1], c.width, c.height)
         img[..., 0].sum().backward()
         assert col.grad is not None
         out.append(col.grad[:, 0].numpy().copy())
