@@ -29,11 +29,12 @@ FAMS = (*ARTIFACT_OPS, "shatter", "sparse-like")  # popping: tests/test_popping.
 PINNED = "99b5c4e9905437d1870b56a9c65ffe53"
 
 
-def room() -> tuple[morphgs.GaussianScene, morphgs.Cameras]:
-    """A built-in room (SH degree 3) and a 24-view orbit inside it at 96x72."""
+def room(views: int = 24) -> tuple[morphgs.GaussianScene, morphgs.Cameras]:
+    """A built-in room (SH degree 3) and a `views`-view 330-degree orbit inside it at 96x72 (the
+    pinned scene of this file, test_popping's and test_haze's)."""
     scene = synthetic.scene(6000, sh_degree=3, seed=4)
     o = synthetic.suggested_orbit()
-    cams = trajectory.orbit(o.center, o.radius, o.height - o.center[2], 24, start_degrees=0.0, arc_degrees=330,
+    cams = trajectory.orbit(o.center, o.radius, o.height - o.center[2], views, start_degrees=0.0, arc_degrees=330,
                             fov_y_degrees=50.0, resolution=(96, 72))
     return scene, cams
 

@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 
 import morphgs
-from morphgs import synthetic, trajectory
 from morphgs.haze import MAX_PX, PER_VIEW, R_HI, R_LO, haze_gaussians, spacing
 from morphgs.strength import Strength
+from test_artifacts import room as artifacts_room
 
 #: sha256 (first 32 hex digits) of `haze~1.5` and `shatter + haze` on `room()` (outputs and masks;
 #: re-pinned when the Gaussians were flattened as the measured ones are, KERNELS["haze"] 2, and when
@@ -35,12 +35,8 @@ KERNEL_PINNED = "746af31848173c4e6e2763b8d5f1f109"
 
 
 def room() -> tuple[morphgs.GaussianScene, morphgs.Cameras]:
-    """A built-in room (SH degree 3) and a 48-view orbit inside it at 96x72: 6 training views."""
-    scene = synthetic.scene(6000, sh_degree=3, seed=4)
-    o = synthetic.suggested_orbit()
-    cams = trajectory.orbit(o.center, o.radius, o.height - o.center[2], 48, start_degrees=0.0, arc_degrees=330,
-                            fov_y_degrees=50.0, resolution=(96, 72))
-    return scene, cams
+    """`test_artifacts.room` with a 48-view orbit: 6 training views at the default train_every."""
+    return artifacts_room(48)
 
 
 def digest() -> str:
