@@ -78,9 +78,11 @@ def calibration_note(condition: str, c: dict[str, Any]) -> str:
     if isinstance(auc, (int, float)) and auc == auc:
         floor = c.get("floor_auc")
         sep = c.get("separation")
-        fit += f"; classifier AUC {auc:.2f}" + (f", d' {sep:.2f}" if isinstance(sep, (int, float)) and sep == sep
-                                                else "") + (f" (real-vs-real floor {floor:.2f})"
-                                                            if isinstance(floor, (int, float)) and floor == floor else "")
+        fit += f"; classifier AUC {auc:.2f}"
+        if isinstance(sep, (int, float)) and sep == sep:
+            fit += f", d' {sep:.2f}"
+        if isinstance(floor, (int, float)) and floor == floor:
+            fit += f" (real-vs-real floor {floor:.2f})"
     return (f"{cond.label}: {c['family']} calibrated against target-{reg}'s real pairs "
             f"(median {c['real_median_psnr']:.2f} dB): {med}; strength p5/p50/p95 {c['strength_p05']:.3g} / {c['strength_p50']:.3g} / {c['strength_p95']:.3g}"
             f"{'' if c['monotone'] else '; severity not monotone in strength'}; held-out goodness of fit: {fit} "
