@@ -215,7 +215,7 @@ def test_family_all_and_the_ranking_order() -> None:
     from morphgs.calibration.pipeline import expand_families, rank_families
 
     every = ["spatial", "radiometric", "morphological", "naive", "depth", "view_color", "needles", "holes", "dilate",
-             "floaters", "shatter", "popping", "haze", "sparse-like", "blur2d"]
+             "floaters", "shatter", "popping", "haze", "veil", "sparse-like", "blur2d"]
     assert expand_families(["all"]) == every
     assert expand_families(["mine.json", "all", "spatial"]) == ["mine.json", *every, "spatial"]
 

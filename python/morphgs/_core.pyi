@@ -230,6 +230,15 @@ def _haze(
     value: float,
     seed: int,
 ) -> dict[str, npt.NDArray[np.float32]]: ...
+def _veil(
+    world_to_camera: npt.NDArray[np.float64],
+    K: npt.NDArray[np.float64],
+    images: npt.NDArray[np.float32],
+    depth: npt.NDArray[np.float32],
+    *,
+    value: float,
+    seed: int,
+) -> dict[str, npt.NDArray[np.float32]]: ...
 def _shatter_removal(n: int, *, value: float, seed: int) -> npt.NDArray[np.bool_]: ...
 def _shatter(
     value: float,

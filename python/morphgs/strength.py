@@ -29,13 +29,15 @@ They keep those views close to clean and break the views between them:
 | floaters | min(10, s * b) new Gaussians per thousand training pixels, near the training cameras, coloured from the pixel they cover |
 | shatter | v = min(8, s * b): each Gaussian removed with probability 1 - exp(-v), the training views' pixels re-made as small fragments on their rays at depth d exp(0.3 v z) (`morphgs.shatter`) |
 | popping | a Gaussian of weight w (opacity x size) pops with probability 1 - (1 - b) ** (s * w): hidden from a cone of views between two training views |
+| haze | min(16, s * b) x 250 faint, large Gaussians per training view beside the training cameras (`morphgs.haze`) |
+| veil | min(16, s * b) x 100 faint, wide Gaussians per training view (at most) where every training view that sees them shows their colour (`morphgs.veil`) |
 
 Popping's cones ride along as the scene extras `POPPING_EXTRAS`; every render honours them frame by frame.
 
 Every op is the identity at s = 0, every op's noise grows continuously with s, and the same seed
 gives the same z at every s (common random numbers), so severity is a smooth function of s.
 Every op runs in the Rust perturb kernel (op ids 4, 1, 2, 3 for keep, position, colour and
-opacity; 7 and 8 for log_scale and rotation; 10-16 for the sparse-view ops), keyed by the
+opacity; 7 and 8 for log_scale and rotation; 10-18 for the sparse-view ops), keyed by the
 Gaussian's index in the input scene (shatter's fragments by their training pixel's), with exactly rounded float operations only: the same bytes
 for any thread count and on any CPU.
 """
@@ -59,14 +61,14 @@ __all__ = ["BASE", "BLUR_MAX_SIGMA", "CLASSIC_OPS", "FAMILIES", "OPS", "POPPING_
 CLASSIC_OPS: tuple[str, ...] = ("position", "color", "opacity", "keep", "log_scale", "rotation")
 #: The sparse-view ops (applied first, from the virtual training cameras).
 SPARSE_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "holes", "dilate", "floaters", "shatter", "popping",
-                                "haze")
+                                "haze", "veil")
 #: Every op of the strength parameterisation.
 OPS: tuple[str, ...] = CLASSIC_OPS + SPARSE_OPS
 #: The sparse-view ops of the one native pass `_artifacts` (shatter follows it, popping draws its
 #: caps after both).
 ARTIFACT_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "holes", "dilate", "floaters")
 #: The sparse-view ops that need training cameras (all but holes and dilate).
-CAMERA_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "floaters", "shatter", "popping", "haze")
+CAMERA_OPS: tuple[str, ...] = ("depth", "view_color", "needles", "floaters", "shatter", "popping", "haze", "veil")
 #: The sparse-view ops whose value is a fraction, 1 - (1 - b) ** s at strength s.
 FRACTION_OPS: tuple[str, ...] = ("needles", "holes", "popping")
 #: The scene extras that carry the popping caps (axis x, y, z and cap height h; docs/artifacts.md):
@@ -82,11 +84,13 @@ TRAIN_EVERY = 8
 #: (a factor 1.35 on every scale), floaters 0.2 per thousand training pixels, shatter 1.0 (63 % of
 #: the Gaussians replaced by fragments at a log-depth spread of 0.3), popping 0.3 (the share of
 #: median-sized opaque Gaussians that pop), haze 1.0 (250 faint Gaussians per training view beside
-#: the cameras, `morphgs.haze`: the population measured in real sparse fits).
+#: the cameras, `morphgs.haze`: the population measured in real sparse fits), veil 1.0 (at most 100
+#: Gaussians per training view that every training view seeing them shows in their own colour,
+#: `morphgs.veil`: the backdrop a real object capture's sparse fit leaves at the object's depth).
 BASE: dict[str, float] = {"position": 0.002, "color": 0.05, "opacity": 0.05, "keep": 0.5,
                           "log_scale": 0.5, "rotation": 0.5, "depth": 0.3, "view_color": 0.3, "needles": 0.2,
                           "holes": 0.1, "dilate": 0.3, "floaters": 0.2, "shatter": 1.0,
-                          "popping": 0.3, "haze": 1.0}
+                          "popping": 0.3, "haze": 1.0, "veil": 1.0}
 
 #: The families and their ops: the paper's four (unchanged), one per sparse-view op, and
 #: `sparse-like`, the sparse-view ops together.
@@ -99,7 +103,7 @@ FAMILIES: dict[str, tuple[str, ...]] = {
     "sparse-like": ("depth", "view_color", "needles", "holes", "floaters"),
 }
 #: Bounds of the effective values the kernel takes (larger strengths saturate there).
-_LIMITS = {"depth": 4.0, "dilate": 8.0, "floaters": 10.0, "shatter": 8.0, "haze": 16.0}
+_LIMITS = {"depth": 4.0, "dilate": 8.0, "floaters": 10.0, "shatter": 8.0, "haze": 16.0, "veil": 16.0}
 
 
 def _number(value: Any, what: str) -> float:
@@ -173,7 +177,7 @@ class Strength:
     @property
     def needs_cameras(self) -> bool:
         """Whether an enabled op needs the pair's cameras (depth, view_color, needles, floaters,
-        shatter, popping, haze)."""
+        shatter, popping, haze, veil)."""
         return any(op in self.base for op in CAMERA_OPS)
 
     def values(self) -> dict[str, float]:
@@ -239,14 +243,15 @@ class Strength:
         The sparse-view ops run first (`_artifacts`, ops 10-14; their training cameras are every
         `train_every`-th of `cameras`, the floaters coloured from clean renders of them), then
         shatter (`morphgs.shatter`), then haze appends its Gaussians (`morphgs.haze`; the paper's
-        ops then treat them as any other), then popping draws its caps on their output (`_popping`, op 15;
+        ops then treat them as any other), then the veil's (`morphgs.veil`, drawn from the clean
+        scene's training views), then popping draws its caps on their output (`_popping`, op 15;
         the caps become the scene extras `POPPING_EXTRAS`), then the paper's ops in one pass (ops 1
         to 4, 7 and 8), the holes removed with the pruning (the caps follow their rows). The noise
         of input Gaussian i is a pure function of (seed, op, i) in each.
 
         Args:
             cameras: the pair's cameras (a `Cameras` or a list): needed by depth, view_color,
-                needles, floaters, shatter and popping.
+                needles, floaters, shatter, popping, haze and veil.
             train_cameras: the virtual training cameras themselves (e.g. the views a real sparse
                 fit of this scene was trained on, as calibrate passes them), of one size,
                 instead of every `train_every`-th of `cameras`.
@@ -269,10 +274,14 @@ class Strength:
             if self.needs_cameras and cameras is None and train_cameras is None:
                 raise ValueError(f"the sparse-view op(s) {', '.join(k for k in CAMERA_OPS if k in v)} need the "
                                  "pair's cameras (cameras=...)")
+            # the veil is drawn from the clean scene's training views, whatever the other ops do
+            veil = self._veil(scene, v["veil"], seed, cameras, train_cameras) if v.get("veil", 0.0) > 0.0 else None
             if any(k in v for k in (*ARTIFACT_OPS, "shatter")):
                 scene, keep = self._sparse_ops(scene, v, seed, cameras, train_cameras)
             if v.get("haze", 0.0) > 0.0:
                 scene, keep = self._haze(scene, keep, v["haze"], seed, cameras, train_cameras)
+            if veil is not None:
+                scene, keep = _append(scene, keep, veil)
             if v.get("popping", 0.0) > 0.0:
                 scene = self._popping(scene, v["popping"], seed, cameras, train_cameras)
         result: Any = _perturb(
@@ -294,22 +303,26 @@ class Strength:
                      else f"every {self.train_every}th of the pair's {len(cameras)} cameras")
             raise ValueError(f"haze needs at least 2 virtual training cameras, got {len(train)} ({given}): "
                              "use a longer path or a smaller train_every")
-        h = haze_gaussians(value, train.world_to_camera, train.K, int(train.width), int(train.height), seed)
-        m = len(h["means"])
-        if m == 0:
-            return scene, keep
-        sh_rest = np.asarray(scene.sh_rest, np.float32)
-        extras = {k: np.concatenate([a, np.zeros((m, *a.shape[1:]), a.dtype)]) for k, a in scene.extras.items()}
-        joined = GaussianScene.from_arrays(
-            means=np.concatenate([scene.means, h["means"]]), quats=np.concatenate([scene.quats, h["quats"]]),
-            log_scales=np.concatenate([scene.log_scales, h["log_scales"]]),
-            opacity_logits=np.concatenate([scene.opacity_logits, h["opacity_logits"]]),
-            sh0=np.concatenate([scene.sh0, h["sh0"]]),
-            sh_rest=np.concatenate([sh_rest, np.zeros((m, *sh_rest.shape[1:]), np.float32)]),
-            extras=extras or None)
-        if keep is not None:
-            keep = np.ascontiguousarray(np.concatenate([np.asarray(keep, bool), np.ones(m, bool)]))
-        return joined, keep
+        return _append(scene, keep, haze_gaussians(value, train.world_to_camera, train.K, int(train.width),
+                                                   int(train.height), seed))
+
+    def _veil(self, scene: GaussianScene, value: float, seed: int, cameras: Any,
+              train_cameras: Any = None) -> dict[str, np.ndarray]:
+        """The veil Gaussians (`morphgs.veil`) of the clean `scene`'s training views."""
+        from morphgs.rendering import render
+        from morphgs.veil import veil_gaussians
+
+        train = self._train_views(cameras, train_cameras)
+        if len(train) < 2:  # a veil Gaussian must agree with two training views
+            given = ("the given train_cameras" if train_cameras is not None
+                     else f"every {self.train_every}th of the pair's {len(cameras)} cameras")
+            raise ValueError(f"veil needs at least 2 virtual training cameras, got {len(train)} ({given}): "
+                             "use a longer path or a smaller train_every")
+        clean = render(scene, train)
+        h, w = int(train.height), int(train.width)
+        return veil_gaussians(value, train.world_to_camera, train.K,
+                              np.asarray(clean.rgb, np.float32).reshape(len(train), h, w, 3),
+                              np.asarray(clean.depth, np.float32).reshape(len(train), h, w), seed)
 
     def _popping(self, scene: GaussianScene, fraction: float, seed: int, cameras: Any,
                  train_cameras: Any = None) -> GaussianScene:
@@ -379,6 +392,27 @@ class Strength:
                           holes=v.get("holes"), hole_size=0.05, dilate=v.get("dilate"), floaters=v.get("floaters"),
                           world_to_camera=np.ascontiguousarray(w2c, np.float64), K=np.ascontiguousarray(K, np.float64),
                           width=int(width), height=int(height), images=images, depth_maps=depth, seed=seed)
+
+
+def _append(scene: GaussianScene, keep: Any, h: Mapping[str, np.ndarray]) -> tuple[GaussianScene, Any]:
+    """`scene` with the rows `h` (an appending op's: means, quats, log_scales, opacity_logits, sh0;
+    higher SH bands and extras zero) after its own, and `keep` (None: keep all) with a True row for
+    each."""
+    m = len(h["means"])
+    if m == 0:
+        return scene, keep
+    sh_rest = np.asarray(scene.sh_rest, np.float32)
+    extras = {k: np.concatenate([a, np.zeros((m, *a.shape[1:]), a.dtype)]) for k, a in scene.extras.items()}
+    joined = GaussianScene.from_arrays(
+        means=np.concatenate([scene.means, h["means"]]), quats=np.concatenate([scene.quats, h["quats"]]),
+        log_scales=np.concatenate([scene.log_scales, h["log_scales"]]),
+        opacity_logits=np.concatenate([scene.opacity_logits, h["opacity_logits"]]),
+        sh0=np.concatenate([scene.sh0, h["sh0"]]),
+        sh_rest=np.concatenate([sh_rest, np.zeros((m, *sh_rest.shape[1:]), np.float32)]),
+        extras=extras or None)
+    if keep is not None:
+        keep = np.ascontiguousarray(np.concatenate([np.asarray(keep, bool), np.ones(m, bool)]))
+    return joined, keep
 
 
 #: The largest blur sigma (pixels) of `Blur2d` (as curate's blur2d).

@@ -11,6 +11,7 @@ use splat_core::perturb::artifacts::{self, ArtifactParams, TrainImages};
 use splat_core::perturb::haze;
 use splat_core::perturb::popping;
 use splat_core::perturb::shatter::{self, ShatterParams, Views};
+use splat_core::perturb::veil;
 use splat_core::perturb::PerturbParams;
 
 use crate::errors::detach;
@@ -409,6 +410,11 @@ fn _haze<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let cams = cameras_from(&world_to_camera, &K, width, height, 0.01, 1e10)?;
     let h = detach(py, || haze::haze(&cams, value, seed))?;
+    appended(py, &h)
+}
+
+/// The rows an appending op (haze, veil) made, as a dict of float32 arrays.
+fn appended<'py>(py: Python<'py>, h: &haze::Haze) -> PyResult<Bound<'py, PyDict>> {
     let n = h.len();
     let d = PyDict::new(py);
     d.set_item("means", flat3(&h.means).into_pyarray(py).reshape([n, 3])?)?;
@@ -418,9 +424,69 @@ fn _haze<'py>(
         "log_scales",
         flat3(&h.log_scales).into_pyarray(py).reshape([n, 3])?,
     )?;
-    d.set_item("opacity_logits", h.opacity_logits.into_pyarray(py))?;
+    d.set_item("opacity_logits", h.opacity_logits.clone().into_pyarray(py))?;
     d.set_item("sh0", flat3(&h.sh0).into_pyarray(py).reshape([n, 3])?)?;
     Ok(d)
+}
+
+/// The veil op's Gaussians (`splat_core::perturb::veil`): faint, wide Gaussians placed where every
+/// training view that sees them shows their own colour (docs/artifacts.md, "Veil").
+///
+/// Prefer `morphgs.strength.Strength.apply` (op "veil").
+///
+/// Args:
+///     world_to_camera, K: the training cameras, (V,4,4) and (V,3,3) float64, V >= 2.
+///     images, depth: their clean renders, (V,H,W,3) and (V,H,W) float32 (the expected camera z,
+///         0 where nothing is hit).
+///     value: the op's value v >= 0 (round(100 v V) Gaussians at most).
+///     seed: the seed of the counter-based generator.
+///
+/// Returns:
+///     A dict of float32 arrays means (N,3), quats (N,4) (w, x, y, z), log_scales (N,3),
+///     opacity_logits (N,), sh0 (N,3); a larger value gives the same first rows and more.
+///
+/// Raises:
+///     ValueError: a bad value, fewer than two cameras, bad camera matrices or maps that do not
+///         match them.
+#[pyfunction]
+#[pyo3(signature = (world_to_camera, K, images, depth, *, value, seed))]
+#[allow(non_snake_case)]
+fn _veil<'py>(
+    py: Python<'py>,
+    world_to_camera: PyReadonlyArray3<'py, f64>,
+    K: PyReadonlyArray3<'py, f64>,
+    images: PyReadonlyArray4<'py, f32>,
+    depth: PyReadonlyArray3<'py, f32>,
+    value: f32,
+    seed: u64,
+) -> PyResult<Bound<'py, PyDict>> {
+    let (ish, dsh) = (images.shape(), depth.shape());
+    if ish.len() != 4 || ish[3] != 3 || dsh != &ish[..3] {
+        return Err(PyValueError::new_err(format!(
+            "images must be (V,H,W,3) and depth (V,H,W), got {ish:?} and {dsh:?}"
+        )));
+    }
+    let cams = cameras_from(
+        &world_to_camera,
+        &K,
+        ish[2] as u32,
+        ish[1] as u32,
+        0.01,
+        1e10,
+    )?;
+    if cams.len() != ish[0] {
+        return Err(PyValueError::new_err(format!(
+            "one camera per training view: {} cameras for {} images",
+            cams.len(),
+            ish[0]
+        )));
+    }
+    let views = veil::Views {
+        rgb: slice_of(&images, "images")?,
+        depth: slice_of(&depth, "depth")?,
+    };
+    let h = detach(py, || veil::veil(&cams, views, value, seed))?;
+    appended(py, &h)
 }
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -430,5 +496,6 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_shatter_removal, m)?)?;
     m.add_function(wrap_pyfunction!(_shatter, m)?)?;
     m.add_function(wrap_pyfunction!(_haze, m)?)?;
+    m.add_function(wrap_pyfunction!(_veil, m)?)?;
     Ok(())
 }

@@ -238,10 +238,11 @@ pub fn haze(cams: &[Camera], value: f32, seed: u64) -> Result<Haze> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn ring(n: usize, size: (u32, u32)) -> Vec<Camera> {
+    /// `n` cameras on 90 % of a circle of radius 3 at height 1.6, looking at the origin.
+    pub(crate) fn ring(n: usize, size: (u32, u32)) -> Vec<Camera> {
         // cameras on a circle of radius 3 at height 1.6, looking at the origin (OpenCV axes)
         (0..n)
             .map(|k| {

@@ -17,6 +17,7 @@ pub mod haze;
 mod kernel;
 pub mod popping;
 pub mod shatter;
+pub mod veil;
 
 use crate::error::{Error, Result};
 use crate::mem::zeroed_f32;
