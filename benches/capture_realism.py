@@ -53,6 +53,7 @@ def main() -> None:
                     "\"ops\": {op: base value}} (repeatable; default: shatter, morphological, haze, veil)")
     ap.add_argument("--seeds", type=int, default=2, help="op seeds per family (synthetic clips per view)")
     ap.add_argument("--steps", type=int, default=240, help="the classifier's training steps")
+    ap.add_argument("--repeats", type=int, default=1, help="networks per fold, their logits averaged")
     a = ap.parse_args()
     families = a.family or ["shatter", "morphological", "haze", "veil"]
     posed = load_posed_images(a.capture)
@@ -117,7 +118,7 @@ def main() -> None:
                  for _ in range(a.seeds) for k in range(len(held))]
         clips += [Clip(x[k][None].astype(np.float32), ref[k][None].astype(np.float32), f"v{k}", 1)
                   for x in synth for k in range(len(held))]
-        res = classifier_test(clips, seed=0, steps=a.steps)
+        res = classifier_test(clips, seed=0, steps=a.steps, repeats=a.repeats)
         print(f"| {name} | {s:.3g} | {got:.2f} | {tr:.2f} | {on:.0%} | {dark:.0%} ({mean:+.3f}) | {res['auc']:.2f} | "
               f"{res['separation']:.1f} | {time.perf_counter() - t0:.0f} |", flush=True)
 
