@@ -54,6 +54,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=2, help="op seeds per family (synthetic clips per view)")
     ap.add_argument("--steps", type=int, default=240, help="the classifier's training steps")
     ap.add_argument("--repeats", type=int, default=1, help="networks per fold, their logits averaged")
+    ap.add_argument("--sheet", type=Path, help="write a contact sheet here: per row a held-out view (every "
+                    "fourth), the dense render, the real sparse fit's, then each family's (first seed)")
     a = ap.parse_args()
     families = a.family or ["shatter", "morphological", "haze", "veil"]
     posed = load_posed_images(a.capture)
@@ -97,6 +99,7 @@ def main() -> None:
         out = fam.at(s).apply(dense, seed=seed, train_cameras=tcams)
         return np.asarray(morphgs.render(out, cams_).rgb, np.float64)
 
+    columns, shown = [ref, real], []
     for name in families:
         t0 = time.perf_counter()
         fam = (Strength.from_dict(json.loads(Path(name).read_text())) if name.endswith(".json")
@@ -114,6 +117,8 @@ def main() -> None:
         got = float(np.mean([mean_psnr(x, ref) for x in synth]))
         tr = float(np.mean([mean_psnr(render_at(fam, s, seed, tcams), tref) for seed in range(a.seeds)]))
         on, dark, mean = anatomy(synth[0])
+        columns.append(synth[0])
+        shown.append(Path(name).stem)
         clips = [Clip(real[k][None].astype(np.float32), ref[k][None].astype(np.float32), f"v{k}", 0)
                  for _ in range(a.seeds) for k in range(len(held))]
         clips += [Clip(x[k][None].astype(np.float32), ref[k][None].astype(np.float32), f"v{k}", 1)
@@ -121,6 +126,14 @@ def main() -> None:
         res = classifier_test(clips, seed=0, steps=a.steps, repeats=a.repeats)
         print(f"| {name} | {s:.3g} | {got:.2f} | {tr:.2f} | {on:.0%} | {dark:.0%} ({mean:+.3f}) | {res['auc']:.2f} | "
               f"{res['separation']:.1f} | {time.perf_counter() - t0:.0f} |", flush=True)
+
+    if a.sheet:
+        import imageio.v3 as iio
+
+        rows = [np.concatenate([c[k] for c in columns], 1) for k in range(0, len(held), 4)]
+        a.sheet.parent.mkdir(parents=True, exist_ok=True)
+        iio.imwrite(a.sheet, (np.clip(np.concatenate(rows, 0), 0, 1) * 255).astype(np.uint8))
+        print(f"contact sheet (dense | real sparse | {' | '.join(shown)}): {a.sheet}")
 
 
 if __name__ == "__main__":

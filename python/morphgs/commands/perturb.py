@@ -183,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary, indent=2))
         return 0
     print(f"perturbed {args.input} -> {args.output}{label}, seed {args.seed}")
-    spawned = f", {summary['spawned']:,} added (floaters, shatter fragments, haze)" if summary["spawned"] else ""
+    spawned = f", {summary['spawned']:,} added (floaters, shatter fragments, haze, veil)" if summary["spawned"] else ""
     print(f"  gaussians : {len(scene):,} in, {kept:,} kept, {len(scene) - kept:,} pruned{spawned}")
     print(f"  operations: {ops or 'none'}")
     if "popping" in summary:
