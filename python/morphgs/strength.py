@@ -297,14 +297,21 @@ class Strength:
         all) with a True row for each."""
         from morphgs.haze import haze_gaussians
 
-        train = self._train_views(cameras, train_cameras)
-        if len(train) < 2:  # its distances are in units of the training cameras' spacing
-            given = ("the given train_cameras" if train_cameras is not None
-                     else f"every {self.train_every}th of the pair's {len(cameras)} cameras")
-            raise ValueError(f"haze needs at least 2 virtual training cameras, got {len(train)} ({given}): "
-                             "use a longer path or a smaller train_every")
+        # its distances are in units of the training cameras' spacing
+        train = self._two_views("haze", cameras, train_cameras)
         return _append(scene, keep, haze_gaussians(value, train.world_to_camera, train.K, int(train.width),
                                                    int(train.height), seed))
+
+    def _two_views(self, op: str, cameras: Any, train_cameras: Any) -> Any:
+        """The virtual training cameras of `op`, which needs two at least (else one line saying
+        where they came from and the fix)."""
+        train = self._train_views(cameras, train_cameras)
+        if len(train) < 2:
+            given = ("the given train_cameras" if train_cameras is not None
+                     else f"every {self.train_every}th of the pair's {len(cameras)} cameras")
+            raise ValueError(f"{op} needs at least 2 virtual training cameras, got {len(train)} ({given}): "
+                             "use a longer path or a smaller train_every")
+        return train
 
     def _veil(self, scene: GaussianScene, value: float, seed: int, cameras: Any,
               train_cameras: Any = None) -> dict[str, np.ndarray]:
@@ -312,12 +319,7 @@ class Strength:
         from morphgs.rendering import render
         from morphgs.veil import veil_gaussians
 
-        train = self._train_views(cameras, train_cameras)
-        if len(train) < 2:  # a veil Gaussian must agree with two training views
-            given = ("the given train_cameras" if train_cameras is not None
-                     else f"every {self.train_every}th of the pair's {len(cameras)} cameras")
-            raise ValueError(f"veil needs at least 2 virtual training cameras, got {len(train)} ({given}): "
-                             "use a longer path or a smaller train_every")
+        train = self._two_views("veil", cameras, train_cameras)  # a veil Gaussian must agree with two
         clean = render(scene, train)
         h, w = int(train.height), int(train.width)
         return veil_gaussians(value, train.world_to_camera, train.K,
