@@ -133,6 +133,8 @@ def test_veil_composes_through_curate_and_says_what_is_wrong(tmp_path: Path) -> 
     depth = np.zeros((len(train), train.height, train.width), np.float32)
     with pytest.raises(ValueError, match="value must be finite"):
         veil_gaussians(float("nan"), train.world_to_camera, train.K, images, depth, 0)
+    with pytest.raises(ValueError, match=r"value must be finite and in \[0, 16\], got 1e\+30"):
+        veil_gaussians(1e30, train.world_to_camera, train.K, images, depth, 0)  # no huge allocation
     with pytest.raises(ValueError, match="images must be"):
         veil_gaussians(1.0, train.world_to_camera, train.K, images[..., :2], depth, 0)
     with pytest.raises(ValueError, match="veil needs at least 2 virtual training cameras, got 1"):

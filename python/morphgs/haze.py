@@ -48,9 +48,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["MAX_PX", "OPACITY", "PER_VIEW", "R_HI", "R_LO", "SCALE", "haze_gaussians", "spacing"]
+__all__ = ["MAX_PX", "MAX_VALUE", "OPACITY", "PER_VIEW", "R_HI", "R_LO", "SCALE", "haze_gaussians", "spacing"]
 
 # the kernel's constants (splat_core::perturb::haze), for tests and benches
+MAX_VALUE = 16.0  # the largest value (the strength parameterisation's limit)
 PER_VIEW = 250.0
 R_LO, R_HI = 0.3, 0.6
 SCALE = 0.05
@@ -75,7 +76,7 @@ def haze_gaussians(value: float, world_to_camera: Any, K: Any, width: int, heigh
     (n, 3, largest first), opacity_logits (n,), sh0 (n, 3), all float32 (n may be 0).
 
     Raises:
-        ValueError: a value that is not finite and >= 0, fewer than two cameras, bad matrices.
+        ValueError: a value that is not finite and in [0, MAX_VALUE] (16), fewer than two cameras, bad matrices.
     """
     from morphgs import _core
 
@@ -84,6 +85,6 @@ def haze_gaussians(value: float, world_to_camera: Any, K: Any, width: int, heigh
     if w2c.ndim != 3 or w2c.shape[1:] != (4, 4) or K.shape != (len(w2c), 3, 3):
         raise ValueError(f"haze: world_to_camera must be (V, 4, 4) and K (V, 3, 3), got {w2c.shape} and {K.shape}")
     value = float(value)
-    if not np.isfinite(value) or value < 0:
-        raise ValueError(f"haze: the value must be finite and >= 0, got {value}")
+    if not np.isfinite(value) or not 0 <= value <= MAX_VALUE:
+        raise ValueError(f"haze: the value must be finite and in [0, {MAX_VALUE:g}], got {value}")
     return dict(_core._haze(w2c, K, int(width), int(height), value=value, seed=int(seed)))

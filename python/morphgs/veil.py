@@ -44,10 +44,11 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["FRONT", "MAX_SIGMA_PX", "MIN_VIEWS", "OPACITY", "PER_VIEW", "SIGMA_PX_HI", "SIGMA_PX_LO", "TOLERANCE",
-           "veil_gaussians"]
+__all__ = ["FRONT", "MAX_SIGMA_PX", "MAX_VALUE", "MIN_VIEWS", "OPACITY", "PER_VIEW", "SIGMA_PX_HI", "SIGMA_PX_LO",
+           "TOLERANCE", "veil_gaussians"]
 
 # the kernel's constants (splat_core::perturb::veil), for tests and benches
+MAX_VALUE = 16.0  # the largest value (the strength parameterisation's limit)
 PER_VIEW = 100.0
 TOLERANCE = 0.08
 FRONT = 0.3
@@ -65,8 +66,9 @@ def veil_gaussians(value: float, world_to_camera: Any, K: Any, images: Any, dept
     log_scales (n, 3), opacity_logits (n,), sh0 (n, 3), all float32 (n may be 0).
 
     Raises:
-        ValueError: a value that is not finite and >= 0, fewer than two cameras (a veil Gaussian
-            must agree with two training views), bad matrices or maps that do not match them.
+        ValueError: a value that is not finite and in [0, MAX_VALUE] (16), fewer than two cameras
+            (a veil Gaussian must agree with two training views), bad matrices or maps that do not
+            match them.
     """
     from morphgs import _core
 
@@ -75,7 +77,7 @@ def veil_gaussians(value: float, world_to_camera: Any, K: Any, images: Any, dept
     if w2c.ndim != 3 or w2c.shape[1:] != (4, 4) or K.shape != (len(w2c), 3, 3):
         raise ValueError(f"veil: world_to_camera must be (V, 4, 4) and K (V, 3, 3), got {w2c.shape} and {K.shape}")
     value = float(value)
-    if not np.isfinite(value) or value < 0:
-        raise ValueError(f"veil: the value must be finite and >= 0, got {value}")
+    if not np.isfinite(value) or not 0 <= value <= MAX_VALUE:
+        raise ValueError(f"veil: the value must be finite and in [0, {MAX_VALUE:g}], got {value}")
     return dict(_core._veil(w2c, K, np.ascontiguousarray(images, np.float32), np.ascontiguousarray(depth, np.float32),
                             value=value, seed=int(seed)))

@@ -16,6 +16,8 @@ use crate::rng::{normal_pair, op_key, Stream};
 
 /// Op id of the haze op's draws.
 pub const OP_HAZE: u32 = 17;
+/// The largest value (the strength parameterisation's limit): bounds the Gaussians asked for.
+pub const MAX_VALUE: f32 = 16.0;
 /// Gaussians per training view at value 1 (the measured population of a 10-12 view fit).
 pub const PER_VIEW: f64 = 250.0;
 /// The distance from the training camera a candidate is drawn beside, in units of D.
@@ -166,9 +168,9 @@ fn candidate(f: &Frame<'_>, i: u64) -> Option<Candidate> {
 /// `round(value x PER_VIEW x V)` Gaussians, fewer where the path leaves no room for them within
 /// `MAX_CANDIDATES_PER` candidates each.
 pub fn haze(cams: &[Camera], value: f32, seed: u64) -> Result<Haze> {
-    if !(value.is_finite() && value >= 0.0) {
+    if !(value.is_finite() && (0.0..=MAX_VALUE).contains(&value)) {
         return Err(Error::InvalidArgument(format!(
-            "haze value must be a finite number >= 0, got {value}"
+            "haze value must be a finite number in [0, {MAX_VALUE}], got {value}"
         )));
     }
     if cams.len() < 2 {
@@ -308,6 +310,7 @@ pub(crate) mod tests {
         let cams = ring(8, (96, 72));
         assert!(haze(&cams, f32::NAN, 0).is_err());
         assert!(haze(&cams, -1.0, 0).is_err());
+        assert!(haze(&cams, 1e30, 0).is_err()); // no huge allocation
         assert!(haze(&cams[..1], 1.0, 0).is_err());
     }
 }

@@ -29,6 +29,8 @@ use crate::rng::{normal_pair, op_key, Stream};
 
 /// Op id of the veil op's draws.
 pub const OP_VEIL: u32 = 18;
+/// The largest value (the strength parameterisation's limit): bounds the Gaussians asked for.
+pub const MAX_VALUE: f32 = 16.0;
 /// Gaussians per training view at value 1.
 pub const PER_VIEW: f64 = 100.0;
 /// The largest RMS colour difference (over the channels) between a veil Gaussian and any pixel it
@@ -212,9 +214,9 @@ impl Frame<'_> {
 /// Errors: a bad value, fewer than [`MIN_VIEWS`] cameras, cameras of different sizes, maps that do
 /// not match them.
 pub fn veil(cams: &[Camera], views: Views<'_>, value: f32, seed: u64) -> Result<Haze> {
-    if !(value.is_finite() && value >= 0.0) {
+    if !(value.is_finite() && (0.0..=MAX_VALUE).contains(&value)) {
         return Err(Error::InvalidArgument(format!(
-            "veil value must be a finite number >= 0, got {value}"
+            "veil value must be a finite number in [0, {MAX_VALUE}], got {value}"
         )));
     }
     if cams.len() < MIN_VIEWS {

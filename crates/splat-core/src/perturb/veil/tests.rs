@@ -150,6 +150,7 @@ fn bad_values_and_maps_are_errors() {
     };
     assert!(veil(&cams, views, f32::NAN, 0).is_err());
     assert!(veil(&cams, views, -1.0, 0).is_err());
+    assert!(veil(&cams, views, 1e30, 0).is_err()); // no huge allocation
     assert!(veil(&[], views, 1.0, 0).is_err());
     assert!(veil(&cams[..1], views, 1.0, 0).is_err());
     let short = Views {
