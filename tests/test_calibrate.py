@@ -329,7 +329,7 @@ def _err(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
 def test_bad_input(hidden_strength: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = str(tmp_path / "c")
     assert ("--family blurry: unknown family; valid families: spatial, radiometric, morphological, naive, depth, "
-            "view_color, needles, holes, dilate, floaters, shatter, popping, haze, sparse-like, blur2d") in _err(
+            "view_color, needles, holes, dilate, floaters, shatter, popping, haze, veil, sparse-like, blur2d") in _err(
         capsys, ["calibrate", "--real", str(hidden_strength), "--family", "blurry", "--out", out])
     bad_family = tmp_path / "fam.json"
     bad_family.write_text(json.dumps({"family": "morphological", "ops": {"prune": 0.5}}))
