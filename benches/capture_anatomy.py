@@ -94,26 +94,34 @@ def blend_weights(scene: Any, cams: list[Any]) -> np.ndarray | None:
     return np.stack(out)
 
 
+def capture_fits(capture: Path, every: int, work: Path) -> tuple[Any, Cameras, list[int], list[int], Any, Any]:
+    """The capture's undistorted photos and cameras, its training (every `every`-th) and held-out
+    indices, and its two fits under `work` (resumed): dense (every photo, 5,000 steps) and sparse
+    (the training photos, 3,000 steps), the toy study's settings."""
+    posed = load_posed_images(capture)
+    n = len(posed)
+    imgs, cam_list, _ = posed.read(list(range(n)), cache=work / "undistorted")
+    train = list(range(0, n, every))
+    held = [i for i in range(n) if i not in train]
+
+    def cfg(steps: int) -> Any:
+        return fit_config({"steps": steps, "random_points": 20000, "cap_max": 60000}, 0)
+
+    dense = fit(capture, work / "dense", config=cfg(5000), views=list(range(n)), holdout="none",
+                progress=False, resume=True).scene
+    sparse = fit(capture, work / f"sparse-every{every}", config=cfg(3000), views=train, holdout="none",
+                 progress=False, resume=True).scene
+    return imgs, Cameras.from_list(cam_list), train, held, dense, sparse
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("capture", nargs="?", type=Path, default=HERE.parent / "tests/fixtures/captures/skull")
     ap.add_argument("--every", type=int, default=4, help="the sparse fit's training photos: every N-th")
     ap.add_argument("--work", type=Path, default=Path("capture-anatomy"), help="fits and the contact sheet")
     a = ap.parse_args()
-    posed = load_posed_images(a.capture)
-    n = len(posed)
-    imgs, cam_list, _ = posed.read(list(range(n)), cache=a.work / "undistorted")
-    cams = Cameras.from_list(cam_list)
-    train = list(range(0, n, a.every))
-    held = [i for i in range(n) if i not in train]
-
-    def cfg(steps: int) -> Any:
-        return fit_config({"steps": steps, "random_points": 20000, "cap_max": 60000}, 0)
-
-    dense = fit(a.capture, a.work / "dense", config=cfg(5000), views=list(range(n)), holdout="none",
-                progress=False, resume=True).scene
-    sparse = fit(a.capture, a.work / f"sparse-every{a.every}", config=cfg(3000), views=train, holdout="none",
-                 progress=False, resume=True).scene
+    imgs, cams, train, held, dense, sparse = capture_fits(a.capture, a.every, a.work)
+    n = len(cams)
     hcams = Cameras.from_list([cams[i] for i in held])
     tcams = [cams[i] for i in train]
     photo = np.stack([imgs[i] for i in held]).astype(np.float64) / 255.0

@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -28,12 +29,12 @@ from typing import Any
 import numpy as np
 
 import morphgs
-from morphgs.ablation.stages.common import fit_config
 from morphgs.calibration.realism import Clip, classifier_test
 from morphgs.camera import Cameras
-from morphgs.fit import fit
-from morphgs.fit.data import load_posed_images
 from morphgs.strength import Strength
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from capture_anatomy import capture_fits  # noqa: E402  (the same fits, resumed from the same --work)
 
 HERE = Path(__file__).resolve().parent
 LUMA = np.array([0.299, 0.587, 0.114])
@@ -58,20 +59,7 @@ def main() -> None:
                     "fourth), the dense render, the real sparse fit's, then each family's (first seed)")
     a = ap.parse_args()
     families = a.family or ["shatter", "morphological", "haze", "veil"]
-    posed = load_posed_images(a.capture)
-    n = len(posed)
-    _, cam_list, _ = posed.read(list(range(n)), cache=a.work / "undistorted")
-    cams = Cameras.from_list(cam_list)
-    train = list(range(0, n, a.every))
-    held = [i for i in range(n) if i not in train]
-
-    def cfg(steps: int) -> Any:
-        return fit_config({"steps": steps, "random_points": 20000, "cap_max": 60000}, 0)
-
-    dense = fit(a.capture, a.work / "dense", config=cfg(5000), views=list(range(n)), holdout="none",
-                progress=False, resume=True).scene
-    sparse = fit(a.capture, a.work / f"sparse-every{a.every}", config=cfg(3000), views=train, holdout="none",
-                 progress=False, resume=True).scene
+    _, cams, train, held, dense, sparse = capture_fits(a.capture, a.every, a.work)
     hcams = Cameras.from_list([cams[i] for i in held])
     tcams = Cameras.from_list([cams[i] for i in train])
     rd = morphgs.render(dense, hcams)

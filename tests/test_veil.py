@@ -23,17 +23,12 @@ import pytest
 import morphgs
 from morphgs.strength import Strength
 from morphgs.veil import OPACITY, PER_VIEW, veil_gaussians
-from test_artifacts import room as artifacts_room
+from test_haze import room  # the pinned room with a 48-view orbit: 6 training views
 
 #: sha256 (first 32 hex digits) of `veil~1.5` and `shatter + veil` on `room()` (outputs and masks)
 PINNED = "42d29d79dff78d8162299f589ab91ef6"
 #: sha256 (first 32 hex digits) of the kernel's own output (`kernel_digest`)
 KERNEL_PINNED = "f8e59b431c35b5afc57b6a0937079e61"
-
-
-def room() -> tuple[morphgs.GaussianScene, morphgs.Cameras]:
-    """`test_artifacts.room` with a 48-view orbit: 6 training views at the default train_every."""
-    return artifacts_room(48)
 
 
 def digest() -> str:

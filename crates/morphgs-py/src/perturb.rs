@@ -265,6 +265,31 @@ fn flat3(v: &[[f32; 3]]) -> Vec<f32> {
     v.iter().flatten().copied().collect()
 }
 
+/// The training cameras of images of shape `(V, H, W, 3)`: one per image, at the images' size.
+#[allow(non_snake_case)]
+fn view_cameras(
+    world_to_camera: &PyReadonlyArray3<'_, f64>,
+    K: &PyReadonlyArray3<'_, f64>,
+    shape: &[usize],
+) -> PyResult<Vec<splat_core::camera::Camera>> {
+    let cams = cameras_from(
+        world_to_camera,
+        K,
+        shape[2] as u32,
+        shape[1] as u32,
+        0.01,
+        1e10,
+    )?;
+    if cams.len() != shape[0] {
+        return Err(PyValueError::new_err(format!(
+            "one camera per training view: {} cameras for {} images",
+            cams.len(),
+            shape[0]
+        )));
+    }
+    Ok(cams)
+}
+
 /// Which of `n` Gaussians the shatter op removes at `value` (`splat_core::perturb::shatter`).
 ///
 /// Prefer `morphgs.strength.Strength.apply` (op "shatter").
@@ -334,21 +359,7 @@ fn _shatter<'py>(
             "images must be (T,H,W,3) and depth and alpha (T,H,W), got {ish:?}, {dsh:?} and {ash:?}"
         )));
     }
-    let cams = cameras_from(
-        &world_to_camera,
-        &K,
-        ish[2] as u32,
-        ish[1] as u32,
-        0.01,
-        1e10,
-    )?;
-    if cams.len() != ish[0] {
-        return Err(PyValueError::new_err(format!(
-            "one camera per training view: {} cameras for {} images",
-            cams.len(),
-            ish[0]
-        )));
-    }
+    let cams = view_cameras(&world_to_camera, &K, ish)?;
     let views = Views {
         rgb: slice_of(&images, "images")?,
         depth: slice_of(&depth, "depth")?,
@@ -466,21 +477,7 @@ fn _veil<'py>(
             "images must be (V,H,W,3) and depth (V,H,W), got {ish:?} and {dsh:?}"
         )));
     }
-    let cams = cameras_from(
-        &world_to_camera,
-        &K,
-        ish[2] as u32,
-        ish[1] as u32,
-        0.01,
-        1e10,
-    )?;
-    if cams.len() != ish[0] {
-        return Err(PyValueError::new_err(format!(
-            "one camera per training view: {} cameras for {} images",
-            cams.len(),
-            ish[0]
-        )));
-    }
+    let cams = view_cameras(&world_to_camera, &K, ish)?;
     let views = veil::Views {
         rgb: slice_of(&images, "images")?,
         depth: slice_of(&depth, "depth")?,

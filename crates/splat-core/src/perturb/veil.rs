@@ -21,6 +21,7 @@
 //! exactly rounded operations and `fastmath`'s exp and ln: the same bits on every CPU.
 use rayon::prelude::*;
 
+use super::artifacts::Train;
 use super::haze::Haze;
 use crate::camera::Camera;
 use crate::error::{Error, Result};
@@ -67,20 +68,9 @@ pub struct Views<'a> {
     pub depth: &'a [f32],
 }
 
-/// One training camera in f32 (the scene's precision): centre, world-to-camera rotation,
-/// intrinsics.
-struct Cam {
-    centre: [f32; 3],
-    rot: [[f32; 3]; 3],
-    fx: f32,
-    fy: f32,
-    cx: f32,
-    cy: f32,
-}
-
 struct Frame<'a> {
     key: u64,
-    cams: Vec<Cam>,
+    cams: Vec<Train>,
     views: Views<'a>,
     w: usize,
     h: usize,
@@ -249,23 +239,9 @@ pub fn veil(cams: &[Camera], views: Views<'_>, value: f32, seed: u64) -> Result<
     if n == 0 {
         return Ok(out);
     }
-    let f = |v: f64| v as f32;
     let frame = Frame {
         key: op_key(seed, OP_VEIL),
-        cams: cams
-            .iter()
-            .map(|c| {
-                let o = c.center();
-                Cam {
-                    centre: o.map(f),
-                    rot: c.rotation().map(|row| row.map(f)),
-                    fx: f(c.fx),
-                    fy: f(c.fy),
-                    cx: f(c.cx),
-                    cy: f(c.cy),
-                }
-            })
-            .collect(),
+        cams: cams.iter().map(Train::of).collect(),
         views,
         w,
         h,

@@ -180,15 +180,15 @@ pub const OCCLUSION_SLACK: f32 = 2.0;
 
 /// One training camera's centre, world-to-camera rotation and intrinsics (f32 as the scene).
 #[derive(Debug, Clone, Copy)]
-struct Train {
-    centre: [f32; 3],
-    rot: [[f32; 3]; 3],
-    fx: f32,
-    fy: f32,
-    cx: f32,
-    cy: f32,
-    width: u32,
-    height: u32,
+pub(super) struct Train {
+    pub(super) centre: [f32; 3],
+    pub(super) rot: [[f32; 3]; 3],
+    pub(super) fx: f32,
+    pub(super) fy: f32,
+    pub(super) cx: f32,
+    pub(super) cy: f32,
+    pub(super) width: u32,
+    pub(super) height: u32,
 }
 
 impl Train {
@@ -207,7 +207,7 @@ impl Train {
             .then_some([u, v, z])
     }
 
-    fn of(cam: &Camera) -> Train {
+    pub(super) fn of(cam: &Camera) -> Train {
         let c = cam.center();
         let r = cam.rotation();
         let f = |v: f64| v as f32;
